@@ -1,0 +1,20 @@
+# One command each: `make demo` sets up and builds the bundled example; `make test` sets up and runs the tests.
+.PHONY: setup demo test bench clean
+VENV := .venv/bin
+
+setup:
+	bash scripts/setup.sh
+
+demo: setup
+	$(VENV)/usdrelight build examples/motorcycle/photo.png --depth examples/motorcycle/depth.exr \
+		--intrinsics examples/motorcycle/intrinsics.json -o out/motorcycle
+	$(VENV)/usdrelight validate out/motorcycle/scene.usda
+
+test: setup
+	$(VENV)/python -m pytest -q
+
+bench: setup
+	$(VENV)/python benchmarks/bench_build.py
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Set up usdrelight on a fresh Debian/Ubuntu machine: system LLVM for drjit, a virtual
+# environment in .venv with the package (editable) and its test extras.
+# Idempotent: a second run only re-installs when pyproject.toml changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+EXTRAS=${USDRELIGHT_EXTRAS:-test}
+
+log() { printf 'setup: %s\n' "$*" >&2; }
+
+# drjit's LLVM backend (mitsuba's llvm_ad_rgb) needs libLLVM >= 16; Debian's default 14/15 crash it
+# ("Cannot select fminimum"). Install Debian's libllvm19 when no suitable libLLVM is present.
+have_llvm() { ls /usr/lib/*/libLLVM.so.1[6-9]* /usr/lib/*/libLLVM-1[6-9].so* /usr/lib/*/libLLVM.so.2[0-9]* \
+                 /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* 2>/dev/null | grep -q . ; }
+if ! have_llvm; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
+  if command -v apt-get >/dev/null; then
+    log "installing libllvm19 (drjit LLVM backend)"
+    $SUDO apt-get install -y -qq libllvm19 >/dev/null 2>&1 || { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq libllvm19 >/dev/null; }
+  else
+    log "WARNING: no apt-get; install LLVM >= 16 yourself and set DRJIT_LIBLLVM_PATH"
+  fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  log "creating .venv"
+  "$PY" -m venv .venv
+fi
+stamp=.venv/.usdrelight-installed
+want="$(cat pyproject.toml | sha256sum | cut -d' ' -f1)-$EXTRAS"
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -c 'import usdrelight' 2>/dev/null; then
+  log "installing usdrelight[$EXTRAS] into .venv"
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
+  echo "$want" > "$stamp"
+fi
+log "ready: $(.venv/bin/python -c 'import usdrelight, sys; print("usdrelight", usdrelight.__version__, "on python", sys.version.split()[0])')"

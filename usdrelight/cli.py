@@ -1,0 +1,181 @@
+"""``usdrelight`` command line: thin wrappers over the library functions.
+
+Every subcommand takes ``--json`` (a machine-readable summary on stdout). Logs and progress go
+to stderr. Bad input ends with one line ``usdrelight: error: ...`` on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import UsdRelightError
+
+log = logging.getLogger("usdrelight")
+EXIT_USER_ERROR = 2
+EXIT_INTERNAL = 1
+
+
+def _setup_logging(verbosity: int) -> None:
+    level = logging.WARNING - 10 * verbosity
+    try:
+        from rich.logging import RichHandler
+
+        handler = RichHandler(console=_stderr_console(), show_time=False, show_path=False, markup=False)
+        fmt = "%(message)s"
+    except ImportError:  # pragma: no cover - rich is a dependency
+        handler, fmt = logging.StreamHandler(sys.stderr), "%(levelname)s %(message)s"
+    handler.setFormatter(logging.Formatter(fmt))
+    root = logging.getLogger("usdrelight")
+    root.handlers[:] = [handler]
+    root.setLevel(max(level, logging.DEBUG))
+    root.propagate = False
+
+
+def _stderr_console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+class _Steps:
+    """A rich progress bar over named steps, on stderr; silent when stderr is not a terminal."""
+
+    def __init__(self, names, title):
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.names = list(names)
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                                 console=_stderr_console(), transient=True,
+                                 disable=not sys.stderr.isatty())
+        self.task = None
+        self.title = title
+
+    def __enter__(self):
+        self.progress.__enter__()
+        self.task = self.progress.add_task(f"{self.title}: {self.names[0]}", total=len(self.names))
+        return self
+
+    def __call__(self, done_name):
+        i = self.names.index(done_name) + 1 if done_name in self.names else 0
+        nxt = self.names[i] if i < len(self.names) else "done"
+        self.progress.update(self.task, advance=1, description=f"{self.title}: {nxt}")
+        log.info("%s: %s done", self.title, done_name)
+
+    def __exit__(self, *exc):
+        return self.progress.__exit__(*exc)
+
+
+def _emit(args, summary: dict, human: str) -> None:
+    if args.json:
+        sys.stdout.write(json.dumps(summary, indent=2, default=str) + "\n")
+    else:
+        sys.stdout.write(human + "\n")
+
+
+# ---- subcommands ------------------------------------------------------------------------------
+def cmd_build(args) -> int:
+    from .build import BuildOptions, build
+
+    opts = BuildOptions(depth=args.depth, points=args.points, intrinsics=args.intrinsics, fov_x=args.fov_x,
+                        albedo=args.albedo, shading=args.shading, mask=args.mask,
+                        geometry_model=args.geometry_model, albedo_model=args.albedo_model,
+                        stride=args.decimate, max_grazing_deg=args.max_grazing_deg)
+    with _Steps(["read", "geometry", "albedo", "mesh", "write"], "build") as steps:
+        res = build(args.photo, args.output, opts, progress=steps)
+    summary = {
+        "stage": str(res.stage), "width": res.width, "height": res.height, "vertices": res.n_vertices,
+        "faces": res.n_faces, "vertex_fraction": round(res.vertex_fraction, 6), "triangles_cut": res.triangles_cut,
+        "geometry": res.geometry_source, "albedo": res.albedo_source, "intrinsics_opencv": res.intrinsics,
+        "seconds": {k: round(v, 4) for k, v in res.seconds.items()}, "bytes": res.files,
+    }
+    _emit(args, summary, f"wrote {res.stage} ({res.width}x{res.height}, {res.n_vertices} vertices, "
+                         f"{res.n_faces} triangles, {res.seconds['total']:.2f} s)")
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from .validate import errors_only, open_stage, validate_stage
+
+    stage = open_stage(args.stage)
+    findings = validate_stage(stage)
+    errors = errors_only(findings)
+    summary = {"stage": str(args.stage), "errors": len(errors), "findings": [f.__dict__ for f in findings]}
+    lines = [f"{f.severity}: [{f.validator}] {f.message} {' '.join(f.sites)}".rstrip() for f in findings]
+    lines.append(f"{args.stage}: {len(errors)} error(s), {len(findings) - len(errors)} other finding(s)")
+    _emit(args, summary, "\n".join(lines))
+    return 0 if not errors else 1
+
+
+# ---- parser ---------------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--json", action="store_true", help="print a machine-readable JSON summary on stdout")
+    common.add_argument("-v", "--verbose", action="count", default=0, help="more logging on stderr (-vv for debug)")
+    common.add_argument("--debug", action="store_true", help="show tracebacks of unexpected errors")
+
+    p = argparse.ArgumentParser(prog="usdrelight", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"usdrelight {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    b = sub.add_parser("build", parents=[common], help="photo -> OUTDIR/scene.usda",
+                       description="Build a relightable USD scene from one photograph.")
+    b.add_argument("photo", type=Path, help="photograph (JPEG/PNG/TIFF: sRGB; EXR: linear)")
+    b.add_argument("-o", "--output", type=Path, required=True, help="output directory (gets scene.usda)")
+    g = b.add_mutually_exclusive_group()
+    g.add_argument("--depth", type=Path, help="z-depth map in metres (.npy/.exr/.pfm); <=0, NaN, Inf = invalid")
+    g.add_argument("--points", type=Path, help="point map HxWx3, OpenCV camera frame, Inf/NaN = invalid")
+    g.add_argument("--geometry-model", type=Path, help="ONNX geometry model (see README, model contracts)")
+    k = b.add_mutually_exclusive_group()
+    k.add_argument("--intrinsics", type=Path, help='JSON: {"fx","fy","cx","cy"} (OpenCV pixels) or normalized 3x3')
+    k.add_argument("--fov-x", type=float, help="horizontal field of view in degrees")
+    b.add_argument("--albedo", type=Path, help="albedo map (linear), e.g. CID hr_alb")
+    b.add_argument("--shading", type=Path, help="diffuse shading map (linear), e.g. CID dif_shd; needs --albedo")
+    b.add_argument("--albedo-model", type=Path, help="ONNX albedo model (see README, model contracts)")
+    b.add_argument("--mask", type=Path, help="valid-pixel mask (non-zero = keep)")
+    b.add_argument("--decimate", type=_positive_int, default=1, metavar="N",
+                   help="keep every N-th pixel row and column as vertices (projective UVs are kept)")
+    b.add_argument("--max-grazing-deg", type=float, default=88.0,
+                   help="cut triangles whose normal is more than this many degrees from the view ray")
+    b.set_defaults(func=cmd_build)
+
+    v = sub.add_parser("validate", parents=[common], help="run every pxr.UsdValidation validator",
+                       description="Exit 0 only when no validator reports an error.")
+    v.add_argument("stage", type=Path)
+    v.set_defaults(func=cmd_validate)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        return int(args.func(args) or 0)
+    except UsdRelightError as exc:
+        sys.stderr.write(f"usdrelight: error: {exc}\n")
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        sys.stderr.write("usdrelight: interrupted\n")
+        return 130
+    except Exception as exc:  # never a traceback for the user unless asked
+        if args.debug:
+            raise
+        msg = str(exc).strip().splitlines()
+        sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {msg[0] if msg else ''} "
+                         f"(rerun with --debug for a traceback)\n")
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

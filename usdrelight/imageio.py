@@ -1,0 +1,193 @@
+"""Image and map I/O through OpenImageIO, with the colour conventions of the pipeline.
+
+Conventions
+-----------
+* Arrays are ``float32``, shape ``(H, W, C)``, row 0 at the top of the picture.
+* Photos in 8/16-bit integer formats (JPEG, PNG, TIFF, ...) are sRGB-encoded and decoded to
+  linear Rec.709; float formats (EXR, HDR, PFM, float TIFF) are taken as linear already.
+* EXIF orientation is applied, so arrays are upright as a viewer would show them.
+* Every writer writes to a temporary file next to the target and renames it into place, so an
+  interrupted run never leaves a half-written file.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UsdRelightError
+
+LINEAR_FORMATS = {"float", "half", "double"}
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encoding; input clipped to [0, 1]."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def _oiio():
+    import OpenImageIO as oiio
+
+    return oiio
+
+
+def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
+    """Read an image file as float32 (H, W, C) without colour conversion.
+
+    Returns ``(pixels, is_float)`` where ``is_float`` tells whether the file stores float data
+    (and is therefore linear by the conventions above). Raises UsdRelightError on a missing or
+    unreadable file.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise UsdRelightError(f"file not found: {path}")
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error or not buf.initialized:
+        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'unknown format'}")
+    is_float = str(buf.spec().format) in LINEAR_FORMATS
+    if buf.orientation != 1:
+        buf = oiio.ImageBufAlgo.reorient(buf)
+    pixels = buf.get_pixels(oiio.FLOAT)
+    if buf.has_error or pixels is None or getattr(pixels, "size", 0) == 0:
+        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'no pixels'}")
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    return pixels, is_float
+
+
+def read_photo(path: str | os.PathLike) -> np.ndarray:
+    """Read a photograph as linear RGB float32 (H, W, 3); alpha dropped, grey replicated."""
+    pixels, is_float = read_raw(path)
+    if pixels.shape[2] == 1 or pixels.shape[2] == 2:
+        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    rgb = pixels[:, :, :3]
+    if not is_float:
+        rgb = srgb_to_linear(rgb)
+    if not np.all(np.isfinite(rgb)):
+        raise UsdRelightError(f"image {path} contains NaN or Inf pixels")
+    return np.ascontiguousarray(np.maximum(rgb, 0.0), dtype=np.float32)
+
+
+def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
+    """Read a data map (depth, point map, albedo, mask) without colour conversion.
+
+    ``.npy`` files are loaded with numpy (no pickles); anything else goes through OpenImageIO
+    (EXR, PFM, TIFF, PNG, ...). Returns float32 (H, W, channels); a single-channel map is
+    returned as (H, W, 1) and a grey map is replicated when 3 channels are wanted.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UsdRelightError(f"file not found: {path}")
+    if path.suffix.lower() == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except Exception as exc:  # numpy raises several types for corrupt files
+            raise UsdRelightError(f"cannot read {path}: {exc}") from None
+        arr = np.asarray(arr, dtype=np.float32)
+        if arr.ndim == 2:
+            arr = arr[:, :, None]
+        if arr.ndim == 3 and arr.shape[0] in (1, 3) and arr.shape[2] not in (1, 3):
+            arr = np.moveaxis(arr, 0, 2)  # accept CHW
+    elif path.suffix.lower() == ".pfm":
+        arr = read_pfm(path)
+    else:
+        arr, _ = read_raw(path)
+    if arr.ndim != 3:
+        raise UsdRelightError(f"{path}: expected an image-shaped array, got shape {arr.shape}")
+    if channels == 1:
+        return np.ascontiguousarray(arr[:, :, :1])
+    if arr.shape[2] == 1:
+        return np.repeat(arr, channels, axis=2)
+    if arr.shape[2] < channels:
+        raise UsdRelightError(f"{path}: expected {channels} channels, got {arr.shape[2]}")
+    return np.ascontiguousarray(arr[:, :, :channels])
+
+
+def read_pfm(path: str | os.PathLike) -> np.ndarray:
+    """Read a Portable Float Map (``PF`` colour or ``Pf`` grey) as float32 (H, W, C), top row first.
+
+    PFM stores rows bottom-to-top and gives endianness by the sign of the scale line (negative =
+    little-endian); this reader follows that specification (as Middlebury's ``disp0.pfm`` do).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            kind = f.readline().strip()
+            if kind not in (b"PF", b"Pf"):
+                raise ValueError("not a PFM file")
+            dims = f.readline().split()
+            while not dims:
+                dims = f.readline().split()
+            w, h = int(dims[0]), int(dims[1])
+            scale = float(f.readline().strip())
+            c = 3 if kind == b"PF" else 1
+            data = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4")
+        if w <= 0 or h <= 0 or data.size < w * h * c:
+            raise ValueError("truncated data")
+    except (OSError, ValueError, IndexError) as exc:
+        raise UsdRelightError(f"cannot read PFM {path}: {exc}") from None
+    return np.ascontiguousarray(data[: w * h * c].reshape(h, w, c)[::-1], dtype=np.float32)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _atomic_target(path: Path) -> str:
+    """A temporary file beside ``path`` with the permissions a plain ``open()`` would give."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())
+    return tmp
+
+
+def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half", srgb: bool = False) -> Path:
+    """Write (H, W[, C]) pixels atomically.
+
+    ``dtype`` is the stored format: ``half``/``float`` for EXR (linear), ``uint8``/``uint16`` for
+    PNG/TIFF; with ``srgb=True`` linear values are sRGB-encoded first. EXR uses zip compression.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    if not np.all(np.isfinite(pixels)):
+        raise UsdRelightError(f"refusing to write non-finite pixels to {path}")
+    if srgb:
+        pixels = linear_to_srgb(pixels)
+    h, w, c = pixels.shape
+    fmt = {"half": oiio.HALF, "float": oiio.FLOAT, "uint8": oiio.UINT8, "uint16": oiio.UINT16}[dtype]
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if path.suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    if c >= 3:
+        spec.channelnames = ("R", "G", "B", "A")[:c] if c <= 4 else spec.channelnames
+    tmp = _atomic_target(path)
+    try:
+        out = oiio.ImageOutput.create(str(path))
+        if out is None or not out.open(tmp, spec):
+            raise UsdRelightError(f"cannot write {path}: {oiio.geterror().strip()}")
+        ok = out.write_image(np.ascontiguousarray(pixels))
+        out.close()
+        if not ok:
+            raise UsdRelightError(f"cannot write {path}: {out.geterror().strip()}")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
