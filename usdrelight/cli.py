@@ -156,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(exc: BaseException) -> str:
+    return "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -163,7 +167,7 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except UsdRelightError as exc:
-        sys.stderr.write(f"usdrelight: error: {exc}\n")
+        sys.stderr.write(f"usdrelight: error: {_one_line(exc)}\n")
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         sys.stderr.write("usdrelight: interrupted\n")
@@ -171,8 +175,7 @@ def main(argv=None) -> int:
     except Exception as exc:  # never a traceback for the user unless asked
         if args.debug:
             raise
-        msg = str(exc).strip().splitlines()
-        sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {msg[0] if msg else ''} "
+        sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {_one_line(exc)} "
                          f"(rerun with --debug for a traceback)\n")
         return EXIT_INTERNAL
 

@@ -4,9 +4,12 @@ Sources, in order of preference:
 1. Precomputed maps (CID-style ``hr_alb`` / ``dif_shd``, linear): with albedo and shading,
    D = A * S and R = I - D. With albedo alone, S = I / A (so D = I and R = 0).
 2. An ONNX model following the albedo contract in :mod:`usdrelight.onnx_models`.
-3. A classical multi-scale Retinex (:func:`retinex`): grey shading is the blurred log-luminance
-   (reflectance edges are sharp, illumination is smooth); albedo = I / S rescaled so its 99th
-   percentile is 0.9 and clipped to [0, 1], with what clipping removes kept in R.
+3. Classical Retinex (Land & McCann; Horn 1974) (:func:`retinex`): in the log-luminance image,
+   gradients larger than ``RETINEX_THRESHOLD`` are reflectance edges, smaller ones are
+   illumination; the albedo gradients are re-integrated with a Neumann Poisson solve (DCT) and
+   grey shading is what is left. Albedo = I / S rescaled so its 99th percentile is 0.9 and
+   clipped to [0, 1], with what clipping removes kept in R. A rough prior, not a learned model:
+   soft shadows with sharp edges end up in the albedo.
 
 Every output is finite; albedo is clamped to [ALBEDO_MIN, 1] so I / A stays bounded.
 """
@@ -21,7 +24,7 @@ from .estimates import Decomposition, Photo
 from .imageio import read_map
 
 ALBEDO_MIN = 1e-3
-RETINEX_SIGMAS = (0.02, 0.08, 0.25)  # fractions of the longer image side
+RETINEX_THRESHOLD = 0.08  # log-luminance step per pixel above which an edge counts as reflectance
 RETINEX_ALBEDO_P99 = 0.9
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -42,16 +45,36 @@ def from_maps(rgb: np.ndarray, albedo: np.ndarray, shading: np.ndarray | None, s
     return _finish(rgb, albedo, shading, source)
 
 
-def retinex(rgb: np.ndarray) -> Decomposition:
-    """Multi-scale Retinex with grey shading (see module docstring)."""
-    from scipy.ndimage import gaussian_filter
+def poisson_integrate(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Least-squares u with forward differences (u[:,1:]-u[:,:-1], u[1:]-u[:-1]) ~ (gx, gy); mean 0.
 
-    lum = np.maximum(rgb @ _LUMA, 0.0)
-    floor = max(float(np.percentile(lum, 99)) * 1e-4, 1e-8)
+    ``gx`` is (H, W-1), ``gy`` is (H-1, W). Neumann boundary, solved exactly with a DCT-II.
+    """
+    from scipy.fft import dctn, idctn
+
+    h, w = gy.shape[0] + 1, gx.shape[1] + 1
+    div = np.zeros((h, w), np.float64)
+    div[:, :-1] += gx
+    div[:, 1:] -= gx
+    div[:-1, :] += gy
+    div[1:, :] -= gy
+    denom = (2 * np.cos(np.pi * np.arange(w) / w) - 2)[None, :] + (2 * np.cos(np.pi * np.arange(h) / h) - 2)[:, None]
+    denom[0, 0] = 1.0
+    spec = dctn(div, type=2, norm="ortho") / denom
+    spec[0, 0] = 0.0
+    return idctn(spec, type=2, norm="ortho")
+
+
+def retinex(rgb: np.ndarray) -> Decomposition:
+    """Thresholded-gradient Retinex with grey shading (see module docstring)."""
+    lum = np.maximum(rgb @ _LUMA, 0.0).astype(np.float64)
+    floor = max(float(np.percentile(lum, 99)) * 1e-3, 1e-8)
     log_l = np.log(lum + floor)
-    side = max(rgb.shape[:2])
-    log_s = np.mean([gaussian_filter(log_l, sigma=max(s * side, 0.5), mode="reflect") for s in RETINEX_SIGMAS], 0)
-    shading = np.exp(log_s)[..., None]
+    gx, gy = np.diff(log_l, axis=1), np.diff(log_l, axis=0)
+    gx = np.where(np.abs(gx) > RETINEX_THRESHOLD, gx, 0.0)
+    gy = np.where(np.abs(gy) > RETINEX_THRESHOLD, gy, 0.0)
+    log_a = poisson_integrate(gx, gy) if min(lum.shape) > 1 else np.zeros_like(log_l)
+    shading = np.exp(log_l - log_a)[..., None]
     albedo = rgb / shading
     p99 = float(np.percentile(albedo.max(-1), 99))
     scale = p99 / RETINEX_ALBEDO_P99 if p99 > 0 else 1.0

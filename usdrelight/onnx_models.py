@@ -75,7 +75,7 @@ def _run(path, image_hwc: np.ndarray, required: dict, optional: dict) -> dict:
     for name, arr in zip(names, res):
         arr = np.asarray(arr, dtype=np.float32)
         want = {**required, **optional}[name]
-        if arr.ndim != len(want):
+        if arr.ndim != want.count(",") + 1:
             raise UsdRelightError(f"model {Path(path).name}: output '{name}' has shape {arr.shape}, expected {want}")
         out[name] = arr
     return out, (mh, mw)

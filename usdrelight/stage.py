@@ -224,6 +224,11 @@ def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=B
         raise UsdRelightError(f"output {outdir} exists and is not a directory")
     try:
         outdir.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise UsdRelightError(f"cannot write to {outdir}: a parent path is not a directory") from None
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    try:
         tmp = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.tmp-", dir=outdir.parent))
         mask = os.umask(0)
         os.umask(mask)
