@@ -92,21 +92,22 @@ def triangulate(points: np.ndarray, valid: np.ndarray, *, stride: int = 1,
     use_ad = np.where(full, len_ad <= len_bc, ~vb | ~vc)
     # Candidate triangles (counter-clockwise on screen): a-d diagonal: (a,c,d), (a,d,b); b-c: (a,c,b), (b,c,d)
     cand = [
-        (np.stack([a, c, d], 1), use_ad & va & vc & vd),
-        (np.stack([a, d, b], 1), use_ad & va & vd & vb),
-        (np.stack([a, c, b], 1), ~use_ad & va & vc & vb),
-        (np.stack([b, c, d], 1), ~use_ad & vb & vc & vd),
+        ((a, c, d), use_ad & va & vc & vd),
+        ((a, d, b), use_ad & va & vd & vb),
+        ((a, c, b), ~use_ad & va & vc & vb),
+        ((b, c, d), ~use_ad & vb & vc & vd),
     ]
-    faces = np.concatenate([f[m] for f, m in cand])
+    faces = np.concatenate([np.stack([i0[m], i1[m], i2[m]], 1) for (i0, i1, i2), m in cand])
     n_before = faces.shape[0]
-    if n_before:
-        n = _face_normals(Pn, faces)
-        centroid = Pn[faces[:, 0]] + Pn[faces[:, 1]] + Pn[faces[:, 2]]
-        dot = np.einsum("ij,ij->i", n, centroid)
-        n2 = np.einsum("ij,ij->i", n, n) * np.einsum("ij,ij->i", centroid, centroid)
-        cos_min = np.float32(np.cos(np.radians(max_grazing_deg)))
-        keep = (n2 > 0) & (dot * dot >= cos_min * cos_min * n2)
-        faces = faces[keep]
+    if n_before == 0:
+        raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
+    n = _face_normals(Pn, faces)
+    centroid = Pn[faces[:, 0]] + Pn[faces[:, 1]] + Pn[faces[:, 2]]
+    dot = np.einsum("ij,ij->i", n, centroid)
+    n2 = np.einsum("ij,ij->i", n, n) * np.einsum("ij,ij->i", centroid, centroid)
+    cos_min = np.float32(np.cos(np.radians(max_grazing_deg)))
+    keep = (n2 > 0) & (dot * dot >= cos_min * cos_min * n2)
+    faces, fn = faces[keep], n[keep].astype(np.float64)
     if faces.shape[0] == 0:
         raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
     used = np.zeros(h * w, bool)
@@ -116,7 +117,6 @@ def triangulate(points: np.ndarray, valid: np.ndarray, *, stride: int = 1,
     faces = remap[faces].astype(np.int32)
     pts = Pf[used]
     # Area-weighted vertex normals, oriented towards the camera (camera at the origin).
-    fn = _face_normals(Pn[used], faces).astype(np.float64)
     vn = np.zeros(pts.shape, np.float64)
     for k in range(3):
         for axis in range(3):
