@@ -141,3 +141,21 @@ def test_rerun_never_overwrites_user_lights(cli, bad_setup):
     np.save(tmp / "bad.npy", np.zeros((24, 32), np.float32))
     assert cli("build", photo, "--depth", tmp / "bad.npy", "-o", out)[0] == 2
     assert (out / "scene.usda").read_text() == before
+
+
+def test_mask_size_mismatch_and_mask_applied(cli, bad_setup):
+    tmp, photo, out = bad_setup
+    d = write_plane_depth(tmp / "d.npy", 24, 32)
+    np.save(tmp / "m_bad.npy", np.ones((10, 10), np.float32))
+    _assert_clean_failure(*cli("build", photo, "--depth", d, "--mask", tmp / "m_bad.npy", "-o", out), out)
+    m = np.ones((24, 32), np.float32)
+    m[:, :16] = 0  # keep the right half only
+    np.save(tmp / "m.npy", m)
+    res = cli.json("build", photo, "--depth", d, "--mask", tmp / "m.npy", "-o", out)
+    assert res["vertices"] == 24 * 16 and res["faces"] == 2 * 23 * 15
+
+
+def test_point_map_size_mismatch(cli, bad_setup):
+    tmp, photo, out = bad_setup
+    np.save(tmp / "p.npy", np.ones((24, 30, 3), np.float32))
+    _assert_clean_failure(*cli("build", photo, "--points", tmp / "p.npy", "-o", out), out)
