@@ -110,6 +110,26 @@ def cmd_validate(args) -> int:
     return 0 if not errors else 1
 
 
+def cmd_render(args) -> int:
+    from .render import render_stage
+
+    res = render_stage(args.stage, args.output, args.aov, spp=args.spp, max_depth=args.max_depth, seed=args.seed)
+    summary = {"stage": str(args.stage), "files": res.files, "seconds": {k: round(v, 4) for k, v in res.seconds.items()},
+               "warnings": res.warnings}
+    _emit(args, summary, "\n".join(f"wrote {p}" for p in res.files.values()) + f" ({res.seconds['total']:.2f} s)")
+    return 0
+
+
+def cmd_convert(args) -> int:
+    from .convert import convert
+
+    res = convert(args.src, args.dst)
+    summary = {"src": str(args.src), "dst": str(args.dst), "warnings": res.get("warnings", {}),
+               "files": res.get("files", [])}
+    _emit(args, summary, f"wrote {args.dst}")
+    return 0
+
+
 # ---- parser ---------------------------------------------------------------------------------
 def _positive_int(text: str) -> int:
     v = int(text)
@@ -148,6 +168,23 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--max-grazing-deg", type=float, default=88.0,
                    help="cut triangles whose normal is more than this many degrees from the view ray")
     b.set_defaults(func=cmd_build)
+
+    r = sub.add_parser("render", parents=[common], help="render the AOVs the stage's RenderSettings declare",
+                       description="Render the stage's RenderProducts with Mitsuba (llvm_ad_rgb) to linear EXR.")
+    r.add_argument("stage", type=Path)
+    r.add_argument("-o", "--output", type=Path, help="output folder (default: the stage's folder)")
+    r.add_argument("--spp", type=_positive_int, default=64, help="samples per pixel of the path-traced AOV")
+    r.add_argument("--max-depth", type=_positive_int, default=3,
+                   help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce)")
+    r.add_argument("--aov", nargs="+", metavar="NAME", help="render only these declared products")
+    r.add_argument("--seed", type=int, default=0)
+    r.set_defaults(func=cmd_render)
+
+    c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML",
+                       description="Convert SRC to DST, each format chosen by its suffix.")
+    c.add_argument("src", type=Path)
+    c.add_argument("dst", type=Path)
+    c.set_defaults(func=cmd_convert)
 
     v = sub.add_parser("validate", parents=[common], help="run every pxr.UsdValidation validator",
                        description="Exit 0 only when no validator reports an error.")

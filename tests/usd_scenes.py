@@ -1,0 +1,95 @@
+"""Small USD scenes built with the real pxr API for converter and renderer tests."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
+
+from usdrelight.camera import usd_camera_params
+from usdrelight.intrinsics import Intrinsics
+
+
+def new_stage(path: Path):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, "Y")
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(root.GetPrim())
+    return stage
+
+
+def diffuse_material(stage, path: str, albedo=(0.5, 0.5, 0.5), texture: str | None = None):
+    mat = UsdShade.Material.Define(stage, path)
+    sh = UsdShade.Shader.Define(stage, path + "/Surface")
+    sh.CreateIdAttr("UsdPreviewSurface")
+    sh.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    sh.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0, 0, 0))
+    sh.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(1.0)
+    if texture:
+        tex = UsdShade.Shader.Define(stage, path + "/Tex")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+        rd = UsdShade.Shader.Define(stage, path + "/St")
+        rd.CreateIdAttr("UsdPrimvarReader_float2")
+        rd.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(rd.ConnectableAPI(), "result")
+        sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    else:
+        sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*albedo))
+    mat.CreateSurfaceOutput().ConnectToSource(sh.ConnectableAPI(), "surface")
+    return mat
+
+
+def floor_quad(stage, path="/World/Floor", half=50.0, material=None):
+    """A large quad in the y = 0 plane facing +Y, with st in [0, 1]."""
+    m = UsdGeom.Mesh.Define(stage, path)
+    m.CreatePointsAttr([(-half, 0, half), (half, 0, half), (half, 0, -half), (-half, 0, -half)])
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    m.CreateExtentAttr([(-half, 0, -half), (half, 0, half)])
+    st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    if material is not None:
+        UsdShade.MaterialBindingAPI.Apply(m.GetPrim()).Bind(material)
+    return m
+
+
+def camera(stage, intr: Intrinsics, path="/World/Camera", translate=(0, 0, 0), rotate_x_deg=0.0, aovs=("color",)):
+    cam = UsdGeom.Camera.Define(stage, path)
+    p = usd_camera_params(intr)
+    for k in ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
+              "verticalApertureOffset"):
+        cam.GetPrim().GetAttribute(k).Set(p[k])
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 1000))
+    x = UsdGeom.Xformable(cam)
+    x.AddTranslateOp().Set(Gf.Vec3d(*translate))
+    if rotate_x_deg:
+        x.AddRotateXOp().Set(rotate_x_deg)
+    UsdGeom.Scope.Define(stage, "/Render")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateResolutionAttr(Gf.Vec2i(intr.width, intr.height))
+    settings.CreateCameraRel().SetTargets([cam.GetPath()])
+    prods = []
+    for name in aovs:
+        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+        var.CreateSourceNameAttr(name)
+        var.CreateDataTypeAttr("float" if name in ("valid", "depth") else "color3f")
+        prod = UsdRender.Product.Define(stage, f"/Render/Products/{name}")
+        prod.CreateProductNameAttr(f"renders/{name}.exr")
+        prod.CreateOrderedVarsRel().SetTargets([var.GetPath()])
+        prods.append(prod.GetPath())
+    settings.CreateProductsRel().SetTargets(prods)
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    return cam
+
+
+def looking_down_at_floor(path: Path, width=32, height=24, height_m=1.0, aovs=("color",)):
+    """Camera 'height_m' above the floor looking straight down; the image centre sees the origin."""
+    stage = new_stage(path)
+    mat = diffuse_material(stage, "/World/Looks/Grey")
+    floor_quad(stage, material=mat)
+    camera(stage, Intrinsics.from_fov_x(40.0, width, height), translate=(0, height_m, 0), rotate_x_deg=-90.0,
+           aovs=aovs)
+    return stage
