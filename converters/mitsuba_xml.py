@@ -761,8 +761,8 @@ class _UsdBuilder:
         if ref is None:
             raise UsdRelightError(f"unknown fov_axis '{axis}'")
         f = ref / (2 * math.tan(math.radians(fov) / 2))
-        cx = W * (0.5 + float(p.props.get("principal_point_offset_x", 0.0)))
-        cy = H * (0.5 + float(p.props.get("principal_point_offset_y", 0.0)))
+        cx = W * (0.5 - float(p.props.get("principal_point_offset_x", 0.0)))
+        cy = H * (0.5 - float(p.props.get("principal_point_offset_y", 0.0)))
         intr = Intrinsics(f, f, cx, cy, W, H)
         cam = UsdGeom.Camera.Define(self.stage, self.unique("/World", p.id or "Camera"))
         params = usd_camera_params(intr)

@@ -7,8 +7,8 @@ transforms are numpy 4x4 matrices wrapped in :class:`Matrix` until :func:`to_mit
 
 Frames: Mitsuba's camera looks down +Z with +X to the left of the image and +Y up; USD's looks down
 -Z with +X to the right, so ``sensor.to_world = camera.to_world @ diag(-1, 1, -1)``. The principal
-point is ``principal_point_offset_x = cx / W - 0.5``, ``principal_point_offset_y = cy / H - 0.5``
-(corner-origin pixel units, y down). Mitsuba's bitmap texture has v = 0 at the top row, USD's st has
+point is ``principal_point_offset_x = 0.5 - cx / W``, ``principal_point_offset_y = 0.5 - cy / H``
+(corner-origin pixel units, y down; measured: a positive offset moves the principal point left/up). Mitsuba's bitmap texture has v = 0 at the top row, USD's st has
 t = 0 at the bottom, so mesh texcoords are (s, 1 - t).
 """
 from __future__ import annotations
@@ -120,7 +120,7 @@ def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warning
         warnings["non-square pixels (Mitsuba renders square pixels; fx used)"] += 1
     return {
         "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
-        "principal_point_offset_x": k.cx / k.width - 0.5, "principal_point_offset_y": k.cy / k.height - 0.5,
+        "principal_point_offset_x": 0.5 - k.cx / k.width, "principal_point_offset_y": 0.5 - k.cy / k.height,
         "near_clip": cam.near, "far_clip": cam.far, "to_world": Matrix(cam.to_world @ CAMERA_FLIP),
         "film": {"type": "hdrfilm", "width": k.width, "height": k.height, "rfilter": {"type": rfilter},
                  "pixel_format": "rgb"},

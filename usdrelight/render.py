@@ -2,7 +2,8 @@
 
 * The ``diffuse`` (beauty) AOV is path traced (``llvm_ad_rgb``, box pixel filter, ``spp`` samples,
   ``max_depth`` as in Mitsuba: 2 = direct light only, 3 = one indirect bounce).
-* Geometric AOVs come from one ray through each pixel centre (noise-free, exact):
+* Geometric AOVs come from one ray through each pixel centre (noise-free; nudged by 1/64 px so it
+  never passes exactly through a vertex of a pixel mesh):
   ``albedo`` (diffuse reflectance of the hit BSDF), ``valid`` (1 = hit), ``depth`` (camera-space
   z-depth in scene units, 0 = no hit), ``normal`` (world-space shading normal).
 * Only the AOVs asked for are computed; each product is written as a linear float EXR at
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 BEAUTY_NAMES = {"C.*", "color", "Ci", "rgb", "rgba", "beauty", "diffuse"}
 GEOMETRIC = {"albedo": 3, "valid": 1, "depth": 1, "normal": 3, "N": 3}
+PRIMARY_RAY_NUDGE_PX = (1.0 / 64.0, 1.0 / 128.0)
 
 
 def aov_kind(source_name: str, source_type: str) -> str:
@@ -53,7 +55,10 @@ class RenderResult:
 def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, wanted: set) -> dict:
     """Noise-free geometric AOVs from one ray through each pixel centre."""
     sensor = scene.sensors()[0]
-    jj, ii = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
+    # Pixel centres, nudged by (1/64, 1/128) px: a ray through the exact centre passes exactly through
+    # a vertex of a pixel mesh, where Mitsuba's (non-watertight) triangle test can miss every triangle.
+    dx, dy = PRIMARY_RAY_NUDGE_PX
+    jj, ii = np.meshgrid((np.arange(width) + 0.5 + dx) / width, (np.arange(height) + 0.5 + dy) / height)
     pos = mi.Point2f(jj.ravel().astype(np.float32), ii.ravel().astype(np.float32))
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     si = scene.ray_intersect(ray)
