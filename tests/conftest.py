@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,8 @@ from usdrelight.imageio import write_image
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 MOTO = EXAMPLES / "motorcycle"
-SHARED = ROOT.parent / "shared" / "testdata"
+# CI clones the project with shared/ beside it; USDRELIGHT_TESTDATA points elsewhere when needed.
+SHARED = Path(os.environ.get("USDRELIGHT_TESTDATA", ROOT.parent / "shared" / "testdata"))
 
 
 @pytest.fixture(scope="session")
