@@ -739,7 +739,7 @@ class _UsdBuilder:
     def sensor(self, p: Plugin) -> None:
         from pxr import Gf, Sdf, UsdGeom, UsdRender
 
-        from usdrelight.camera import usd_camera_params
+        from usdrelight.camera import author_usd_camera
         from usdrelight.intrinsics import Intrinsics
         from usdrelight.mitsuba_scene import CAMERA_FLIP
 
@@ -765,11 +765,7 @@ class _UsdBuilder:
         cy = H * (0.5 - float(p.props.get("principal_point_offset_y", 0.0)))
         intr = Intrinsics(f, f, cx, cy, W, H)
         cam = UsdGeom.Camera.Define(self.stage, self.unique("/World", p.id or "Camera"))
-        params = usd_camera_params(intr)
-        for k in ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
-                  "verticalApertureOffset"):
-            cam.GetPrim().GetAttribute(k).Set(float(params[k]))
-        cam.CreateClippingRangeAttr(Gf.Vec2f(float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4))))
+        author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)))
         self.set_xform(cam.GetPrim(), p.props.get("to_world", np.eye(4)) @ CAMERA_FLIP)
         UsdGeom.Scope.Define(self.stage, "/Render")
         UsdGeom.Scope.Define(self.stage, "/Render/Products")

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
-from usdrelight.camera import usd_camera_params
+from usdrelight.camera import author_usd_camera
 from usdrelight.intrinsics import Intrinsics
 
 
@@ -58,11 +58,7 @@ def floor_quad(stage, path="/World/Floor", half=50.0, material=None):
 
 def camera(stage, intr: Intrinsics, path="/World/Camera", translate=(0, 0, 0), rotate_x_deg=0.0, aovs=("color",)):
     cam = UsdGeom.Camera.Define(stage, path)
-    p = usd_camera_params(intr)
-    for k in ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
-              "verticalApertureOffset"):
-        cam.GetPrim().GetAttribute(k).Set(p[k])
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 1000))
+    author_usd_camera(cam, intr, 0.01, 1000.0)
     x = UsdGeom.Xformable(cam)
     x.AddTranslateOp().Set(Gf.Vec3d(*translate))
     if rotate_x_deg:

@@ -46,6 +46,21 @@ def usd_camera_params(intr: Intrinsics) -> dict:
     }
 
 
+def author_usd_camera(camera, intr: Intrinsics, near: float, far: float) -> dict:
+    """Author a perspective ``UsdGeom.Camera`` that reproduces ``intr``; returns the parameters."""
+    from pxr import Gf, UsdGeom
+
+    params = usd_camera_params(intr)
+    camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
+    camera.CreateFocalLengthAttr(float(params["focalLength"]))
+    camera.CreateHorizontalApertureAttr(float(params["horizontalAperture"]))
+    camera.CreateVerticalApertureAttr(float(params["verticalAperture"]))
+    camera.CreateHorizontalApertureOffsetAttr(float(params["horizontalApertureOffset"]))
+    camera.CreateVerticalApertureOffsetAttr(float(params["verticalApertureOffset"]))
+    camera.CreateClippingRangeAttr(Gf.Vec2f(float(near), float(far)))
+    return params
+
+
 def intrinsics_from_usd_camera(camera, width: int, height: int, time=None) -> Intrinsics:
     """Inverse of :func:`usd_camera_params` for a ``UsdGeom.Camera`` rendered at ``width`` x ``height``."""
     from pxr import Usd

@@ -26,7 +26,7 @@ import numpy as np
 
 from . import __version__
 from .aovs import AOVS, BUILD_AOVS
-from .camera import opencv_to_usd, usd_camera_params
+from .camera import author_usd_camera, opencv_to_usd
 from .errors import UsdRelightError
 from .estimates import PhotoEstimates
 from .imageio import write_image
@@ -171,15 +171,8 @@ def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs) -> None
     Usd.ModelAPI(photo).SetKind(Kind.Tokens.component)
 
     intr = est.geometry.intrinsics
-    params = usd_camera_params(intr)
-    cam = UsdGeom.Camera.Define(stage, CAMERA)
-    cam.CreateProjectionAttr(UsdGeom.Tokens.perspective)
-    for name in ("focalLength", "horizontalAperture", "verticalAperture",
-                 "horizontalApertureOffset", "verticalApertureOffset"):
-        getattr(cam, f"Create{name[0].upper()}{name[1:]}Attr")(float(params[name]))
     z = mesh.points[:, 2]
-    near, far = float(z.min()) * 0.5, float(z.max()) * 2.0
-    cam.CreateClippingRangeAttr(Gf.Vec2f(near, far))
+    params = author_usd_camera(UsdGeom.Camera.Define(stage, CAMERA), intr, float(z.min()) * 0.5, float(z.max()) * 2.0)
 
     _author_material(stage)
     root.AddAppliedSchema(schemas.PROVENANCE_API)
