@@ -120,6 +120,27 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_fit(args) -> int:
+    from .fit import fit_stage
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("fit {task.description}"), BarColumn(), TimeElapsedColumn(), console=_stderr_console(),
+                  transient=True, disable=not sys.stderr.isatty()) as bar:
+        task = bar.add_task(args.method, total=None)
+
+        def progress(it, total, mse):
+            bar.update(task, completed=it, total=total, description=f"{args.method} mse={mse:.3e}")
+
+        rep = fit_stage(args.stage, args.method, args.lights, args.env_res, args.iterations, args.max_side,
+                        args.report, progress=progress, seed=args.seed)
+    summary = {k: v for k, v in rep.items() if k != "curve"}
+    _emit(args, summary, f"fit ({rep['method']}): PSNR {rep['psnr_db']:.2f} dB (model), {rep['render_psnr_db']:.2f} dB "
+                         f"(Mitsuba render), {rep['lights_kept']} point light(s), environment "
+                         f"{'kept' if rep['environment_kept'] else 'dropped'}, {rep['seconds']:.2f} s")
+    return 0
+
+
 def cmd_convert(args) -> int:
     from .convert import convert
 
@@ -179,6 +200,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--aov", nargs="+", metavar="NAME", help="render only these declared products")
     r.add_argument("--seed", type=int, default=0)
     r.set_defaults(func=cmd_render)
+
+    f = sub.add_parser("fit", parents=[common], help="fit lights to the photo's diffuse image",
+                       description="Fit an environment map and point lights so the render reproduces D; write "
+                                   "them into the fitted-lights layer.")
+    f.add_argument("stage", type=Path)
+    f.add_argument("--method", choices=["adam", "fast"], default="fast")
+    f.add_argument("--lights", type=int, default=16, help="number of point lights to start from (K)")
+    f.add_argument("--env-res", help="environment resolution HxW (fast: basis cells, default 8x16; adam: "
+                                     "texels, default 128x256; 0x0 = no environment)")
+    f.add_argument("--iterations", type=_positive_int)
+    f.add_argument("--max-side", type=_positive_int, default=512, help="longer image side of the fit")
+    f.add_argument("--report", type=Path, help="write fit_report.json and an error-vs-time plot here")
+    f.add_argument("--seed", type=int, default=0)
+    f.set_defaults(func=cmd_fit)
 
     c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML",
                        description="Convert SRC to DST, each format chosen by its suffix.")
