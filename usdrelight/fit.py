@@ -24,7 +24,7 @@ from .transport import env_cell_directions
 log = logging.getLogger(__name__)
 
 ENV_UPSAMPLE = 8  # fast: env cells written as 8x8 texel blocks so bilinear lookup stays piecewise constant
-PRUNE_TOL = 0.005
+PRUNE_TOL = 0.01
 
 
 @dataclass
@@ -50,10 +50,10 @@ def psnr(mse: float, peak: float) -> float:
 
 def fast_result(prob: FitProblem, k: int, env_shape, iterations: int, prune: bool = True, progress=None,
                 **kw) -> FitResult:
-    from .fit_fast import fit_fast, prune as prune_lights
+    from .fit_fast import fit_fast_greedy, prune as prune_lights
 
     t0 = time.perf_counter()
-    state, tr = fit_fast(prob, k, env_shape, iterations, progress=progress, **kw)
+    state, tr = fit_fast_greedy(prob, k, env_shape, iterations, progress=progress, **kw)
     env_on = env_shape[0] * env_shape[1] > 0
     if prune:
         state, env_on = prune_lights(state, tr, prob, PRUNE_TOL)
@@ -67,6 +67,36 @@ def fast_result(prob: FitProblem, k: int, env_shape, iterations: int, prune: boo
     peak = float(prob.target.max())
     return FitResult("fast", state.mse, psnr(state.mse, peak), seconds, state.iterations, lights, env,
                      state.curve, prob.width, prob.height)
+
+
+def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_TOL) -> FitResult:
+    """Drop lights (and the environment) whose own contribution to the render, predicted by the
+    transport model, has an RMS below ``tol`` (1%) of the RMS of D. Used after ``adam``."""
+    from .transport import build_transport
+
+    env_shape = (8, 16)
+    tr = build_transport(prob, env_shape, env_samples=64, indirect_samples=8)
+    rms_d = float(np.sqrt(np.mean(prob.target ** 2)))
+    keep = []
+    if res.lights:
+        g = tr.point_columns(np.array([p for p, _ in res.lights]))
+        Tk = tr.point_matrices(g)
+        for i, (_, rgb) in enumerate(res.lights):
+            contrib = np.stack([Tk[c][:, i] * rgb[c] for c in range(3)], 1)
+            if np.sqrt(np.mean(contrib ** 2)) >= tol * rms_d:
+                keep.append(i)
+    env = res.env
+    if env is not None:
+        h, w = env.shape[:2]
+        cells = env[: h - h % env_shape[0], : w - w % env_shape[1]].reshape(
+            env_shape[0], h // env_shape[0], env_shape[1], w // env_shape[1], 3).mean((1, 3)).reshape(-1, 3)
+        TH = tr._env_blocks()[0]
+        contrib = np.stack([TH[c] @ cells[:, c] for c in range(3)], 1)
+        if np.sqrt(np.mean(contrib ** 2)) < tol * rms_d:
+            env = None
+    res.lights = [res.lights[i] for i in keep]
+    res.env = env
+    return res
 
 
 def render_fitted(prob: FitProblem, lights: list, env: np.ndarray | None, spp: int = 64, max_depth: int = 3,
@@ -130,6 +160,7 @@ def fit_stage(stage_path, method: str = "fast", lights: int = 16, env_res=None, 
 
         env_shape = _parse_env_res(env_res or "128x256")
         res = fit_adam(prob, lights, env_shape, iterations or 200, progress=progress, seed=seed)
+        res = prune_by_contribution(prob, res)
     else:
         raise UsdRelightError(f"unknown --method {method!r} (adam or fast)")
     for pos, rgb in res.lights:

@@ -116,7 +116,7 @@ class FitState:
 def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, lr_rel: float = 0.03,
              env_samples: int = 128, indirect_samples: int = 32, seed: int = 0, progress=None,
              transport: Transport | None = None, positions: np.ndarray | None = None,
-             smooth: float = 1e-3, min_distance_rel: float = 0.03) -> tuple[FitState, Transport]:
+             smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None) -> tuple[FitState, Transport]:
     t0 = time.perf_counter()
     tr = transport or build_transport(prob, env_shape, env_samples, indirect_samples, seed)
     pos = initial_positions(prob, k) if positions is None else np.array(positions, np.float64)
@@ -142,6 +142,8 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
             best = FitState(pos.copy(), theta, mse, it + 1)
         if progress:
             progress(it + 1, its, mse)
+        if callback is not None:
+            callback(it, time.perf_counter() - t0, pos.copy(), theta.copy())
         if len(pos) == 0 or it == its - 1:
             break
         # VarPro gradient of the MSE w.r.t. light positions (intensities at their optimum)
@@ -163,41 +165,106 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
     return best, tr
 
 
-def prune(state: FitState, tr: Transport, prob: FitProblem, tol: float = 0.005,
-          smooth: float = 1e-3) -> tuple[FitState, bool]:
-    """Greedily drop point lights (and then the environment) whose removal, with the remaining lighting
-    re-solved, raises the fit's RMSE by less than ``tol`` (relative). Returns (state, env_kept)."""
-    pos = state.positions.copy()
+def prune(state: FitState, tr: Transport, prob: FitProblem, tol: float = 0.01, smooth: float = 1e-3,
+          refine_iterations: int = 8, candidates: int = 3) -> tuple[FitState, bool]:
+    """Leave out what the scene does not need.
+
+    Repeatedly try to remove the point light with the smallest contribution (up to ``candidates`` per
+    round): the remaining lights are re-fitted for ``refine_iterations`` (positions and intensities), and
+    the removal is kept when the fit's RMSE stays within ``tol`` (1%) of the full fit's. Then the
+    environment is dropped the same way. Returns (state, environment kept).
+    """
+    base = np.sqrt(state.mse)
+    pos, theta, mse = state.positions.copy(), state.theta, state.mse
     J = tr.H.shape[1]
-    base_rmse = np.sqrt(state.mse)
     env_on = J > 0
-
-    cols = tr.point_columns(pos)  # visibility does not depend on which other lights exist
-
-    def solve(keep, env):
-        theta, mse, _ = tr.solve(cols[:, keep], env=env, smooth=smooth)
-        return theta, mse
-
-    theta, mse = state.theta, state.mse
-    # lights that the solve already switched off go first, for free
-    keep = list(np.nonzero(np.abs(theta[:, :len(pos)]).max(0) > 0)[0])
-    if len(keep) < len(pos):
-        theta, mse = solve(keep, env_on)
-    changed = True
-    while changed and keep:
-        changed = False
-        trials = []
-        for i in keep:
-            rest = [j for j in keep if j != i]
-            th, ms = solve(rest, env_on)
-            trials.append((ms, i, th))
-        ms, i, th = min(trials, key=lambda t: t[0])
-        if np.sqrt(ms) <= base_rmse * (1 + tol):
-            keep.remove(i)
-            theta, mse = th, ms
-            changed = True
+    while len(pos) > 0:
+        g = tr.point_columns(pos)
+        Tk = tr.point_matrices(g)
+        contrib = [np.sqrt(np.mean(np.stack([Tk[c][:, i] * theta[c, i] for c in range(3)]) ** 2)) for i in range(len(pos))]
+        removed = False
+        for i in np.argsort(contrib)[:candidates]:
+            rest = np.delete(pos, i, 0)
+            if len(rest):
+                st, _ = fit_fast(prob, len(rest), tr.env_shape, refine_iterations, transport=tr, positions=rest,
+                                 smooth=smooth)
+                cand = (st.positions, st.theta, st.mse)
+            else:
+                th, ms, _ = tr.solve(np.zeros((prob.n_pixels, 0)), smooth=smooth)
+                cand = (rest, th, ms)
+            if np.sqrt(cand[2]) <= base * (1 + tol):
+                pos, theta, mse = cand
+                removed = True
+                break
+        if not removed:
+            break
     if env_on:
-        th, ms = solve(keep, False)
-        if np.sqrt(ms) <= base_rmse * (1 + tol):
+        th, ms, _ = tr.solve(tr.point_columns(pos), env=False, smooth=smooth)
+        if np.sqrt(ms) <= base * (1 + tol):
             env_on, theta, mse = False, th, ms
-    return FitState(pos[keep], theta, mse, state.iterations, state.curve, state.seconds), env_on
+    return FitState(pos, theta, mse, state.iterations, state.curve, state.seconds), env_on
+
+
+def candidate_positions(prob: FitProblem, per_axis: int = 5, min_distance_rel: float = 0.03) -> np.ndarray:
+    """A regular 3D grid of candidate light positions over the scene's box (grown by a quarter on each
+    side), without the points closer than ``min_distance_rel`` of the extent to a visible surface."""
+    from scipy.spatial import cKDTree
+
+    lo, hi = prob.p.min(0), prob.p.max(0)
+    pad = 0.25 * (hi - lo)
+    axes = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], per_axis) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    dist, _ = cKDTree(prob.p).query(grid)
+    return grid[dist >= min_distance_rel * prob.extent]
+
+
+def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, tol: float = 0.02,
+                    refine_iterations: int = 20, env_samples: int = 128, indirect_samples: int = 32, seed: int = 0,
+                    smooth: float = 1e-3, progress=None, callback=None) -> tuple[FitState, Transport]:
+    """Forward selection: add the candidate light that best explains the residual, re-fit every light's
+    position and intensity (VarPro), and stop at ``k`` lights or when a new light improves the RMSE by less
+    than ``tol``. A scene lit by one light ends with one light; the light budget ``k`` is a maximum."""
+    t0 = time.perf_counter()
+    tr = build_transport(prob, env_shape, env_samples, indirect_samples, seed)
+    cands = candidate_positions(prob)
+    sub = np.arange(0, prob.n_pixels, max(1, prob.n_pixels // 20000))  # selection on a pixel subset
+    gc_full = tr.point_columns(cands)
+    pos = np.zeros((0, 3))
+    theta, mse, res = tr.solve(np.zeros((prob.n_pixels, 0)), smooth=smooth)
+    curve = [[time.perf_counter() - t0, mse]]
+    best = FitState(pos, theta, mse, 0)
+    used = 0
+    while len(pos) < k and len(cands):
+        Tc = tr.point_matrices(gc_full)
+        score = np.zeros(len(cands))
+        for c in range(3):
+            num = np.maximum(-(Tc[c][sub].T @ res[c][sub]), 0.0)
+            den = np.einsum("ij,ij->j", Tc[c][sub], Tc[c][sub]) + 1e-30
+            score += num ** 2 / den
+        j = int(np.argmax(score))
+        if score[j] <= 0:
+            break
+        trial = np.concatenate([pos, cands[j:j + 1]])
+        st, _ = fit_fast(prob, len(trial), env_shape, refine_iterations, transport=tr, positions=trial, smooth=smooth)
+        used += st.iterations
+        curve.append([time.perf_counter() - t0, st.mse])
+        if np.sqrt(st.mse) > np.sqrt(best.mse) * (1 - tol):
+            break  # the new light does not pay for itself
+        pos, theta, mse = st.positions, st.theta, st.mse
+        best = FitState(pos.copy(), theta, mse, used)
+        theta_, mse_, res = tr.solve(tr.point_columns(pos), smooth=smooth)
+        if progress:
+            progress(len(pos), k, mse)
+        if callback is not None:
+            callback(len(pos), time.perf_counter() - t0, pos.copy(), theta.copy())
+    if len(pos) and iterations > refine_iterations:
+        st, _ = fit_fast(prob, len(pos), env_shape, iterations - refine_iterations, transport=tr, positions=pos,
+                         smooth=smooth)
+        used += st.iterations
+        curve.append([time.perf_counter() - t0, st.mse])
+        if st.mse < best.mse:
+            best = FitState(st.positions, st.theta, st.mse, used)
+    best.curve = curve
+    best.iterations = max(used, 1)
+    best.seconds = time.perf_counter() - t0
+    return best, tr

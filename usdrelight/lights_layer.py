@@ -48,7 +48,6 @@ def write_fitted_lights(stage_dir, points: list, env: np.ndarray | None, fit: di
                              ("usdrelight:fit:iterations", fit["iterations"], Sdf.ValueTypeNames.Int)):
         root.CreateAttribute(name, typ, custom=False, variability=Sdf.VariabilityUniform).Set(value)
     if points or env is not None:
-        stage.OverridePrim(ROOT + "/Lights").SetSpecifier(Sdf.SpecifierDef)
         UsdGeom.Scope.Define(stage, ROOT + "/Lights")
         UsdGeom.Scope.Define(stage, FITTED_LIGHTS_SCOPE)
     if env is not None:
@@ -65,6 +64,7 @@ def write_fitted_lights(stage_dir, points: list, env: np.ndarray | None, fit: di
         light.CreateRadiusAttr(0.0)
         light.CreateNormalizeAttr(False)
         UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*map(float, pos)))
+    root.SetSpecifier(Sdf.SpecifierOver)  # /Scene is defined by scene.usda; this layer only adds to it
     layer.Save()
     os.replace(tmp, final)
     return final
