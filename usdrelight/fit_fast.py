@@ -9,31 +9,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.linalg import solve_triangular
 from scipy.optimize import nnls
 
 from .fit_problem import FitProblem
 from .transport import Transport, build_transport
-
-
-def nnls_gram(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """argmin_{x >= 0} |A x - b| through the small Gram system (columns normalized, tiny ridge)."""
-    q = A.shape[1]
-    if q == 0:
-        return np.zeros(0)
-    norms = np.linalg.norm(A, axis=0)
-    live = norms > 0
-    x = np.zeros(q)
-    if not live.any():
-        return x
-    An = A[:, live] / norms[live]
-    G = An.T @ An
-    G[np.diag_indices_from(G)] += 1e-9 * max(np.trace(G) / len(G), 1e-30)
-    R = np.linalg.cholesky(G).T  # G = R^T R
-    y = solve_triangular(R, An.T @ b, trans="T")
-    sol, _ = nnls(R, y, maxiter=50 * q)
-    x[live] = sol / norms[live]
-    return x
 
 
 def nnls_normal(G: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -53,14 +33,6 @@ def nnls_normal(G: np.ndarray, r: np.ndarray) -> np.ndarray:
     sol, _ = nnls(R, y, maxiter=50 * q)
     x[live] = sol / d[live]
     return x
-
-
-def solve_lighting(Ts: list, target: np.ndarray) -> tuple[np.ndarray, float, list]:
-    """theta (3, Q) >= 0 per channel, the MSE over all valid pixels and channels, and residuals."""
-    theta = np.stack([nnls_gram(Ts[c], target[:, c]) for c in range(3)])
-    res = [Ts[c] @ theta[c] - target[:, c] for c in range(3)]
-    mse = float(np.mean(np.stack(res) ** 2))
-    return theta, mse, res
 
 
 def initial_positions(prob: FitProblem, k: int) -> np.ndarray:

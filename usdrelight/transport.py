@@ -174,15 +174,6 @@ class Transport:
         mse = float(np.mean(np.stack(res) ** 2))
         return theta, mse, res
 
-    def matrices(self, g: np.ndarray) -> list[np.ndarray]:
-        """Per-channel transport T_c (N, K + J) for point columns ``g``."""
-        G = np.concatenate([g, self.H], 1)
-        out = []
-        for c in range(3):
-            a = self.problem.albedo[:, c:c + 1]
-            out.append(a * (G + self.P @ (a * G)))
-        return out
-
 
 def smoothness_operator(shape) -> np.ndarray:
     """L^T L for first differences between latlong cells (wrapping in u, not in v)."""
