@@ -14,7 +14,7 @@ from usdrelight.errors import UsdRelightError
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 #: suffix -> module name inside this package; filled in as converters land.
-REGISTRY: dict[str, str] = {".xml": "mitsuba_xml"}
+REGISTRY: dict[str, str] = {".xml": "mitsuba_xml", ".blend": "blender", ".py": "blender"}
 
 
 def converter_for(path: str | Path):

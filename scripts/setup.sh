@@ -35,4 +35,23 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -
   .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
   echo "$want" > "$stamp"
 fi
+# Blender as a Python module (bpy 5.0.1, CPython 3.11 only, pins numpy<2) lives in its own environment;
+# usdrelight runs it in a subprocess (converters/blender.py). USDRELIGHT_SKIP_BLENDER=1 skips it.
+if [ "${USDRELIGHT_SKIP_BLENDER:-0}" != "1" ] && [ ! -f .venv-blender/.bpy-installed ]; then
+  PY311=""
+  for cand in python3.11 "$PY"; do
+    if command -v "$cand" >/dev/null && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+      PY311=$(command -v "$cand"); break
+    fi
+  done
+  if [ -z "$PY311" ]; then
+    log "ERROR: bpy==5.0.1 needs CPython 3.11 (python3.11 not found); set USDRELIGHT_SKIP_BLENDER=1 to skip Blender"
+    exit 1
+  fi
+  log "installing bpy==5.0.1 into .venv-blender (Blender as a Python module, ~1 GB)"
+  [ -x .venv-blender/bin/python ] || "$PY311" -m venv .venv-blender
+  .venv-blender/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv-blender/bin/python -m pip install -q "bpy==5.0.1"
+  touch .venv-blender/.bpy-installed
+fi
 log "ready: $(.venv/bin/python -c 'import usdrelight, sys; print("usdrelight", usdrelight.__version__, "on python", sys.version.split()[0])')"

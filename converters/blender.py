@@ -1,0 +1,267 @@
+"""USD <-> Blender.
+
+``write_to_file(stage, "X.blend")`` builds a real .blend with Blender's Python module (``bpy==5.0.1`` pins
+numpy<2, so it runs in its own environment, ``.venv-blender``, created by ``scripts/setup.sh``; set
+``USDRELIGHT_BLENDER_PYTHON`` to another interpreter with bpy, or have ``blender`` on PATH).
+``write_to_file(stage, "X.py")`` writes the standalone script (plus ``X_data/`` with the meshes) that a user
+runs in their own Blender: ``blender -b --python X.py -- X.blend``.
+``read_from_file("X.blend")`` brings the .blend's lights back as UsdLux (for the user-lights layer), so the
+relight loop closes. Units and frames: :mod:`usdrelight.blender_units`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from usdrelight.errors import UsdRelightError
+
+SUFFIXES = (".blend", ".py")
+TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
+
+
+# ---- finding Blender -------------------------------------------------------------------------
+def blender_command() -> list[str]:
+    """The command that runs a Python file with bpy available: [python] or [blender, -b, --python-exit-code...]."""
+    env = os.environ.get("USDRELIGHT_BLENDER_PYTHON")
+    if env:
+        return [env]
+    here = Path(sys.prefix)
+    for cand in (here.parent / ".venv-blender" / "bin" / "python", Path.cwd() / ".venv-blender" / "bin" / "python"):
+        if cand.is_file():
+            return [str(cand)]
+    exe = shutil.which("blender")
+    if exe:
+        return [exe, "--background", "--factory-startup", "--python-exit-code", "1", "--python"]
+    raise UsdRelightError("Blender is not available: run scripts/setup.sh (creates .venv-blender with bpy==5.0.1), "
+                          "set USDRELIGHT_BLENDER_PYTHON, or put `blender` on PATH")
+
+
+def run_blender(script: Path, *args: str, timeout: float = 1800) -> subprocess.CompletedProcess:
+    cmd = blender_command()
+    full = cmd + [str(script)] + (["--"] if len(cmd) > 1 else []) + list(args)
+    r = subprocess.run(full, capture_output=True, text=True, timeout=timeout)
+    if r.returncode != 0:
+        tail = [l for l in (r.stderr or r.stdout).strip().splitlines() if l.strip()]
+        raise UsdRelightError(f"Blender failed: {tail[-1] if tail else 'exit ' + str(r.returncode)}")
+    return r
+
+
+# ---- USD -> Blender ----------------------------------------------------------------------------
+def _material_spec(mat, name: str) -> dict:
+    from usdrelight.scene_read import TextureRecord
+
+    def colour(v):
+        if isinstance(v, TextureRecord):
+            return {"path": v.path, "linear": bool(v.linear)}
+        return [float(x) for x in np.broadcast_to(np.asarray(v, np.float64), (3,))]
+
+    def scalar(v, default):
+        return default if isinstance(v, TextureRecord) else float(v)
+
+    kind = "diffuse" if mat.is_lambertian else "principled"
+    return {"name": name, "kind": kind, "diffuse": colour(mat.diffuse),
+            "metallic": scalar(mat.metallic, 0.0), "roughness": scalar(mat.roughness, 0.5), "ior": float(mat.ior)}
+
+
+def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
+    """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``."""
+    from usdrelight.blender_units import Y_UP_TO_Z_UP, light_to_blender
+    from usdrelight.scene_read import read_scene
+
+    rec = read_scene(stage)
+    conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    mats, meshes = {}, []
+    for i, m in enumerate(rec.meshes):
+        key = m.material.path or "__default__"
+        if key not in mats:
+            mats[key] = _material_spec(m.material, f"M{len(mats)}_{key.strip('/').replace('/', '_')}"[:60])
+        arrays = {"points": (m.points @ conv[:3, :3].T).astype(np.float32), "faces": m.faces.astype(np.int32)}
+        if m.normals is not None:
+            arrays["normals"] = (m.normals @ conv[:3, :3].T).astype(np.float32)
+        if m.uv is not None:
+            arrays["uv"] = m.uv.astype(np.float32)
+        fname = f"mesh{i}.npz"
+        np.savez(data_dir / fname, **arrays)
+        meshes.append({"name": m.path.strip("/").replace("/", "_")[:60] or f"mesh{i}", "usd_path": m.path,
+                       "file": f"{data_dir.name}/{fname}", "material": mats[key]["name"]})
+    if rec.shapes:
+        rec.warnings["UsdGeom Sphere/Cube/Plane gprims in the Blender converter (not converted)"] += len(rec.shapes)
+    cam = None
+    if rec.camera is not None:
+        k = rec.camera.intrinsics
+        f = 36.0 * k.fx / k.width
+        sw = k.width * f / k.fx
+        cam = {"name": rec.camera.path.strip("/").replace("/", "_") or "Camera", "usd_path": rec.camera.path,
+               "lens": f, "sensor_width": sw,
+               "shift_x": (k.width / 2 - k.cx) * f / k.fx / sw, "shift_y": (k.cy - k.height / 2) * f / k.fy / sw,
+               "clip_start": max(rec.camera.near, 1e-6), "clip_end": rec.camera.far,
+               "matrix": (conv @ rec.camera.to_world).tolist()}
+        if abs(k.fx - k.fy) > 1e-6 * k.fx:
+            rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
+    lights = [light_to_blender(l, rec.up_axis) for l in rec.lights]
+    W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
+    payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
+               "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights}
+    return payload, dict(rec.warnings)
+
+
+def write_script(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
+    path = Path(path).absolute()
+    data_dir = path.with_name(path.stem + "_data")
+    payload, warnings = scene_payload(stage, data_dir, samples, max_depth)
+    text = TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload))
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return {"files": [str(path), str(data_dir)], "warnings": warnings}
+
+
+def write_to_file(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
+    path = Path(path).absolute()
+    if path.suffix.lower() == ".py":
+        return write_script(stage, path, samples, max_depth)
+    # the .blend is saved beside its final name (so paths made relative by Blender stay valid), then renamed
+    tmp_blend = path.with_name(f".{path.stem}.tmp.blend")
+    try:
+        with tempfile.TemporaryDirectory() as td:
+            script = Path(td) / "build_scene.py"
+            res = write_script(stage, script, samples, max_depth)
+            run_blender(script, str(tmp_blend))
+        if not tmp_blend.is_file():
+            raise UsdRelightError(f"Blender wrote no file for {path}")
+        os.replace(tmp_blend, path)
+    finally:
+        for leftover in (tmp_blend, tmp_blend.with_name(tmp_blend.name + "1")):
+            if leftover.exists():
+                leftover.unlink()
+    return {"files": [str(path)], "warnings": res["warnings"]}
+
+
+def write_to_string(stage, base_dir, samples: int = 64, max_depth: int = 3) -> str:
+    """The standalone Blender script as text (mesh data written to ``base_dir/scene_data``)."""
+    payload, _ = scene_payload(stage, Path(base_dir) / "scene_data", samples, max_depth)
+    return TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload))
+
+
+# ---- Blender -> USD (lights) -------------------------------------------------------------------
+_DUMP = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+out = []
+for obj in bpy.data.objects:
+    if obj.type != "LIGHT":
+        continue
+    l = obj.data
+    d = {"name": obj.name, "usd_path": obj.get("usd_path", ""), "type": l.type,
+         "matrix": [list(r) for r in obj.matrix_world], "color": list(l.color)}
+    if l.type in ("POINT", "SPOT"):
+        d.update(power=l.energy, radius=l.shadow_soft_size)
+        if l.type == "SPOT":
+            d.update(spot_size=l.spot_size, spot_blend=l.spot_blend)
+    elif l.type == "AREA":
+        d.update(power=l.energy, shape=l.shape, size=l.size, size_y=l.size_y)
+    elif l.type == "SUN":
+        d.update(strength=l.energy, angle=l.angle)
+    out.append(d)
+with open(args[1], "w") as f:
+    json.dump(out, f)
+'''
+
+
+def blender_lights(path) -> list[dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise UsdRelightError(f"file not found: {path}")
+    with tempfile.TemporaryDirectory() as td:
+        script = Path(td) / "dump.py"
+        script.write_text(_DUMP)
+        out = Path(td) / "lights.json"
+        run_blender(script, str(path.absolute()), str(out))
+        return json.loads(out.read_text())
+
+
+def read_from_file(path, usd_path=None):
+    """The .blend's lights as a UsdLux layer: ``over "Scene" { Lights { User { ... } } }``."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    from usdrelight.blender_units import blender_light_to_usd
+    from usdrelight.stage import ROOT, USER_LIGHTS_SCOPE
+
+    lights = blender_lights(path)
+    stage = Usd.Stage.CreateNew(str(usd_path)) if usd_path else Usd.Stage.CreateInMemory()
+    stage.GetRootLayer().documentation = f"Lights brought back from {Path(path).name} by usdrelight."
+    if lights:
+        stage.OverridePrim(ROOT)
+        UsdGeom.Scope.Define(stage, ROOT + "/Lights")
+        UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
+        stage.GetPrimAtPath(ROOT).SetSpecifier(Sdf.SpecifierOver)
+    used = set()
+    for b in lights:
+        try:
+            u = blender_light_to_usd(b)
+        except ValueError as exc:
+            raise UsdRelightError(str(exc)) from None
+        name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
+        if name[0].isdigit():
+            name = "_" + name
+        while name in used:
+            name += "_"
+        used.add(name)
+        p = f"{USER_LIGHTS_SCOPE}/{name}"
+        cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
+               "DistantLight": UsdLux.DistantLight}[u["kind"]]
+        light = cls.Define(stage, p)
+        peak = max(u["color"]) if max(u["color"]) > 0 else 1.0
+        light.CreateIntensityAttr(float(u["intensity"] * peak))
+        light.CreateColorAttr(Gf.Vec3f(*[c / peak for c in u["color"]]))
+        light.CreateNormalizeAttr(False)
+        if u["kind"] == "SphereLight":
+            light.CreateRadiusAttr(float(u["radius"]))
+            light.CreateTreatAsPointAttr(bool(u["treatAsPoint"]))
+            if "coneAngle" in u:
+                sh = UsdLux.ShapingAPI.Apply(light.GetPrim())
+                sh.CreateShapingConeAngleAttr(float(u["coneAngle"]))
+                sh.CreateShapingConeSoftnessAttr(float(u["coneSoftness"]))
+        elif u["kind"] == "DiskLight":
+            light.CreateRadiusAttr(float(u["radius"]))
+        elif u["kind"] == "RectLight":
+            light.CreateWidthAttr(float(u["width"]))
+            light.CreateHeightAttr(float(u["height"]))
+        elif u["kind"] == "DistantLight":
+            light.CreateAngleAttr(float(u["angle"]))
+        UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
+    return stage
+
+
+RENDER_SCRIPT = r'''
+import bpy, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+scene = bpy.context.scene
+if len(args) > 2:
+    scene.cycles.samples = int(args[2])
+scene.render.image_settings.file_format = "OPEN_EXR"
+scene.render.image_settings.color_depth = "32"
+scene.render.filepath = args[1]
+bpy.ops.render.render(write_still=True)
+'''
+
+
+def render_blend(path, out_exr, samples: int | None = None) -> Path:
+    """Render a .blend with Cycles (its own settings) to a linear EXR; returns the EXR path."""
+    with tempfile.TemporaryDirectory() as td:
+        script = Path(td) / "render.py"
+        script.write_text(RENDER_SCRIPT)
+        args = [str(Path(path).absolute()), str(Path(out_exr).absolute())] + ([str(samples)] if samples else [])
+        run_blender(script, *args)
+    return Path(out_exr)
