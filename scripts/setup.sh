@@ -11,8 +11,14 @@ log() { printf 'setup: %s\n' "$*" >&2; }
 
 # drjit's LLVM backend (mitsuba's llvm_ad_rgb) needs libLLVM >= 16; Debian's default 14/15 crash it
 # ("Cannot select fminimum"). Install Debian's libllvm19 when no suitable libLLVM is present.
-have_llvm() { ls /usr/lib/*/libLLVM.so.1[6-9]* /usr/lib/*/libLLVM-1[6-9].so* /usr/lib/*/libLLVM.so.2[0-9]* \
-                 /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* 2>/dev/null | grep -q . ; }
+have_llvm() {
+  local f
+  for f in /usr/lib/*/libLLVM.so.1[6-9]* /usr/lib/*/libLLVM-1[6-9].so* /usr/lib/*/libLLVM.so.2[0-9]* \
+           /usr/lib/*/libLLVM-2[0-9].so* /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-2[0-9]/lib/libLLVM*.so*; do
+    [ -e "$f" ] && return 0
+  done
+  return 1
+}
 if ! have_llvm; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
   if command -v apt-get >/dev/null; then
