@@ -158,3 +158,29 @@ def test_standalone_script_builds_the_same_blend(cli, tmp_path):
     run_blender(tmp_path / "scene.py", str(tmp_path / "from_script.blend"))
     img = read_map(render_blend(tmp_path / "from_script.blend", tmp_path / "x.exr", samples=16), 3)
     np.testing.assert_allclose(_centre(img), 0.4, rtol=0.05)
+
+
+@pytest.mark.parametrize("kind", ["rect", "disk", "sphere"])
+def test_area_lights_agree_between_cycles_and_mitsuba(cli, tmp_path, kind):
+    from usdrelight.render import render_stage
+
+    stage = looking_down_at_floor(tmp_path / "s.usda", width=24, height=18)
+    if kind == "rect":
+        l = UsdLux.RectLight.Define(stage, "/World/L")
+        l.CreateWidthAttr(1.0)
+        l.CreateHeightAttr(0.5)
+    elif kind == "disk":
+        l = UsdLux.DiskLight.Define(stage, "/World/L")
+        l.CreateRadiusAttr(0.4)
+    else:
+        l = UsdLux.SphereLight.Define(stage, "/World/L")
+        l.CreateRadiusAttr(0.2)
+    l.CreateIntensityAttr(4.0)
+    x = UsdGeom.Xformable(l)
+    x.AddTranslateOp().Set(Gf.Vec3d(1.0, 0.5, 0.0))  # outside the camera's view cone
+    x.AddRotateXOp().Set(-90.0)  # emit downwards
+    stage.GetRootLayer().Save()
+    mitsuba = read_map(render_stage(tmp_path / "s.usda", tmp_path / "m", spp=512).files["color"], 3)
+    assert cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")[0] == 0
+    cycles = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", samples=512), 3)
+    assert cycles.mean() == pytest.approx(mitsuba.mean(), rel=0.05)
