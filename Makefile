@@ -9,6 +9,9 @@ demo: setup
 	$(VENV)/usdrelight build examples/motorcycle/photo.png --depth examples/motorcycle/depth.exr \
 		--intrinsics examples/motorcycle/intrinsics.json -o out/motorcycle
 	$(VENV)/usdrelight validate out/motorcycle/scene.usda
+	$(VENV)/usdrelight fit out/motorcycle/scene.usda --report out/motorcycle/fit_report
+	$(VENV)/usdrelight relight out/motorcycle/scene.usda --light point:0.6,0.4,-1.2:4,3.6,3 --with-fitted \
+		-o out/motorcycle/relit
 
 test: setup
 	$(VENV)/python -m pytest -q

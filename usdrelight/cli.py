@@ -141,6 +141,36 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_neural(args) -> int:
+    from .neural import neural_stage
+
+    res = neural_stage(args.stage, args.model, args.output, render_missing=args.render_missing, spp=args.spp)
+    summary = {"exr": str(res.exr), "png": str(res.png), "seconds": {k: round(v, 4) for k, v in res.seconds.items()}}
+    _emit(args, summary, f"wrote {res.exr} and {res.png} ({res.seconds['total']:.2f} s)")
+    return 0
+
+
+def cmd_relight(args) -> int:
+    from .relight import relight
+
+    rep = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
+                  max_side=args.max_side)
+    sec = rep["seconds"]
+    _emit(args, {**rep, "seconds": {k: round(v, 4) for k, v in sec.items()}},
+          f"wrote {rep['exr']} and {rep['png']} ({rep['resolution'][0]}x{rep['resolution'][1]}, {rep['lights']} "
+          f"light(s)); " + ", ".join(f"{k} {v:.2f} s" for k, v in sec.items()))
+    return 0
+
+
+def cmd_train(args) -> int:
+    from .train import train_folder
+
+    info = train_folder(args.data, args.output, args.work, steps=args.steps)
+    _emit(args, {k: v for k, v in info.items() if k != "loss_curve"},
+          f"wrote {args.output} ({info['pairs']} pairs, {info['steps']} steps, {info['seconds']:.0f} s)")
+    return 0
+
+
 def cmd_convert(args) -> int:
     from .convert import convert
 
@@ -214,6 +244,38 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--report", type=Path, help="write fit_report.json and an error-vs-time plot here")
     f.add_argument("--seed", type=int, default=0)
     f.set_defaults(func=cmd_fit)
+
+    n = sub.add_parser("neural", parents=[common], help="run the neural renderer on the stage's AOVs",
+                       description="Read D~, albedo and valid mask through the stage's RenderProducts, fill "
+                                   "holes, run the ONNX network; write linear EXR and sRGB PNG.")
+    n.add_argument("stage", type=Path)
+    n.add_argument("--model", type=Path, help="ONNX model (default: the shipped one)")
+    n.add_argument("-o", "--output", type=Path, help="output folder (default: STAGE_DIR/neural)")
+    n.add_argument("--render-missing", action="store_true", help="render AOVs whose files are missing")
+    n.add_argument("--spp", type=_positive_int, default=64)
+    n.set_defaults(func=cmd_neural)
+
+    rl = sub.add_parser("relight", parents=[common], help="apply lights, render, run the network",
+                        description="Relight the photo: user lights (layer and --light), render AOVs, network.")
+    rl.add_argument("stage", type=Path)
+    rl.add_argument("--light", action="append", metavar="SPEC",
+                    help="point:X,Y,Z:R,G,B | sun:DX,DY,DZ:R,G,B | dome:R,G,B (repeatable)")
+    rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
+    rl.add_argument("--model", type=Path)
+    rl.add_argument("-o", "--output", type=Path)
+    rl.add_argument("--spp", type=_positive_int, default=32)
+    rl.add_argument("--max-side", type=_positive_int, help="render at most this many pixels on the longer side")
+    rl.set_defaults(func=cmd_relight)
+
+    tr = sub.add_parser("train", parents=[common], help="train the neural renderer (needs torch)",
+                        description="Self-supervised pairs from a folder of photos (+ optional estimator "
+                                    "outputs NAME.depth.exr, NAME.intrinsics.json, NAME.albedo.exr), then training "
+                                    "and ONNX export.")
+    tr.add_argument("data", type=Path)
+    tr.add_argument("-o", "--output", type=Path, required=True, help="ONNX file to write")
+    tr.add_argument("--work", type=Path, help="folder for the per-photo stages (cached)")
+    tr.add_argument("--steps", type=_positive_int, default=1500)
+    tr.set_defaults(func=cmd_train)
 
     c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML",
                        description="Convert SRC to DST, each format chosen by its suffix.")

@@ -42,8 +42,12 @@ class SceneSpec:
         return Intrinsics.from_fov_x(self.fov_x_deg, self.width, self.height)
 
 
-def random_spec(seed: int = 0, width: int = 256, height: int = 192, n_lights: int = 1) -> SceneSpec:
-    """A random but well-posed indoor-like scene: camera 1 m above the floor, wall 6 m away."""
+def random_spec(seed: int = 0, width: int = 256, height: int = 192, n_lights: int = 1,
+                glossy: bool = False) -> SceneSpec:
+    """A random but well-posed indoor-like scene: camera 1 m above the floor, wall 6 m away.
+
+    With ``glossy``, objects get non-diffuse materials too (rough plastic, rough metal), what a real
+    photo has and the 2.5D diffuse reconstruction lacks (the gap the neural renderer closes)."""
     rng = np.random.default_rng(seed)
     shapes = [
         {"kind": "floor", "y": -1.0, "albedo": [0.6, 0.55, 0.5], "checker": [0.25, 0.3, 0.35]},
@@ -61,6 +65,12 @@ def random_spec(seed: int = 0, width: int = 256, height: int = 192, n_lights: in
                        "half_size": s, "yaw_deg": float(rng.uniform(0, 90)),
                        "albedo": rng.uniform(0.15, 0.85, 3).round(3).tolist(),
                        "checker": rng.uniform(0.1, 0.5, 3).round(3).tolist()})
+    if glossy:
+        for sh in shapes[2:]:
+            sh["material"] = str(rng.choice(["diffuse", "plastic", "plastic", "metal"]))
+            sh["roughness"] = float(rng.uniform(0.05, 0.4))
+        shapes[0]["material"] = "plastic"
+        shapes[0]["roughness"] = float(rng.uniform(0.2, 0.5))
     lights = [PointLight((float(rng.uniform(-1.5, 1.5)), float(rng.uniform(0.3, 1.2)), float(rng.uniform(-4.0, -1.5))),
                          tuple((rng.uniform(3.0, 8.0) * np.array([1.0, rng.uniform(0.85, 1.0), rng.uniform(0.7, 1.0)]))
                                .round(3).tolist()))
@@ -76,6 +86,12 @@ def _bsdf(shape: dict) -> dict:
                 "to_uv": _mi().ScalarTransform4f().scale([8, 8, 1])}
     else:
         refl = {"type": "rgb", "value": a}
+    kind = shape.get("material", "diffuse")
+    alpha = float(shape.get("roughness", 0.2)) ** 2
+    if kind == "plastic":
+        return {"type": "roughplastic", "diffuse_reflectance": refl, "alpha": max(alpha, 1e-3), "nonlinear": True}
+    if kind == "metal":
+        return {"type": "roughconductor", "material": "none", "specular_reflectance": refl, "alpha": max(alpha, 1e-3)}
     return {"type": "diffuse", "reflectance": refl}
 
 
@@ -185,3 +201,20 @@ def load_spec(path: str | Path) -> SceneSpec:
 def point_light_radiance(albedo: float, intensity: float, distance: float, cos_theta: float = 1.0) -> float:
     """Closed form: radiance of a Lambertian point under a point light, albedo/pi * I cos / r^2."""
     return albedo / math.pi * intensity * cos_theta / distance ** 2
+
+
+def write_training_photo(out_dir: str | Path, name: str, spec: SceneSpec, spp: int = 64) -> dict:
+    """Write one procedural photo with its 'estimator outputs' in the training-folder layout
+    (``<name>.exr``, ``<name>.depth.exr``, ``<name>.albedo.exr``, ``<name>.intrinsics.json``) and
+    ``<name>.scene.json`` (the spec, for relighting with unseen lights)."""
+    from .imageio import write_image
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    gt = render_ground_truth(spec, spp)
+    write_image(out / f"{name}.exr", gt.image, "float")
+    write_image(out / f"{name}.depth.exr", gt.depth, "float")
+    write_image(out / f"{name}.albedo.exr", np.where(gt.valid[..., None], gt.albedo, 1.0), "float")
+    (out / f"{name}.intrinsics.json").write_text(json.dumps(gt.intrinsics.opencv()) + "\n")
+    (out / f"{name}.scene.json").write_text(json.dumps({"spec": asdict(spec), "spp": spp}) + "\n")
+    return {"name": name, "valid_fraction": float(gt.valid.mean())}

@@ -1,0 +1,124 @@
+"""Neural render stage: hole filling, the model contract, tiling, the CLI, relight end to end."""
+import json
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from usdrelight.errors import UsdRelightError
+from usdrelight.imageio import read_map
+from usdrelight.neural import DEFAULT_MODEL, RelightModel, build_input, hole_fill
+
+
+def test_hole_fill_keeps_valid_pixels_and_fills_smoothly():
+    h, w = 40, 60
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.stack([xx / w, yy / h, np.full((h, w), 0.5)], -1).astype(np.float32)
+    valid = np.ones((h, w), bool)
+    valid[10:25, 20:45] = False
+    out = hole_fill(img, valid)
+    np.testing.assert_array_equal(out[valid], img[valid])
+    assert np.all(np.isfinite(out))
+    assert out[~valid][:, 0].min() >= img[:, 20:45, 0].min() - 1e-6 and out[~valid][:, 0].max() <= img[:, 20:45, 0].max() + 1e-6
+    np.testing.assert_allclose(out[~valid][:, 2], 0.5, atol=1e-6)  # a constant stays constant
+    assert np.all(hole_fill(img, np.zeros((h, w), bool)) == 0)
+
+
+def test_build_input_layout_and_errors():
+    d = np.full((8, 8, 3), 2.0, np.float32)
+    a = np.full((8, 8, 3), 0.5, np.float32)
+    v = np.ones((8, 8), bool)
+    v[0, 0] = False
+    x = build_input(d, a, v)
+    assert x.shape == (7, 8, 8) and x[6, 0, 0] == 1 and x[6, 1, 1] == 0 and x[0, 0, 0] == 2.0
+    bad = d.copy()
+    bad[1, 1, 1] = np.nan
+    with pytest.raises(UsdRelightError, match="NaN"):
+        build_input(bad, a, v)
+    with pytest.raises(UsdRelightError, match="sizes differ"):
+        build_input(d, a[:4], v)
+
+
+def _pointwise_model(path, input_name="input"):
+    """output = input channels 0..2 (a real ONNX graph: Slice)."""
+    nodes = [helper.make_node("Slice", [input_name, "starts", "ends", "axes"], ["output"])]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info(input_name, TensorProto.FLOAT, [1, 7, "H", "W"])],
+        [helper.make_tensor_value_info("output", TensorProto.FLOAT, [1, 3, "H", "W"])],
+        initializer=[numpy_helper.from_array(np.array([0], np.int64), "starts"),
+                     numpy_helper.from_array(np.array([3], np.int64), "ends"),
+                     numpy_helper.from_array(np.array([1], np.int64), "axes")])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9), path)
+
+
+def test_tiled_inference_equals_whole_image(tmp_path, monkeypatch):
+    import usdrelight.neural as neural
+
+    _pointwise_model(tmp_path / "m.onnx")
+    m = RelightModel(tmp_path / "m.onnx")
+    x = np.random.default_rng(0).random((7, 150, 230)).astype(np.float32)
+    whole = m(x)
+    monkeypatch.setattr(neural, "TILE", 64)
+    monkeypatch.setattr(neural, "OVERLAP", 16)
+    tiled = m(x)
+    np.testing.assert_allclose(tiled, whole, atol=1e-6)
+    np.testing.assert_allclose(whole, x[:3].transpose(1, 2, 0), atol=1e-6)  # odd sizes padded and cropped
+
+
+def test_wrong_contract_and_missing_model(tmp_path):
+    _pointwise_model(tmp_path / "bad.onnx", input_name="x")
+    with pytest.raises(UsdRelightError, match="contract"):
+        RelightModel(tmp_path / "bad.onnx")
+    with pytest.raises(UsdRelightError, match="not found"):
+        RelightModel(tmp_path / "none.onnx")
+
+
+def test_shipped_model_and_card():
+    assert DEFAULT_MODEL.is_file() and DEFAULT_MODEL.stat().st_size < 8e6
+    card = DEFAULT_MODEL.with_name("MODEL_CARD.md").read_text()
+    for word in ("Data", "Training", "Metrics", "contract"):
+        assert word in card
+    m = RelightModel()
+    x = np.zeros((7, 48, 64), np.float32)
+    x[0:3] = 0.2
+    x[3:6] = 0.5
+    y = m(x)
+    assert y.shape == (48, 64, 3) and np.all(np.isfinite(y)) and y.min() >= 0
+
+
+def test_neural_cli_on_a_built_stage(cli, moto_stage, tmp_path):
+    import shutil
+
+    stage_dir = tmp_path / "s"
+    shutil.copytree(moto_stage.parent, stage_dir)
+    shutil.rmtree(stage_dir / "renders", ignore_errors=True)
+    rc, _, err = cli("neural", stage_dir / "scene.usda")
+    assert rc == 2 and "missing AOV" in err and "Traceback" not in err
+    (stage_dir / "lights_user.usda").write_text(
+        '#usda 1.0\nover "Scene"\n{\n    def Scope "Lights"\n    {\n        def Scope "User"\n        {\n'
+        '            def DomeLight "Sky"\n            {\n                float inputs:intensity = 1\n'
+        '            }\n        }\n    }\n}\n')
+    res = cli.json("neural", stage_dir / "scene.usda", "--render-missing", "--spp", "4", "-o", tmp_path / "n")
+    img = read_map(res["exr"], 3)
+    assert img.shape == (500, 741, 3) and np.all(np.isfinite(img))
+    assert (tmp_path / "n" / "relit.png").is_file()
+    # wrong sizes: an AOV file that does not match the others
+    from usdrelight.imageio import write_image
+
+    write_image(stage_dir / "renders" / "albedo.exr", np.zeros((10, 10, 3)), "float")
+    rc, _, err = cli("neural", stage_dir / "scene.usda")
+    assert rc == 2 and "sizes differ" in err
+
+
+def test_relight_end_to_end(cli, moto_stage, tmp_path):
+    rep = cli.json("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--light", "dome:0.05,0.05,0.06",
+                   "--max-side", "128", "--spp", "4", "-o", tmp_path / "r")
+    img = read_map(rep["exr"], 3)
+    assert img.shape[1] == 128 and np.all(np.isfinite(img)) and img.mean() > 0
+    for step in ("read", "render", "hole_fill", "network", "write", "total"):
+        assert step in rep["seconds"]
+    rc, _, err = cli("relight", moto_stage, "--light", "spot:1,2")
+    assert rc == 2 and "bad --light" in err
+    rc, _, err = cli("relight", moto_stage)
+    assert rc == 2 and "no light" in err
