@@ -5,7 +5,7 @@ Network: a small U-Net (3 levels, ``width`` channels at the top) that predicts a
 brightness-normalised D~: out = s * relu(D~ / s + f(D~ / s, A, mask)), s = mean of D~ over valid pixels, so
 the exported graph takes and returns linear RGB (the model contract of :mod:`usdrelight.neural`).
 Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on images
-normalised by s; random 96 px crops and horizontal flips.
+normalised by s; whole images (s is an image-level statistic, so crops would shift it) and horizontal flips.
 """
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def pairs_to_arrays(pairs):
     return xs, ys
 
 
-def train_model(pairs, steps: int = 1500, batch: int = 8, crop: int = 96, lr: float = 2e-3, width: int = 16,
+def train_model(pairs, steps: int = 1500, batch: int = 4, crop: int = 0, lr: float = 2e-3, width: int = 16,
                 seed: int = 0, progress=None):
     """Returns (model, log dict)."""
     torch = _torch()
@@ -108,7 +108,10 @@ def train_model(pairs, steps: int = 1500, batch: int = 8, crop: int = 96, lr: fl
             i = int(rng.integers(len(xs)))
             x, y = xs[i], ys[i]
             _, h, w = x.shape
-            ch, cw = min(crop, h - h % 16), min(crop, w - w % 16)
+            # crop = 0: whole images (cut to a multiple of 16), so the brightness normalisation s inside the
+            # network sees the same pixels in training as at inference
+            ch = min(crop, h - h % 16) if crop else h - h % 16
+            cw = min(crop, w - w % 16) if crop else w - w % 16
             r0, c0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
             xc, yc = x[:, r0:r0 + ch, c0:c0 + cw], y[:, r0:r0 + ch, c0:c0 + cw]
             if rng.random() < 0.5:
@@ -126,9 +129,9 @@ def train_model(pairs, steps: int = 1500, batch: int = 8, crop: int = 96, lr: fl
         opt.step()
         sched.step()
         if step % 25 == 0 or step == steps - 1:
-            curve.append([time.perf_counter() - t0, float(loss)])
+            curve.append([time.perf_counter() - t0, float(loss.detach())])
             if progress:
-                progress(step + 1, steps, float(loss))
+                progress(step + 1, steps, float(loss.detach()))
     return model.cpu().eval(), {"steps": steps, "batch": batch, "crop": crop, "lr": lr, "width": width,
                                 "seconds": time.perf_counter() - t0, "device": device, "loss_curve": curve,
                                 "parameters": int(sum(p.numel() for p in model.parameters()))}
