@@ -122,7 +122,9 @@ def render_fitted(prob: FitProblem, lights: list, env: np.ndarray | None, spp: i
             recs.append(LightRecord("/fit/Env", "dome", np.eye(4), np.ones(3), texture=TextureRecord(str(path), "raw")))
         rec.lights = recs
         try:
-            img = render_record(rec, {"beauty"}, spp=spp, max_depth=max_depth, seed=seed)["beauty"]
+            # emitters hidden from camera rays: D is compared where the mesh covers the pixel, and a partly
+            # covered pixel must not pick up the environment seen through a cut in the 2.5D mesh
+            img = render_record(rec, {"beauty"}, spp=spp, max_depth=max_depth, seed=seed, hide_emitters=True)["beauty"]
         finally:
             rec.lights = saved
     return img
@@ -146,7 +148,7 @@ def _parse_env_res(text) -> tuple:
 
 
 def fit_stage(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
-              max_side: int = 512, report_dir=None, verify_spp: int = 512, progress=None, seed: int = 0) -> dict:
+              max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0) -> dict:
     """Fit, write the fitted-lights layer, verify by rendering with Mitsuba, and report."""
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")

@@ -82,13 +82,18 @@ def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, w
     return out
 
 
-def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int = 3, seed: int = 0) -> dict:
-    """Render the quantities in ``wanted`` (beauty and/or GEOMETRIC names) for a scene record."""
+def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int = 3, seed: int = 0,
+                  hide_emitters: bool = False) -> dict:
+    """Render the quantities in ``wanted`` (beauty and/or GEOMETRIC names) for a scene record.
+
+    ``hide_emitters``: camera rays do not see emitters directly (the environment through holes in a 2.5D
+    mesh, for instance); their light still reaches the surfaces."""
     mi = load_mitsuba()
     if rec.camera is None:
         raise UsdRelightError("the stage has no camera to render from")
     W, H = rec.camera.intrinsics.width, rec.camera.intrinsics.height
-    scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=spp, max_depth=max_depth), mi))
+    integrator = {"type": "path", "max_depth": int(max_depth), "hide_emitters": bool(hide_emitters)}
+    scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=spp, max_depth=max_depth, integrator=integrator), mi))
     out = {}
     if "beauty" in wanted:
         img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3]
