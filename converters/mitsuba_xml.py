@@ -710,16 +710,9 @@ class _UsdBuilder:
         elif p.type == "directional":
             light = UsdLux.DistantLight.Define(self.stage, path)
             light.CreateAngleAttr(0.0)
-            d = np.asarray(p.props.get("direction", (0, 0, 1)), np.float64)
-            d = (M[:3, :3] @ d)
-            d /= np.linalg.norm(d)
-            z = -d
-            helper = np.array([0, 1, 0]) if abs(z[1]) < 0.9 else np.array([1, 0, 0])
-            x = np.cross(helper, z)
-            x /= np.linalg.norm(x)
-            y = np.cross(z, x)
-            R = np.eye(4)
-            R[:3, 0], R[:3, 1], R[:3, 2] = x, y, z
+            from usdrelight.lux import frame_pointing_along
+
+            R = frame_pointing_along(M[:3, :3] @ np.asarray(p.props.get("direction", (0, 0, 1)), np.float64))
             self.set_xform(light.GetPrim(), R)
             self._light_common(light, p.props.get("irradiance", (1.0, 1.0, 1.0)))
         elif p.type in ("constant", "envmap"):

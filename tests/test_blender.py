@@ -4,7 +4,7 @@ import pytest
 from pxr import Gf, UsdGeom, UsdLux
 
 from conftest import EXAMPLES
-from usd_scenes import camera, looking_down_at_floor, new_stage
+from usd_scenes import add_closed_form_light, asymmetric_latlong, camera, looking_down_at_floor, new_stage
 from usdrelight.converters.blender import blender_lights, render_blend
 from usdrelight.imageio import read_map, write_image
 from usdrelight.intrinsics import Intrinsics
@@ -18,20 +18,7 @@ def _centre(img):
 @pytest.mark.parametrize("light", ["point", "dome", "distant"])
 def test_closed_forms_in_cycles(cli, tmp_path, light):
     stage = looking_down_at_floor(tmp_path / "s.usda")
-    if light == "point":
-        l = UsdLux.SphereLight.Define(stage, "/World/L")
-        l.CreateIntensityAttr(20.0)
-        l.CreateTreatAsPointAttr(True)
-        UsdGeom.Xformable(l).AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
-        expected = 0.5 * 20 / np.pi
-    elif light == "dome":
-        UsdLux.DomeLight.Define(stage, "/World/L").CreateIntensityAttr(0.8)
-        expected = 0.4
-    else:
-        l = UsdLux.DistantLight.Define(stage, "/World/L")
-        l.CreateIntensityAttr(3.0)
-        UsdGeom.Xformable(l).AddRotateXOp().Set(-90.0)
-        expected = 0.5 * 3 / np.pi
+    expected = add_closed_form_light(stage, light)
     stage.GetRootLayer().Save()
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
     assert rc == 0, err
@@ -44,10 +31,7 @@ def test_textured_dome_orientation_in_cycles(cli, tmp_path):
     from usdrelight.scene_read import read_scene
     from usdrelight.validate import open_stage
 
-    h, w = 64, 128
-    v, u = np.mgrid[0:h, 0:w]
-    u, v = (u + 0.5) / w, (v + 0.5) / h
-    tex = np.stack([0.5 + 0.5 * np.sin(2 * np.pi * u), v, 0.5 + 0.4 * np.cos(2 * np.pi * u) * (1 - v)], -1)
+    tex = asymmetric_latlong()
     write_image(tmp_path / "env.exr", tex, "float")
     stage = new_stage(tmp_path / "s.usda")
     dome = UsdLux.DomeLight.Define(stage, "/World/Sky")

@@ -63,11 +63,9 @@ def test_textured_dome_seen_directly_has_usd_orientation(tmp_path, yaw):
     from usdrelight.imageio import write_image
     from usdrelight.intrinsics import Intrinsics
 
-    # an asymmetric smooth map: any flip or rotation changes what the camera sees
-    h, w = 64, 128
-    v, u = np.mgrid[0:h, 0:w]
-    u, v = (u + 0.5) / w, (v + 0.5) / h
-    tex = np.stack([0.5 + 0.5 * np.sin(2 * np.pi * u), v, 0.5 + 0.4 * np.cos(2 * np.pi * u) * (1 - v)], -1)
+    from usd_scenes import asymmetric_latlong
+
+    tex = asymmetric_latlong()
     write_image(tmp_path / "env.exr", tex, "float")
     stage = new_stage(tmp_path / "s.usda")
     dome = UsdLux.DomeLight.Define(stage, "/World/Sky")

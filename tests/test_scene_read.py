@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade
 
-from usd_scenes import camera, diffuse_material, looking_down_at_floor, new_stage
+from usd_scenes import add_closed_form_light, camera, diffuse_material, looking_down_at_floor, new_stage
 from usdrelight.imageio import read_map
 from usdrelight.intrinsics import Intrinsics
 from usdrelight.mitsuba_env import load_mitsuba
@@ -66,20 +66,7 @@ def test_invisible_guides_and_unsupported_prims_are_named(tmp_path):
 def test_closed_forms_through_the_xml_converter(cli, tmp_path, light):
     """Convert the closed-form scenes to Mitsuba XML and render the XML with Mitsuba itself."""
     stage = looking_down_at_floor(tmp_path / "s.usda")
-    if light == "point":
-        l = UsdLux.SphereLight.Define(stage, "/World/L")
-        l.CreateIntensityAttr(20.0)
-        l.CreateTreatAsPointAttr(True)
-        UsdGeom.Xformable(l).AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
-        expected = 0.5 * 20 / np.pi
-    elif light == "dome":
-        UsdLux.DomeLight.Define(stage, "/World/L").CreateIntensityAttr(0.8)
-        expected = 0.4
-    else:
-        l = UsdLux.DistantLight.Define(stage, "/World/L")
-        l.CreateIntensityAttr(3.0)
-        UsdGeom.Xformable(l).AddRotateXOp().Set(-90.0)
-        expected = 0.5 * 3 / np.pi
+    expected = add_closed_form_light(stage, light)
     stage.GetRootLayer().Save()
     assert cli("convert", tmp_path / "s.usda", tmp_path / "x" / "s.xml")[0] == 0
     mi = load_mitsuba()

@@ -89,3 +89,29 @@ def looking_down_at_floor(path: Path, width=32, height=24, height_m=1.0, aovs=("
     camera(stage, Intrinsics.from_fov_x(40.0, width, height), translate=(0, height_m, 0), rotate_x_deg=-90.0,
            aovs=aovs)
     return stage
+
+
+def add_closed_form_light(stage, kind: str) -> float:
+    """The three closed-form lights over `looking_down_at_floor`; returns the expected centre radiance."""
+    from pxr import UsdLux
+
+    if kind == "point":
+        light = UsdLux.SphereLight.Define(stage, "/World/L")
+        light.CreateIntensityAttr(20.0)
+        light.CreateTreatAsPointAttr(True)
+        UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
+        return 0.5 * 20 / np.pi  # albedo/pi * I / r^2
+    if kind == "dome":
+        UsdLux.DomeLight.Define(stage, "/World/L").CreateIntensityAttr(0.8)
+        return 0.4  # albedo * L
+    light = UsdLux.DistantLight.Define(stage, "/World/L")
+    light.CreateIntensityAttr(3.0)
+    UsdGeom.Xformable(light).AddRotateXOp().Set(-90.0)  # local -Z -> world -Y
+    return 0.5 * 3 / np.pi  # albedo/pi * E
+
+
+def asymmetric_latlong(h: int = 64, w: int = 128) -> np.ndarray:
+    """A smooth latlong map in which any flip or rotation changes what a camera sees."""
+    v, u = np.mgrid[0:h, 0:w]
+    u, v = (u + 0.5) / w, (v + 0.5) / h
+    return np.stack([0.5 + 0.5 * np.sin(2 * np.pi * u), v, 0.5 + 0.4 * np.cos(2 * np.pi * u) * (1 - v)], -1)

@@ -59,3 +59,15 @@ def light_direction(light: LightRecord) -> np.ndarray:
 
 def light_position(light: LightRecord) -> np.ndarray:
     return light.to_world[:3, 3].copy()
+
+
+def frame_pointing_along(direction) -> np.ndarray:
+    """A 4x4 rotation whose local -Z axis is ``direction`` (how UsdLux distant/disk/rect lights point)."""
+    d = np.asarray(direction, np.float64)
+    z = -d / np.linalg.norm(d)
+    helper = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2] = x, np.cross(z, x), z
+    return m

@@ -60,15 +60,10 @@ def author_cli_lights(stage, lights: list[dict]) -> None:
             prim.CreateRadiusAttr(0.0)
             UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(*l["position"]))
         elif l["kind"] == "sun":
+            from .lux import frame_pointing_along
+
             prim = UsdLux.DistantLight.Define(stage, path)
-            d = np.asarray(l["direction"], np.float64)
-            z = -d / np.linalg.norm(d)
-            helper = np.array([0, 1, 0]) if abs(z[1]) < 0.9 else np.array([1, 0, 0])
-            x = np.cross(helper, z)
-            x /= np.linalg.norm(x)
-            y = np.cross(z, x)
-            m = np.eye(4)
-            m[:3, 0], m[:3, 1], m[:3, 2] = x, y, z
+            m = frame_pointing_along(l["direction"])
             UsdGeom.Xformable(prim).AddTransformOp().Set(Gf.Matrix4d(m.T.tolist()))
         else:
             prim = UsdLux.DomeLight.Define(stage, path)
