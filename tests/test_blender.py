@@ -27,30 +27,14 @@ def test_closed_forms_in_cycles(cli, tmp_path, light):
 
 
 def test_textured_dome_orientation_in_cycles(cli, tmp_path):
-    from test_render_closed_form import _latlong_lookup
-    from usdrelight.scene_read import read_scene
-    from usdrelight.validate import open_stage
+    from usd_scenes import dome_view_stage, expected_dome_view
 
     tex = asymmetric_latlong()
-    write_image(tmp_path / "env.exr", tex, "float")
-    stage = new_stage(tmp_path / "s.usda")
-    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
-    dome.CreateTextureFileAttr("./env.exr")
-    dome.CreateIntensityAttr(2.0)
-    UsdGeom.Xformable(dome).AddRotateYOp().Set(30.0)
-    cam = camera(stage, Intrinsics.from_fov_x(100.0, 48, 32), rotate_x_deg=20.0)
-    UsdGeom.Xformable(cam).AddRotateYOp().Set(-60.0)
-    stage.GetRootLayer().Save()
+    dome_view_stage(tmp_path / "s.usda", tex, yaw_deg=30.0)
     assert cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")[0] == 0
     img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", samples=16), 3)
-    rec = read_scene(open_stage(tmp_path / "s.usda"))
-    rays = rec.camera.intrinsics.pixel_rays()
-    rays[..., 1:] *= -1
-    world = rays @ rec.camera.to_world[:3, :3].T
-    world /= np.linalg.norm(world, axis=-1, keepdims=True)
-    local = world @ rec.lights[0].to_world[:3, :3]
-    assert np.abs(img - 2.0 * _latlong_lookup(tex, local)).mean() < 0.03
-    assert np.abs(img - 2.0 * _latlong_lookup(tex[::-1, ::-1], local)).mean() > 0.1
+    assert np.abs(img - expected_dome_view(tmp_path / "s.usda", tex)).mean() < 0.03
+    assert np.abs(img - expected_dome_view(tmp_path / "s.usda", tex[::-1, ::-1])).mean() > 0.1
 
 
 def test_built_stage_with_fitted_lights_renders_like_mitsuba(cli, tmp_path):

@@ -115,3 +115,49 @@ def asymmetric_latlong(h: int = 64, w: int = 128) -> np.ndarray:
     v, u = np.mgrid[0:h, 0:w]
     u, v = (u + 0.5) / w, (v + 0.5) / h
     return np.stack([0.5 + 0.5 * np.sin(2 * np.pi * u), v, 0.5 + 0.4 * np.cos(2 * np.pi * u) * (1 - v)], -1)
+
+
+def dome_view_stage(path: Path, tex: np.ndarray, yaw_deg: float = 0.0, intensity: float = 2.0):
+    """A stage whose camera sees only a textured DomeLight (turned by ``yaw_deg`` about +Y)."""
+    from pxr import UsdLux
+
+    from usdrelight.imageio import write_image
+
+    write_image(path.parent / "env.exr", tex, "float")
+    stage = new_stage(path)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr("./env.exr")
+    dome.CreateIntensityAttr(intensity)
+    if yaw_deg:
+        UsdGeom.Xformable(dome).AddRotateYOp().Set(yaw_deg)
+    cam = camera(stage, Intrinsics.from_fov_x(100.0, 48, 32), rotate_x_deg=20.0)  # slightly up, towards -Z
+    UsdGeom.Xformable(cam).AddRotateYOp().Set(-60.0)  # and turned towards +X
+    stage.GetRootLayer().Save()
+    return stage
+
+
+def latlong_lookup(img: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Independent OpenEXR latlong lookup: u=0 -> -Z, u=1/4 -> +X, u=1/2 -> +Z, top row -> +Y (bilinear)."""
+    h, w = img.shape[:2]
+    u = (np.arctan2(dirs[..., 0], -dirs[..., 2]) / (2 * np.pi)) % 1.0
+    v = np.arccos(np.clip(dirs[..., 1], -1, 1)) / np.pi
+    x, y = u * w - 0.5, np.clip(v * h - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    y1 = np.minimum(y0 + 1, h - 1)
+    x0m, x1m = x0 % w, (x0 + 1) % w
+    return ((1 - fy) * ((1 - fx) * img[y0, x0m] + fx * img[y0, x1m]) + fy * ((1 - fx) * img[y1, x0m] + fx * img[y1, x1m]))
+
+
+def expected_dome_view(stage_path: Path, tex: np.ndarray, intensity: float = 2.0) -> np.ndarray:
+    """What the camera of ``dome_view_stage`` must see: pixel-centre rays into the dome's frame, looked up."""
+    from usdrelight.scene_read import read_scene
+    from usdrelight.validate import open_stage
+
+    rec = read_scene(open_stage(stage_path))
+    rays = rec.camera.intrinsics.pixel_rays()
+    rays[..., 1:] *= -1
+    world = rays @ rec.camera.to_world[:3, :3].T
+    world /= np.linalg.norm(world, axis=-1, keepdims=True)
+    local = world @ rec.lights[0].to_world[:3, :3]  # inverse rotation
+    return intensity * latlong_lookup(tex, local)

@@ -57,7 +57,6 @@ def from_points(points: np.ndarray, intrinsics: Intrinsics | None, valid: np.nda
     if not ok.any():
         raise UsdRelightError("the point map has no valid pixel (all NaN/Inf or behind the camera)")
     if intrinsics is None:
-        h, w = ok.shape
         intrinsics = Intrinsics.fit_to_points(np.where(ok[..., None], points, 0), ok)
     return from_depth(np.where(ok, points[..., 2], 0.0), intrinsics, ok, source)
 

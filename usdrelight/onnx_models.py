@@ -48,8 +48,8 @@ def _resize(img: np.ndarray, h: int, w: int, nearest: bool = False) -> np.ndarra
     return out[:h, :w].astype(np.float32)
 
 
-def _run(path, image_hwc: np.ndarray, required: dict, optional: dict) -> dict:
-    """Run a one-input model named ``image`` and check output names and shapes."""
+def _run(path, image_hwc: np.ndarray, required: dict, optional: dict) -> tuple[dict, tuple]:
+    """Run a one-input model named ``image``; returns (outputs by name, the model's (H, W))."""
     sess = _session(path)
     inputs = sess.get_inputs()
     if len(inputs) != 1 or inputs[0].name != "image":

@@ -60,13 +60,9 @@ class BuiltStage:
     files: dict  # relative name -> size in bytes
 
 
-def _light_layer_text(scope: str, doc: str) -> str:
-    return f'#usda 1.0\n(\n    doc = """{doc}"""\n)\n'
-
-
 def _write_light_layer(path: Path, doc: str) -> None:
     """An empty light layer (no prims): lights are added under their scope when there are any."""
-    path.write_text(_light_layer_text("", doc))
+    path.write_text(f'#usda 1.0\n(\n    doc = """{doc}"""\n)\n')
 
 
 def _write_geometry(path: Path, mesh: PixelMesh) -> None:
