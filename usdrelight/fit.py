@@ -19,7 +19,6 @@ import numpy as np
 from .errors import UsdRelightError
 from .fit_problem import FitProblem, load_problem
 from .lights_layer import write_fitted_lights
-from .transport import env_cell_directions
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +89,7 @@ def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_T
         h, w = env.shape[:2]
         cells = env[: h - h % env_shape[0], : w - w % env_shape[1]].reshape(
             env_shape[0], h // env_shape[0], env_shape[1], w // env_shape[1], 3).mean((1, 3)).reshape(-1, 3)
-        TH = tr._env_blocks()[0]
+        TH = tr.env_blocks()[0]
         contrib = np.stack([TH[c] @ cells[:, c] for c in range(3)], 1)
         if np.sqrt(np.mean(contrib ** 2)) < tol * rms_d:
             env = None

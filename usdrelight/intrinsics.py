@@ -131,9 +131,6 @@ class Intrinsics:
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx - 0.5, "cy": self.cy - 0.5,
                 "width": self.width, "height": self.height}
 
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
-
     @property
     def fov_x_deg(self) -> float:
         return math.degrees(2 * math.atan(self.width / (2 * self.fx)))

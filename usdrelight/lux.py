@@ -57,10 +57,6 @@ def light_direction(light: LightRecord) -> np.ndarray:
     return d / n if n > 0 else np.array([0.0, 0.0, -1.0])
 
 
-def light_position(light: LightRecord) -> np.ndarray:
-    return light.to_world[:3, 3].copy()
-
-
 def frame_pointing_along(direction) -> np.ndarray:
     """A 4x4 rotation whose local -Z axis is ``direction`` (how UsdLux distant/disk/rect lights point)."""
     d = np.asarray(direction, np.float64)

@@ -14,7 +14,7 @@ theta_c = [point-light intensities I_k (W/sr) ..., environment cell radiances E_
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,15 +23,6 @@ from .fit_problem import EPS_REL, FitProblem
 from .mitsuba_env import load_mitsuba
 
 R_MIN_REL = 1e-3
-
-
-def env_cell_directions(shape) -> np.ndarray:
-    """(Bh, Bw, 3) unit directions of latlong cell centres (OpenEXR layout, +Y up)."""
-    bh, bw = shape
-    v, u = np.mgrid[0:bh, 0:bw]
-    theta = np.pi * (v + 0.5) / bh
-    phi = 2 * np.pi * (u + 0.5) / bw
-    return np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], -1)
 
 
 def direction_to_cell(d: np.ndarray, shape) -> np.ndarray:
@@ -89,6 +80,7 @@ class Transport:
     P: sp.csr_matrix  # (N, N) indirect gather (weights 1/M)
     r_min: float
     eps: float
+    _blocks: tuple | None = field(default=None, init=False, repr=False)  # cached environment blocks
 
     def point_columns(self, positions: np.ndarray, with_grad: bool = False):
         """g (N, K), and optionally dg/dl (N, K, 3), for point lights at ``positions`` (K, 3)."""
@@ -121,8 +113,9 @@ class Transport:
         return (g, grad) if with_grad else g
 
     # ---- cached environment blocks and the regularized non-negative solve -------------------
-    def _env_blocks(self):
-        if getattr(self, "_blocks", None) is None:
+    def env_blocks(self):
+        """Per channel: environment transport T_H (N, J), its Gram block, T_H^T D, and L^T L (cached)."""
+        if self._blocks is None:
             prob = self.problem
             TH, HH, Hb = [], [], []
             for c in range(3):
@@ -150,7 +143,7 @@ class Transport:
         """
         from .fit_fast import nnls_normal
 
-        TH, HH, Hb, L = self._env_blocks()
+        TH, HH, Hb, L = self.env_blocks()
         prob = self.problem
         K, J = g.shape[1], self.H.shape[1] if env else 0
         Tk = self.point_matrices(g)
