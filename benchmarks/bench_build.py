@@ -23,7 +23,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from usdrelight.build import BuildOptions, build  # noqa: E402
+from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 from usdrelight.imageio import read_map, read_photo, write_image  # noqa: E402
 
 

@@ -24,11 +24,14 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from usdrelight.build import BuildOptions, build  # noqa: E402
-from usdrelight.fit import ENV_UPSAMPLE, masked_mse, plot_curves, psnr, render_fitted  # noqa: E402
-from usdrelight.fit_adam import fit_adam  # noqa: E402
-from usdrelight.fit_fast import fit_fast_greedy, prune  # noqa: E402
-from usdrelight.fit_problem import load_problem  # noqa: E402
+from usdrelight.stage.build import BuildOptions, build  # noqa: E402
+from usdrelight.fit.report import plot_curves  # noqa: E402
+from usdrelight.fit.result import masked_mse, psnr  # noqa: E402
+from usdrelight.fit.run import ENV_UPSAMPLE, render_fitted  # noqa: E402
+from usdrelight.stage.records import PointLightValue  # noqa: E402
+from usdrelight.fit.adam import fit_adam  # noqa: E402
+from usdrelight.fit.fast import fit_fast_greedy, prune  # noqa: E402
+from usdrelight.fit.problem import load_problem  # noqa: E402
 
 JUDGE_SPP = 256
 
@@ -39,7 +42,7 @@ def judge(prob, lights, env) -> float:
 
 def fast_state(pos, theta, env_shape):
     K = len(pos)
-    lights = [(pos[i], theta[:, i]) for i in range(K)]
+    lights = [PointLightValue(pos[i], theta[:, i]) for i in range(K)]
     cells = theta[:, K:].T.reshape(env_shape[0], env_shape[1], 3)
     return lights, np.repeat(np.repeat(cells, ENV_UPSAMPLE, 0), ENV_UPSAMPLE, 1)
 

@@ -24,13 +24,13 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from usdrelight.build import BuildOptions, build  # noqa: E402
+from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 from usdrelight.imageio import linear_to_srgb, write_image  # noqa: E402
-from usdrelight.neural import RelightModel, build_input  # noqa: E402
-from usdrelight.procedural import PointLight, random_spec, render_ground_truth, write_training_photo  # noqa: E402
-from usdrelight.render import render_record  # noqa: E402
-from usdrelight.scene_read import LightRecord, read_scene  # noqa: E402
-from usdrelight.validate import open_stage  # noqa: E402
+from usdrelight.neural.model import RelightModel, build_input  # noqa: E402
+from usdrelight.mitsuba.procedural import PointLight, random_spec, render_ground_truth, write_training_photo  # noqa: E402
+from usdrelight.mitsuba.render import render_record  # noqa: E402
+from usdrelight.stage.read import LightRecord, read_scene  # noqa: E402
+from usdrelight.stage.validate import open_stage  # noqa: E402
 
 
 def tonemap(img, ref):
@@ -83,7 +83,7 @@ def main():
                 m[:3, 3] = l.position
                 recs.append(LightRecord(f"/new/P{k}", "sphere", m, np.array(l.intensity), treat_as_point=True))
             recs.append(LightRecord("/new/Sky", "dome", np.eye(4), np.array(sky)))
-            rec.lights = recs
+            rec = rec.with_lights(recs)
             aov = render_record(rec, {"beauty", "albedo", "valid"}, spp=256, max_depth=3)
             dt = aov["beauty"]
             x = build_input(dt, aov["albedo"], aov["valid"][..., 0] > 0.5)

@@ -21,11 +21,11 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from usdrelight.build import BuildOptions, build  # noqa: E402
-from usdrelight.procedural import load_spec  # noqa: E402
-from usdrelight.render import render_record  # noqa: E402
-from usdrelight.scene_read import read_scene  # noqa: E402
-from usdrelight.validate import open_stage  # noqa: E402
+from usdrelight.stage.build import BuildOptions, build  # noqa: E402
+from usdrelight.mitsuba.procedural import load_spec  # noqa: E402
+from usdrelight.mitsuba.render import render_record  # noqa: E402
+from usdrelight.stage.read import read_scene  # noqa: E402
+from usdrelight.stage.validate import open_stage  # noqa: E402
 
 
 def known_lights_layer(spec) -> str:

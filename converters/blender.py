@@ -6,7 +6,7 @@ numpy<2, so it runs in its own environment, ``.venv-blender``, created by ``scri
 ``write_to_file(stage, "X.py")`` writes the standalone script (plus ``X_data/`` with the meshes) that a user
 runs in their own Blender: ``blender -b --python X.py -- X.blend``.
 ``read_from_file("X.blend")`` brings the .blend's lights back as UsdLux (for the user-lights layer), so the
-relight loop closes. Units and frames: :mod:`usdrelight.blender_units`.
+relight loop closes. Units and frames: :mod:`usdrelight.converters.blender_units`.
 """
 from __future__ import annotations
 
@@ -21,7 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
+from usdrelight.atomic import atomic_path, write_text_atomic
 from usdrelight.errors import UsdRelightError
+from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
+from usdrelight.stage.lux import set_light_rgb
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.records import TextureRecord
+
+from .blender_units import Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
 
 SUFFIXES = (".blend", ".py")
 TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
@@ -56,8 +63,6 @@ def run_blender(script: Path, *args: str, timeout: float = 1800) -> subprocess.C
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
 def _material_spec(mat, name: str) -> dict:
-    from usdrelight.scene_read import TextureRecord
-
     def colour(v):
         if isinstance(v, TextureRecord):
             return {"path": v.path, "linear": bool(v.linear)}
@@ -73,9 +78,6 @@ def _material_spec(mat, name: str) -> dict:
 
 def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
     """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``."""
-    from usdrelight.blender_units import Y_UP_TO_Z_UP, light_to_blender
-    from usdrelight.scene_read import read_scene
-
     rec = read_scene(stage)
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
@@ -118,10 +120,7 @@ def write_script(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
     path = Path(path).absolute()
     data_dir = path.with_name(path.stem + "_data")
     payload, warnings = scene_payload(stage, data_dir, samples, max_depth)
-    text = TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload))
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload)))
     return {"files": [str(path), str(data_dir)], "warnings": warnings}
 
 
@@ -130,19 +129,13 @@ def write_to_file(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
     if path.suffix.lower() == ".py":
         return write_script(stage, path, samples, max_depth)
     # the .blend is saved beside its final name (so paths made relative by Blender stay valid), then renamed
-    tmp_blend = path.with_name(f".{path.stem}.tmp.blend")
-    try:
-        with tempfile.TemporaryDirectory() as td:
-            script = Path(td) / "build_scene.py"
-            res = write_script(stage, script, samples, max_depth)
-            run_blender(script, str(tmp_blend))
+    with atomic_path(path) as tmp_blend, tempfile.TemporaryDirectory() as td:
+        tmp_blend.unlink()  # Blender writes a new file (an existing one would get a .blend1 backup)
+        script = Path(td) / "build_scene.py"
+        res = write_script(stage, script, samples, max_depth)
+        run_blender(script, str(tmp_blend))
         if not tmp_blend.is_file():
             raise UsdRelightError(f"Blender wrote no file for {path}")
-        os.replace(tmp_blend, path)
-    finally:
-        for leftover in (tmp_blend, tmp_blend.with_name(tmp_blend.name + "1")):
-            if leftover.exists():
-                leftover.unlink()
     return {"files": [str(path)], "warnings": res["warnings"]}
 
 
@@ -194,15 +187,12 @@ def read_from_file(path, usd_path=None):
     """The .blend's lights as a UsdLux layer: ``over "Scene" { Lights { User { ... } } }``."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
-    from usdrelight.blender_units import blender_light_to_usd
-    from usdrelight.stage import ROOT, USER_LIGHTS_SCOPE
-
     lights = blender_lights(path)
     stage = Usd.Stage.CreateNew(str(usd_path)) if usd_path else Usd.Stage.CreateInMemory()
     stage.GetRootLayer().documentation = f"Lights brought back from {Path(path).name} by usdrelight."
     if lights:
         stage.OverridePrim(ROOT)
-        UsdGeom.Scope.Define(stage, ROOT + "/Lights")
+        UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
         stage.GetPrimAtPath(ROOT).SetSpecifier(Sdf.SpecifierOver)
     used = set()
@@ -221,9 +211,7 @@ def read_from_file(path, usd_path=None):
         cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
                "DistantLight": UsdLux.DistantLight}[u["kind"]]
         light = cls.Define(stage, p)
-        peak = max(u["color"]) if max(u["color"]) > 0 else 1.0
-        light.CreateIntensityAttr(float(u["intensity"] * peak))
-        light.CreateColorAttr(Gf.Vec3f(*[c / peak for c in u["color"]]))
+        set_light_rgb(light, float(u["intensity"]) * np.asarray(u["color"], np.float64))
         light.CreateNormalizeAttr(False)
         if u["kind"] == "SphereLight":
             light.CreateRadiusAttr(float(u["radius"]))

@@ -39,9 +39,10 @@ def test_textured_dome_orientation_in_cycles(cli, tmp_path):
 
 def test_built_stage_with_fitted_lights_renders_like_mitsuba(cli, tmp_path):
     """A `build` stage with fitted lights (point lights + environment): Cycles vs Mitsuba."""
-    from usdrelight.build import BuildOptions, build
-    from usdrelight.lights_layer import write_fitted_lights
-    from usdrelight.render import render_stage
+    from usdrelight.stage.build import BuildOptions, build
+    from usdrelight.stage.lights_layer import write_fitted_lights
+    from usdrelight.stage.records import FitProvenance, PointLightValue
+    from usdrelight.mitsuba.render import render_stage
 
     ex = EXAMPLES / "procedural"
     out = tmp_path / "stage"
@@ -50,9 +51,9 @@ def test_built_stage_with_fitted_lights_renders_like_mitsuba(cli, tmp_path):
     env = np.zeros((16, 32, 3), np.float32)
     env[:8] = [0.05, 0.06, 0.08]  # a sky above the horizon
     env[2:4, 10:14] = [1.5, 1.4, 1.2]  # and a bright patch
-    write_fitted_lights(out, [(np.array([-1.0, 0.5, -1.8]), np.array([5.5, 5.4, 4.9])),
-                              (np.array([1.0, 1.0, -3.5]), np.array([1.0, 1.5, 2.0]))], env,
-                        {"method": "fast", "mse": 0.0, "psnr_db": 0.0, "seconds": 0.0, "iterations": 1})
+    write_fitted_lights(out, [PointLightValue(np.array([-1.0, 0.5, -1.8]), np.array([5.5, 5.4, 4.9])),
+                              PointLightValue(np.array([1.0, 1.0, -3.5]), np.array([1.0, 1.5, 2.0]))], env,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 1))
     mitsuba = read_map(render_stage(out / "scene.usda", tmp_path / "m", aovs=["diffuse", "valid"], spp=256).files["diffuse"], 3)
     valid = read_map(tmp_path / "m" / "renders" / "valid.exr", 1)[..., 0] > 0.5
     assert cli("convert", out / "scene.usda", tmp_path / "s.blend")[0] == 0
@@ -99,9 +100,9 @@ def test_blender_lights_come_back_to_usd(cli, tmp_path):
     assert len(blender_lights(tmp_path / "s.blend")) == 5
     rc, _, err = cli("convert", tmp_path / "s.blend", tmp_path / "lights.usda")
     assert rc == 0, err
-    from usdrelight.lux import emitted_radiance, light_direction
-    from usdrelight.scene_read import read_scene
-    from usdrelight.validate import open_stage
+    from usdrelight.stage.lux import emitted_radiance, light_direction
+    from usdrelight.stage.read import read_scene
+    from usdrelight.stage.validate import open_stage
 
     a = {l.path.split("/")[-1]: l for l in read_scene(open_stage(tmp_path / "s.usda")).lights}
     b = {l.path.split("/")[-1].replace("World_", ""): l for l in read_scene(open_stage(tmp_path / "lights.usda")).lights}
@@ -130,7 +131,7 @@ def test_standalone_script_builds_the_same_blend(cli, tmp_path):
 
 @pytest.mark.parametrize("kind", ["rect", "disk", "sphere"])
 def test_area_lights_agree_between_cycles_and_mitsuba(cli, tmp_path, kind):
-    from usdrelight.render import render_stage
+    from usdrelight.mitsuba.render import render_stage
 
     stage = looking_down_at_floor(tmp_path / "s.usda", width=24, height=18)
     if kind == "rect":

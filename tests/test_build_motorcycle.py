@@ -6,7 +6,7 @@ import pytest
 from pxr import Gf, Usd, UsdGeom, UsdRender, UsdShade
 
 from usdrelight.imageio import read_map, read_photo
-from usdrelight.validate import errors_only, open_stage, validate_stage
+from usdrelight.stage.validate import errors_only, open_stage, validate_stage
 
 
 def test_stage_has_zero_validation_errors(moto_stage):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom
 
-from usdrelight.camera import intrinsics_from_usd_camera, usd_camera_params
+from usdrelight.stage.camera import intrinsics_from_usd_camera, usd_camera_params
 from usdrelight.errors import UsdRelightError
 from usdrelight.intrinsics import Intrinsics
 

@@ -132,7 +132,7 @@ def test_rerun_never_overwrites_user_lights(cli, bad_setup):
     (out / "renders" / "keep.txt").write_text("mine")
     assert cli("build", photo, "--depth", d, "--fov-x", "50", "-o", out)[0] == 0
     assert user.read_text() == mine and (out / "renders" / "keep.txt").read_text() == "mine"
-    from usdrelight.validate import open_stage
+    from usdrelight.stage.validate import open_stage
 
     stage = open_stage(out / "scene.usda")
     assert stage.GetPrimAtPath("/Scene/Lights/User/Key").GetAttribute("inputs:intensity").Get() == 7

@@ -9,10 +9,10 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
 from conftest import SHARED
 from usd_scenes import camera, diffuse_material, new_stage
 from usdrelight.intrinsics import Intrinsics
-from usdrelight.lux import emitted_radiance, light_direction
-from usdrelight.mitsuba_env import load_mitsuba
-from usdrelight.scene_read import read_scene
-from usdrelight.validate import errors_only, open_stage, validate_stage
+from usdrelight.stage.lux import emitted_radiance, light_direction
+from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.validate import errors_only, open_stage, validate_stage
 
 MITSUBA_DATA = SHARED / "mitsuba-data"
 SPOT = MITSUBA_DATA / "tests" / "scenes" / "spot_light" / "test_spot_direct.xml"

@@ -8,10 +8,10 @@ from onnx import TensorProto, helper, numpy_helper
 from pxr import UsdGeom
 
 from conftest import make_photo
-from usdrelight.decomposition import retinex
+from usdrelight.estimate.decomposition import retinex
 from usdrelight.imageio import read_photo, read_map, write_image
 from usdrelight.intrinsics import Intrinsics
-from usdrelight.validate import open_stage
+from usdrelight.stage.validate import open_stage
 
 
 def _const_geometry_model(path, points, K_norm, h, w):

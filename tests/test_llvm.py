@@ -21,7 +21,7 @@ def test_version_parsing():
 
 def test_llvm_variant_renders_constant_environment():
     """A diffuse sphere (albedo 0.5) inside a constant environment of 0.8 has radiance 0.4 (+ none else)."""
-    from usdrelight.mitsuba_env import load_mitsuba
+    from usdrelight.mitsuba.runtime import load_mitsuba
 
     mi = load_mitsuba()
     T = mi.ScalarTransform4f

@@ -8,7 +8,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_map
-from usdrelight.neural import DEFAULT_MODEL, RelightModel, build_input, hole_fill
+from usdrelight.neural.model import DEFAULT_MODEL, RelightModel, build_input, hole_fill
 
 
 def test_hole_fill_keeps_valid_pixels_and_fills_smoothly():
@@ -55,7 +55,7 @@ def _pointwise_model(path, input_name="input"):
 
 
 def test_tiled_inference_equals_whole_image(tmp_path, monkeypatch):
-    import usdrelight.neural as neural
+    import usdrelight.neural.model as neural
 
     _pointwise_model(tmp_path / "m.onnx")
     m = RelightModel(tmp_path / "m.onnx")

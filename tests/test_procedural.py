@@ -6,9 +6,9 @@ import pytest
 from pxr import UsdGeom
 
 from conftest import EXAMPLES
-from usdrelight.procedural import (PointLight, SceneSpec, load_spec, pixel_centre_rays, point_light_radiance,
+from usdrelight.mitsuba.procedural import (PointLight, SceneSpec, load_spec, pixel_centre_rays, point_light_radiance,
                                    render_ground_truth)
-from usdrelight.validate import errors_only, open_stage, validate_stage
+from usdrelight.stage.validate import errors_only, open_stage, validate_stage
 
 
 def test_point_light_on_floor_matches_closed_form():

@@ -4,7 +4,7 @@ import pytest
 
 from usdrelight.imageio import read_map, read_photo
 from usdrelight.intrinsics import Intrinsics
-from usdrelight.mitsuba_env import load_mitsuba
+from usdrelight.mitsuba.runtime import load_mitsuba
 
 
 def test_build_stage_renders_albedo_equal_to_texture(cli, moto_stage, tmp_path, moto_paths):

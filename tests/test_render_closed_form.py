@@ -4,7 +4,7 @@ import pytest
 from pxr import Gf, UsdGeom, UsdLux
 
 from usd_scenes import looking_down_at_floor
-from usdrelight.render import render_stage
+from usdrelight.mitsuba.render import render_stage
 from usdrelight.imageio import read_map
 
 

@@ -6,8 +6,8 @@ from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade
 from usd_scenes import add_closed_form_light, camera, diffuse_material, looking_down_at_floor, new_stage
 from usdrelight.imageio import read_map
 from usdrelight.intrinsics import Intrinsics
-from usdrelight.mitsuba_env import load_mitsuba
-from usdrelight.scene_read import read_scene
+from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.stage.read import read_scene
 
 
 def _tri_normal(p, f):
@@ -57,7 +57,7 @@ def test_invisible_guides_and_unsupported_prims_are_named(tmp_path):
     UsdGeom.Cylinder.Define(stage, "/World/Cyl")
     UsdLux.CylinderLight.Define(stage, "/World/Tube")
     rec = read_scene(stage)
-    assert rec.shapes == [] and rec.meshes == [] and rec.lights == []
+    assert rec.shapes == () and rec.meshes == () and rec.lights == ()
     assert rec.warnings["gprim type Cylinder (not converted)"] == 1
     assert rec.warnings["light type CylinderLight (not converted)"] == 1
 

@@ -38,12 +38,16 @@ def test_schema_registers_from_a_wheel_install(tmp_path):
     assert not (target / "converters").exists() and not (target / "schemas").exists()
     code = textwrap.dedent("""
         import usdrelight.schemas as s, usdrelight.converters as c
+        import usdrelight.cli, usdrelight.converters.convert, usdrelight.converters.mitsuba_xml, usdrelight.fit.run
+        import usdrelight.neural.relight, usdrelight.neural.train, usdrelight.stage.build
         from pxr import Usd
         assert s.__file__.startswith(%r), s.__file__
+        assert usdrelight.neural.model.DEFAULT_MODEL.is_file()
+        assert usdrelight.fit.run.__file__.startswith(%r)
         s.register()
         st = Usd.Stage.CreateInMemory(); p = st.DefinePrim("/A", "Xform"); p.AddAppliedSchema("RelightProvenanceAPI")
         print(p.GetAttribute("usdrelight:fit:psnrDb").Get(), p.GetAttribute("usdrelight:albedoEstimator").Get())
-    """ % str(target))
+    """ % (str(target), str(target)))
     env = {**os.environ, "PYTHONPATH": str(target)}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env)
     assert r.returncode == 0, r.stderr[-2000:]

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
-from usdrelight.camera import author_usd_camera
+from usdrelight.stage.camera import author_usd_camera
 from usdrelight.intrinsics import Intrinsics
 
 
@@ -151,8 +151,8 @@ def latlong_lookup(img: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 
 def expected_dome_view(stage_path: Path, tex: np.ndarray, intensity: float = 2.0) -> np.ndarray:
     """What the camera of ``dome_view_stage`` must see: pixel-centre rays into the dome's frame, looked up."""
-    from usdrelight.scene_read import read_scene
-    from usdrelight.validate import open_stage
+    from usdrelight.stage.read import read_scene
+    from usdrelight.stage.validate import open_stage
 
     rec = read_scene(open_stage(stage_path))
     rays = rec.camera.intrinsics.pixel_rays()

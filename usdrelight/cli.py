@@ -78,7 +78,7 @@ def _emit(args, summary: dict, human: str) -> None:
 
 # ---- subcommands ------------------------------------------------------------------------------
 def cmd_build(args) -> int:
-    from .build import BuildOptions, build
+    from .stage.build import BuildOptions, build
 
     opts = BuildOptions(depth=args.depth, points=args.points, intrinsics=args.intrinsics, fov_x=args.fov_x,
                         albedo=args.albedo, shading=args.shading, mask=args.mask,
@@ -98,7 +98,7 @@ def cmd_build(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from .validate import errors_only, open_stage, validate_stage
+    from .stage.validate import errors_only, open_stage, validate_stage
 
     stage = open_stage(args.stage)
     findings = validate_stage(stage)
@@ -111,7 +111,7 @@ def cmd_validate(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from .render import render_stage
+    from .mitsuba.render import render_stage
 
     res = render_stage(args.stage, args.output, args.aov, spp=args.spp, max_depth=args.max_depth, seed=args.seed)
     summary = {"stage": str(args.stage), "files": res.files, "seconds": {k: round(v, 4) for k, v in res.seconds.items()},
@@ -121,7 +121,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from .fit import fit_stage
+    from .fit.run import fit_stage
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -134,15 +134,15 @@ def cmd_fit(args) -> int:
 
         rep = fit_stage(args.stage, args.method, args.lights, args.env_res, args.iterations, args.max_side,
                         args.report, progress=progress, seed=args.seed)
-    summary = {k: v for k, v in rep.items() if k != "curve"}
-    _emit(args, summary, f"fit ({rep['method']}): PSNR {rep['psnr_db']:.2f} dB (model), {rep['render_psnr_db']:.2f} dB "
-                         f"(Mitsuba render), {rep['lights_kept']} point light(s), environment "
-                         f"{'kept' if rep['environment_kept'] else 'dropped'}, {rep['seconds']:.2f} s")
+    summary = {k: v for k, v in rep.to_dict().items() if k != "curve"}
+    _emit(args, summary, f"fit ({rep.method}): PSNR {rep.psnr_db:.2f} dB (model), {rep.render_psnr_db:.2f} dB "
+                         f"(Mitsuba render), {rep.lights_kept} point light(s), environment "
+                         f"{'kept' if rep.environment_kept else 'dropped'}, {rep.seconds:.2f} s")
     return 0
 
 
 def cmd_neural(args) -> int:
-    from .neural import neural_stage
+    from .neural.model import neural_stage
 
     res = neural_stage(args.stage, args.model, args.output, render_missing=args.render_missing, spp=args.spp)
     summary = {"exr": str(res.exr), "png": str(res.png), "seconds": {k: round(v, 4) for k, v in res.seconds.items()}}
@@ -151,28 +151,31 @@ def cmd_neural(args) -> int:
 
 
 def cmd_relight(args) -> int:
-    from .relight import relight
+    from .neural.relight import relight
 
     rep = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
                   max_side=args.max_side)
-    sec = rep["seconds"]
-    _emit(args, {**rep, "seconds": {k: round(v, 4) for k, v in sec.items()}},
-          f"wrote {rep['exr']} and {rep['png']} ({rep['resolution'][0]}x{rep['resolution'][1]}, {rep['lights']} "
-          f"light(s)); " + ", ".join(f"{k} {v:.2f} s" for k, v in sec.items()))
+    sec = rep.seconds
+    summary = {"exr": str(rep.exr), "png": str(rep.png), "diffuse": str(rep.diffuse), "lights": rep.lights,
+               "resolution": list(rep.resolution), "seconds": {k: round(v, 4) for k, v in sec.items()}}
+    _emit(args, summary, f"wrote {rep.exr} and {rep.png} ({rep.resolution[0]}x{rep.resolution[1]}, {rep.lights} "
+                         f"light(s)); " + ", ".join(f"{k} {v:.2f} s" for k, v in sec.items()))
     return 0
 
 
 def cmd_train(args) -> int:
-    from .train import train_folder
+    from .neural.train import train_folder
 
-    info = train_folder(args.data, args.output, args.work, steps=args.steps)
-    _emit(args, {k: v for k, v in info.items() if k != "loss_curve"},
-          f"wrote {args.output} ({info['pairs']} pairs, {info['steps']} steps, {info['seconds']:.0f} s)")
+    res = train_folder(args.data, args.output, args.work, steps=args.steps)
+    summary = {"model": str(res.model), "log": str(res.log), "pairs": res.pairs, "pair_names": res.pair_names,
+               "pairs_seconds": res.pairs_seconds, "steps": res.steps, "seconds": res.seconds,
+               "parameters": res.parameters, "device": res.device}
+    _emit(args, summary, f"wrote {res.model} ({res.pairs} pairs, {res.steps} steps, {res.seconds:.0f} s)")
     return 0
 
 
 def cmd_convert(args) -> int:
-    from .convert import convert
+    from .converters.convert import convert
 
     res = convert(args.src, args.dst)
     summary = {"src": str(args.src), "dst": str(args.dst), "warnings": res.get("warnings", {}),

@@ -6,17 +6,17 @@ Conventions
 * Photos in 8/16-bit integer formats (JPEG, PNG, TIFF, ...) are sRGB-encoded and decoded to
   linear Rec.709; float formats (EXR, HDR, PFM, float TIFF) are taken as linear already.
 * EXIF orientation is applied, so arrays are upright as a viewer would show them.
-* Every writer writes to a temporary file next to the target and renames it into place, so an
-  interrupted run never leaves a half-written file.
+* Every writer goes through :func:`usdrelight.atomic.atomic_path` (temporary file beside the target,
+  fsync, rename), so an interrupted run never leaves a half-written file.
 """
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import UsdRelightError
 
 LINEAR_FORMATS = {"float", "half", "double"}
@@ -140,21 +140,6 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(data[: w * h * c].reshape(h, w, c)[::-1], dtype=np.float32)
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_target(path: Path) -> str:
-    """A temporary file beside ``path`` with the permissions a plain ``open()`` would give."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())
-    return tmp
-
-
 def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half", srgb: bool = False) -> Path:
     """Write (H, W[, C]) pixels atomically.
 
@@ -177,17 +162,24 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half"
         spec.attribute("compression", "zip")
     if c >= 3:
         spec.channelnames = ("R", "G", "B", "A")[:c] if c <= 4 else spec.channelnames
-    tmp = _atomic_target(path)
-    try:
+    with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))
-        if out is None or not out.open(tmp, spec):
+        if out is None or not out.open(str(tmp), spec):
             raise UsdRelightError(f"cannot write {path}: {oiio.geterror().strip()}")
         ok = out.write_image(np.ascontiguousarray(pixels))
         out.close()
         if not ok:
             raise UsdRelightError(f"cannot write {path}: {out.geterror().strip()}")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
+
+
+def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize (H, W, C) float32 with OpenImageIO: box filter when shrinking (area average), triangle
+    when enlarging."""
+    if img.shape[:2] == (height, width):
+        return img.astype(np.float32)
+    oiio = _oiio()
+    src = oiio.ImageBuf(np.ascontiguousarray(img, dtype=np.float32))
+    roi = oiio.ROI(0, width, 0, height, 0, 1, 0, img.shape[2])
+    dst = oiio.ImageBufAlgo.resize(src, filtername="box" if width < img.shape[1] else "triangle", roi=roi)
+    return np.asarray(dst.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, img.shape[2])

@@ -140,6 +140,14 @@ class Intrinsics:
         sx, sy = width / self.width, height / self.height
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
 
+    def limited(self, max_side: int | None) -> "Intrinsics":
+        """The same camera for the image resized so its longer side is at most ``max_side`` pixels
+        (never enlarged; sizes rounded, at least 1 pixel). ``None`` keeps the size."""
+        if not max_side:
+            return self
+        s = min(1.0, max_side / max(self.width, self.height))
+        return self.scaled(max(1, int(round(self.width * s))), max(1, int(round(self.height * s))))
+
     def pixel_rays(self) -> np.ndarray:
         """(H, W, 3) rays through pixel centres with Z = 1 (OpenCV frame)."""
         u = (np.arange(self.width, dtype=np.float64) + 0.5 - self.cx) / self.fx

@@ -6,7 +6,7 @@ Run with: python examples/procedural/make_example.py
 """
 from pathlib import Path
 
-from usdrelight.procedural import random_spec, write_example
+from usdrelight.mitsuba.procedural import random_spec, write_example
 
 if __name__ == "__main__":
     write_example(Path(__file__).resolve().parent, random_spec(seed=7, width=256, height=192, n_lights=1), spp=256)

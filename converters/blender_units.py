@@ -1,0 +1,106 @@
+"""UsdLux / USD camera <-> Blender (Cycles) units and frames, next to the Mitsuba formulas of
+:mod:`usdrelight.stage.lux`. L is the UsdLux radiance after ``normalize`` (:func:`usdrelight.stage.lux.emitted_radiance`).
+
+| UsdLux | Blender light | Blender value | Mitsuba |
+|---|---|---|---|
+| SphereLight treatAsPoint / radius 0 | POINT, radius 0 | power P = 4 pi I (I = L W/sr) | point, intensity I |
+| + ShapingAPI | SPOT | P = 4 pi I, spot_size = 2 coneAngle, spot_blend = softness | spot |
+| SphereLight radius r | POINT, radius r | P = 4 pi^2 r^2 L | sphere + area, radiance L |
+| DiskLight radius r | AREA DISK, size 2r | P = pi L (pi r^2) | disk + area |
+| RectLight w x h | AREA RECTANGLE w x h | P = pi L w h | rectangle + area |
+| DistantLight | SUN, angle = angle | strength E = L (W/m^2) | directional, irradiance L |
+| DomeLight | World Background | colour L, or env texture x L | constant / envmap |
+
+Soft falloff and light clamping are off; area/point powers use world-space sizes. Blender is Z-up: a Y-up
+stage point (x, y, z) is the Blender point (x, -z, y) (``Y_UP_TO_Z_UP``). Blender's equirectangular lookup
+puts u = 1/2 at +X and u = 1/4 at +Y (Blender frame); USD's latlong puts u = 1/2 at +Z_usd = -Y_blender,
+so the world texture's direction is rotated by +90 degrees about Blender Z before the lookup.
+Camera: lens = focalLength, sensor_fit HORIZONTAL, sensor_width = horizontalAperture,
+shift_x = horizontalApertureOffset / horizontalAperture, shift_y = verticalApertureOffset / horizontalAperture.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from usdrelight.stage.lux import emitted_radiance, split_rgb, world_scale
+from usdrelight.stage.records import LightRecord
+
+Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+Z_UP_TO_Y_UP = Y_UP_TO_Z_UP.T
+EQUIRECT_FIX = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=np.float64)  # +90 deg about Z
+
+
+def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
+    """Plain description of the Blender light for a UsdLux light record."""
+    L = emitted_radiance(light)
+    peak, color = split_rgb(L)
+    color = list(color)
+    conv = Y_UP_TO_Z_UP if up_axis == "Y" else np.eye(4)
+    m = conv @ light.to_world
+    s = world_scale(light.to_world)
+    rot = m.copy()
+    rot[:3, :3] = m[:3, :3] / np.maximum(s, 1e-300)
+    d = {"name": light.path.strip("/").replace("/", "_") or "Light", "usd_path": light.path,
+         "matrix": rot.tolist(), "color": color}
+    if light.kind == "sphere":
+        if light.treat_as_point:
+            d.update(type="POINT", radius=0.0, power=4 * math.pi * peak)
+        else:
+            r = light.radius * float(np.cbrt(np.prod(s)))
+            d.update(type="POINT", radius=r, power=4 * math.pi ** 2 * r * r * peak)
+        if light.cone_angle_deg is not None:
+            d.update(type="SPOT", spot_size=math.radians(min(2 * light.cone_angle_deg, 180.0)),
+                     spot_blend=float(light.cone_softness))
+    elif light.kind == "disk":
+        r = light.radius * float(np.sqrt(s[0] * s[1]))
+        d.update(type="AREA", shape="DISK", size=2 * r, power=math.pi * peak * math.pi * r * r)
+    elif light.kind == "rect":
+        w, h = light.width * s[0], light.height * s[1]
+        d.update(type="AREA", shape="RECTANGLE", size=w, size_y=h, power=math.pi * peak * w * h)
+    elif light.kind == "distant":
+        d.update(type="SUN", strength=peak, angle=math.radians(light.angle_deg))
+    elif light.kind == "dome":
+        d.update(type="WORLD", rgb=[float(x) for x in L])
+        if light.texture is not None:
+            # Blender direction d_b -> USD light-local direction -> the equirect fix
+            inv = np.linalg.inv(light.to_world[:3, :3] / np.maximum(world_scale(light.to_world), 1e-300))
+            R = EQUIRECT_FIX @ Y_UP_TO_Z_UP[:3, :3] @ inv @ conv[:3, :3].T
+            d.update(texture=light.texture.path, rotation=R.tolist())
+    return d
+
+
+def blender_light_to_usd(b: dict) -> dict:
+    """Inverse of :func:`light_to_blender` for lights edited in Blender (see converters.blender)."""
+    m = Z_UP_TO_Y_UP @ np.asarray(b["matrix"], np.float64)
+    s = np.linalg.norm(m[:3, :3], axis=0)
+    rot = m.copy()
+    rot[:3, :3] = m[:3, :3] / np.maximum(s, 1e-300)
+    color = [float(c) for c in b["color"]]
+    t = b["type"]
+    if t in ("POINT", "SPOT"):
+        r = float(b.get("radius", 0.0)) * float(np.cbrt(np.prod(s)))
+        if r <= 0:
+            out = {"kind": "SphereLight", "treatAsPoint": True, "radius": 0.0,
+                   "intensity": b["power"] / (4 * math.pi)}
+        else:
+            out = {"kind": "SphereLight", "treatAsPoint": False, "radius": r,
+                   "intensity": b["power"] / (4 * math.pi ** 2 * r * r)}
+        if t == "SPOT":
+            out["coneAngle"] = math.degrees(b["spot_size"]) / 2
+            out["coneSoftness"] = float(b.get("spot_blend", 0.0))
+    elif t == "AREA":
+        if b.get("shape") in ("DISK", "ELLIPSE"):
+            r = b["size"] / 2 * float(np.sqrt(s[0] * s[1]))
+            out = {"kind": "DiskLight", "radius": r, "intensity": b["power"] / (math.pi * math.pi * r * r)}
+        else:
+            w = b["size"] * s[0]
+            h = (b.get("size_y", b["size"]) if b.get("shape") == "RECTANGLE" else b["size"]) * s[1]
+            out = {"kind": "RectLight", "width": w, "height": h, "intensity": b["power"] / (math.pi * w * h)}
+    elif t == "SUN":
+        out = {"kind": "DistantLight", "angle": math.degrees(b.get("angle", 0.0)), "intensity": b["strength"]}
+    else:
+        raise ValueError(f"unsupported Blender light type {t}")
+    out.update(color=color, matrix=rot.tolist(), name=b["name"])
+    return out

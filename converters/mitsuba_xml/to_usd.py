@@ -1,0 +1,303 @@
+"""Parsed Mitsuba objects -> a USD stage: shapes (meshes loaded by Mitsuba itself, so their conventions are
+Mitsuba's), emitters as UsdLux lights, the perspective sensor as a camera with RenderSettings.
+
+Frames and units as in :mod:`usdrelight.mitsuba.scene_dict` (FLIP_Z, CAMERA_FLIP) and
+:mod:`usdrelight.stage.lux`. What USD cannot hold is named in one warning per kind and, where useful for a
+later XML export, kept in the prim's ``customData["mitsuba"]``.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from usdrelight import schemas
+from usdrelight.errors import UsdRelightError
+from usdrelight.intrinsics import Intrinsics
+from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.mitsuba.scene_dict import CAMERA_FLIP, FLIP_Z
+from usdrelight.stage.aovs import AOVS
+from usdrelight.stage.camera import author_usd_camera
+from usdrelight.stage.create import author_render_settings, create_stage
+from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
+
+from .common import PrimNamer, rel_path
+from .materials import MaterialBuilder
+from .parse import integrator_json, parse_scene
+
+log = logging.getLogger(__name__)
+
+ROOT = "/World"
+
+
+class UsdBuilder:
+    """Defines prims for parsed Mitsuba objects on a stage made by :func:`create_stage` (default prim /World)."""
+
+    def __init__(self, stage, usd_dir: Path | None, warnings: Counter):
+        self.stage = stage
+        self.dir = usd_dir
+        self.warnings = warnings
+        self.unique = PrimNamer()
+        self.looks = MaterialBuilder(stage, ROOT, self.unique, self.asset, warnings)
+        self.settings = None
+        self.spp = None
+
+    def asset(self, path: str) -> str:
+        """An asset path for ``path``: relative to the USD file when there is one."""
+        if self.dir is None:
+            return path
+        return rel_path(path, self.dir)
+
+    def set_xform(self, prim, M: np.ndarray) -> None:
+        from pxr import Gf, UsdGeom
+
+        if np.allclose(M, np.eye(4)):
+            return
+        UsdGeom.Xformable(prim).AddTransformOp().Set(Gf.Matrix4d(M.T.tolist()))
+
+    def shape(self, p: Plugin) -> None:
+        from pxr import Gf, Sdf, UsdGeom
+
+        M = p.props.get("to_world", np.eye(4))
+        bsdf = next((c for c in p.children if c.tag == "bsdf"), None)
+        emitter = next((c for c in p.children if c.tag == "emitter"), None)
+        if emitter is not None and emitter.type == "area":
+            if p.type in ("rectangle", "sphere", "disk"):
+                self.area_light(p, emitter, M)
+                return
+            self.warnings[f"area emitter on a '{p.type}' shape (geometry kept, emission dropped)"] += 1
+        path = self.unique(ROOT, p.id or p.type)
+        if p.type in ("obj", "ply", "serialized"):
+            pts, faces, normals, uv = self.load_mesh(p, M)
+            m = UsdGeom.Mesh.Define(self.stage, path)
+            m.CreatePointsAttr([Gf.Vec3f(*map(float, v)) for v in pts])
+            m.CreateFaceVertexCountsAttr([3] * len(faces))
+            m.CreateFaceVertexIndicesAttr(faces.reshape(-1).tolist())
+            m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            m.CreateExtentAttr([Gf.Vec3f(*map(float, pts.min(0))), Gf.Vec3f(*map(float, pts.max(0)))])
+            if normals is not None:
+                m.CreateNormalsAttr([Gf.Vec3f(*map(float, v)) for v in normals])
+                m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            if uv is not None:
+                st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                          UsdGeom.Tokens.vertex)
+                st.Set([Gf.Vec2f(float(a), float(1.0 - b)) for a, b in uv])
+            prim = m.GetPrim()
+        elif p.type == "sphere":
+            s = UsdGeom.Sphere.Define(self.stage, path)
+            r = float(p.props.get("radius", 1.0))
+            c = np.asarray(p.props.get("center", (0, 0, 0)), np.float64)
+            s.CreateRadiusAttr(1.0)
+            s.CreateExtentAttr([(-1, -1, -1), (1, 1, 1)])
+            T = np.eye(4)
+            T[:3, 3] = c
+            self.set_xform(s.GetPrim(), M @ T @ np.diag([r, r, r, 1.0]))
+            prim = s.GetPrim()
+        elif p.type == "cube":
+            c = UsdGeom.Cube.Define(self.stage, path)
+            c.CreateSizeAttr(2.0)
+            c.CreateExtentAttr([(-1, -1, -1), (1, 1, 1)])
+            self.set_xform(c.GetPrim(), M)
+            prim = c.GetPrim()
+        elif p.type in ("rectangle", "disk"):
+            m = UsdGeom.Mesh.Define(self.stage, path)
+            if p.type == "rectangle":
+                pts = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
+                m.CreateFaceVertexCountsAttr([4])
+                m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+                uvs = [(0, 0), (1, 0), (1, 1), (0, 1)]
+            else:
+                n = 64
+                ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+                pts = [(0.0, 0.0, 0.0)] + [(float(np.cos(a)), float(np.sin(a)), 0.0) for a in ang]
+                m.CreateFaceVertexCountsAttr([3] * n)
+                m.CreateFaceVertexIndicesAttr([i for k in range(n) for i in (0, 1 + k, 1 + (k + 1) % n)])
+                uvs = [(0.5, 0.5)] + [(0.5 + 0.5 * float(np.cos(a)), 0.5 + 0.5 * float(np.sin(a))) for a in ang]
+            m.CreatePointsAttr(pts)
+            m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            m.CreateExtentAttr([(-1, -1, 0), (1, 1, 0)])
+            m.CreateNormalsAttr([(0, 0, 1)] * len(pts))
+            m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                 UsdGeom.Tokens.vertex).Set(uvs)
+            self.set_xform(m.GetPrim(), M)
+            prim = m.GetPrim()
+        else:
+            self.warnings[f"shape type '{p.type}' (not converted)"] += 1
+            return
+        self.looks.bind(prim, bsdf)
+
+    def load_mesh(self, p: Plugin, M: np.ndarray):
+        """Let Mitsuba load obj/ply/serialized (its own conventions) and read the buffers back."""
+        mi = load_mitsuba()
+        props = {"type": p.type, "filename": p.resolved, "to_world": mi.ScalarTransform4f(M.tolist())}
+        for k in ("face_normals", "flip_normals", "flip_tex_coords", "shape_index"):
+            if k in p.props:
+                props[k] = p.props[k]
+        try:
+            shape = mi.load_dict(props)
+        except Exception as exc:
+            raise UsdRelightError(f"Mitsuba cannot load {p.resolved}: {str(exc).strip().splitlines()[-1]}") from None
+        params = mi.traverse(shape)
+        pts = np.array(params["vertex_positions"], dtype=np.float64).reshape(-1, 3)
+        faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)
+        normals = uv = None
+        if "vertex_normals" in params and len(params["vertex_normals"]) == pts.size and not p.props.get("face_normals"):
+            normals = np.array(params["vertex_normals"], dtype=np.float64).reshape(-1, 3)
+        if "vertex_texcoords" in params and len(params["vertex_texcoords"]) == 2 * len(pts):
+            uv = np.array(params["vertex_texcoords"], dtype=np.float64).reshape(-1, 2)
+        return pts, faces, normals, uv
+
+    # ---- lights ---------------------------------------------------------------------------
+    def _light_common(self, light, rgb, extra: dict | None = None):
+        set_light_rgb(light, rgb)
+        if extra:
+            light.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
+
+    def _decompose(self, M):
+        """Rigid part of M (rotation columns normalized) and the column scales."""
+        s = np.linalg.norm(M[:3, :3], axis=0)
+        R = M.copy()
+        R[:3, :3] = M[:3, :3] / np.where(s > 0, s, 1.0)
+        return R, s
+
+    def area_light(self, p: Plugin, emitter: Plugin, M):
+        from pxr import UsdLux
+
+        rgb = emitter.props.get("radiance", (1.0, 1.0, 1.0))
+        path = self.unique(ROOT, p.id or (p.type + "Light"))
+        R, s = self._decompose(M)
+        if p.type == "rectangle":
+            light = UsdLux.RectLight.Define(self.stage, path)
+            light.CreateWidthAttr(float(2 * s[0]))
+            light.CreateHeightAttr(float(2 * s[1]))
+            self.set_xform(light.GetPrim(), R @ FLIP_Z)
+        elif p.type == "disk":
+            light = UsdLux.DiskLight.Define(self.stage, path)
+            light.CreateRadiusAttr(float(s[0]))
+            if abs(s[0] - s[1]) > 1e-6 * s[0]:
+                self.warnings["elliptic disk emitter (radius from its x axis)"] += 1
+            self.set_xform(light.GetPrim(), R @ FLIP_Z)
+        else:
+            light = UsdLux.SphereLight.Define(self.stage, path)
+            c = np.asarray(p.props.get("center", (0, 0, 0)), np.float64)
+            light.CreateRadiusAttr(float(p.props.get("radius", 1.0)) * float(np.cbrt(np.prod(s))))
+            T = R.copy()
+            T[:3, 3] = (M @ np.r_[c, 1.0])[:3]
+            self.set_xform(light.GetPrim(), T)
+        light.CreateNormalizeAttr(False)
+        self._light_common(light, rgb)
+
+    def emitter(self, p: Plugin) -> None:
+        from pxr import Sdf, UsdLux
+
+        M = p.props.get("to_world", np.eye(4))
+        path = self.unique(ROOT, p.id or p.type)
+        if p.type in ("point", "spot"):
+            light = UsdLux.SphereLight.Define(self.stage, path)
+            light.CreateRadiusAttr(0.0)
+            light.CreateTreatAsPointAttr(True)
+            light.CreateNormalizeAttr(False)
+            R, _ = self._decompose(M)
+            if "position" in p.props:
+                R = np.eye(4)
+                R[:3, 3] = p.props["position"]
+            extra = None
+            if p.type == "spot":
+                sh = UsdLux.ShapingAPI.Apply(light.GetPrim())
+                cutoff = float(p.props.get("cutoff_angle", 20.0))
+                beam = float(p.props.get("beam_width", cutoff * 3 / 4))
+                sh.CreateShapingConeAngleAttr(cutoff)
+                sh.CreateShapingConeSoftnessAttr(float(min(max(1 - beam / cutoff, 0.0), 1.0)))
+                R = R @ FLIP_Z
+                tex = next((c for c in p.children if c.tag == "texture" and c.type == "bitmap"), None)
+                if tex is not None:
+                    self.warnings["spot emitter texture (not in UsdLux; kept in customData for XML export)"] += 1
+                    extra = {"texture": self.asset(tex.resolved) if self.dir is None else tex.resolved}
+            self.set_xform(light.GetPrim(), R)
+            self._light_common(light, p.props.get("intensity", (1.0, 1.0, 1.0)), extra)
+        elif p.type == "directional":
+            light = UsdLux.DistantLight.Define(self.stage, path)
+            light.CreateAngleAttr(0.0)
+            R = frame_pointing_along(M[:3, :3] @ np.asarray(p.props.get("direction", (0, 0, 1)), np.float64))
+            self.set_xform(light.GetPrim(), R)
+            self._light_common(light, p.props.get("irradiance", (1.0, 1.0, 1.0)))
+        elif p.type in ("constant", "envmap"):
+            light = UsdLux.DomeLight.Define(self.stage, path)
+            if p.type == "envmap":
+                light.CreateTextureFileAttr(Sdf.AssetPath(self.asset(p.resolved)))
+                light.CreateTextureFormatAttr("latlong")
+                light.CreateIntensityAttr(float(p.props.get("scale", 1.0)))
+                R, _ = self._decompose(M)
+                self.set_xform(light.GetPrim(), R)
+            else:
+                self._light_common(light, p.props.get("radiance", (1.0, 1.0, 1.0)))
+        else:
+            self.warnings[f"emitter type '{p.type}' (not converted)"] += 1
+
+    # ---- sensor ---------------------------------------------------------------------------
+    def sensor(self, p: Plugin) -> None:
+        from pxr import UsdGeom
+
+        if p.type != "perspective":
+            self.warnings[f"sensor type '{p.type}' (converted as perspective)"] += 1
+        film = next((c for c in p.children if c.tag == "film"), None)
+        W = int(film.props.get("width", 768)) if film else 768
+        H = int(film.props.get("height", 576)) if film else 576
+        if "fov" in p.props:
+            fov = float(p.props["fov"])
+        elif "focal_length" in p.props:
+            fl = float(str(p.props["focal_length"]).rstrip("m"))
+            fov = math.degrees(2 * math.atan(36.0 / (2 * fl)))
+            p.props.setdefault("fov_axis", "x")
+        else:
+            fov = 39.3077
+        axis = p.props.get("fov_axis", "x")
+        ref = {"x": W, "y": H, "diagonal": math.hypot(W, H), "smaller": min(W, H), "larger": max(W, H)}.get(axis)
+        if ref is None:
+            raise UsdRelightError(f"unknown fov_axis '{axis}'")
+        f = ref / (2 * math.tan(math.radians(fov) / 2))
+        cx = W * (0.5 - float(p.props.get("principal_point_offset_x", 0.0)))
+        cy = H * (0.5 - float(p.props.get("principal_point_offset_y", 0.0)))
+        intr = Intrinsics(f, f, cx, cy, W, H)
+        cam = UsdGeom.Camera.Define(self.stage, self.unique(ROOT, p.id or "Camera"))
+        author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)))
+        self.set_xform(cam.GetPrim(), p.props.get("to_world", np.eye(4)) @ CAMERA_FLIP)
+        self.settings = author_render_settings(self.stage, str(cam.GetPath()), W, H, [AOVS["color"]])
+        sampler = next((c for c in p.children if c.tag == "sampler"), None)
+        self.spp = int(sampler.props.get("sample_count", 4)) if sampler else None
+
+
+def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
+    """Parse a scene document and build its stage (at ``usd_path``, or in memory); returns (stage, warnings)."""
+    from pxr import Kind
+
+    schemas.register()
+    warnings = Counter()
+    objs = parse_scene(text, source, here, warnings)
+    usd_path = Path(usd_path).absolute() if usd_path is not None else None
+    stage = create_stage(usd_path, ROOT, Kind.Tokens.assembly)
+    b = UsdBuilder(stage, usd_path.parent if usd_path is not None else None, warnings)
+    integrator = None
+    for p in objs:
+        if p.tag == "shape":
+            b.shape(p)
+        elif p.tag == "emitter":
+            b.emitter(p)
+        elif p.tag == "sensor":
+            b.sensor(p)
+        elif p.tag == "integrator":
+            integrator = integrator_json(p)
+        elif p.tag in ("bsdf", "texture"):
+            continue  # referenced by id from shapes
+        else:
+            warnings[f"top-level <{p.tag}> (ignored)"] += 1
+    if integrator is not None and b.settings is not None:
+        b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps({"integrator": integrator}))
+    for kind, n in warnings.items():
+        log.warning("%s: %d", kind, n)
+    return stage, warnings

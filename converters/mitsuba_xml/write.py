@@ -1,0 +1,142 @@
+"""USD stage -> Mitsuba 3 XML.
+
+Meshes are written as binary PLY into ``meshes/`` next to the XML, textures are referenced relatively; units
+and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
+XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator) are put back.
+"""
+from __future__ import annotations
+
+import json
+import math
+import xml.etree.ElementTree as ET
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from usdrelight.atomic import write_text_atomic
+from usdrelight.errors import UsdRelightError
+from usdrelight.imageio import read_photo, write_image
+from usdrelight.mitsuba.scene_dict import Matrix, safe_name, scene_dict
+from usdrelight.stage.read import read_scene
+
+from .common import TAG_OF, VECTOR_KEYS, rel_path
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x)) if math.isfinite(x) else "0"
+
+
+def _to_xml(parent: ET.Element, name: str, value, base: Path, files: list) -> None:
+    if isinstance(value, Matrix):
+        t = ET.SubElement(parent, "transform", name=name)
+        ET.SubElement(t, "matrix", value=" ".join(_fmt(v) for v in value.m.reshape(-1)))
+    elif isinstance(value, dict) and value.get("type") == "rgb":
+        ET.SubElement(parent, "rgb", name=name, value=", ".join(_fmt(v) for v in value["value"]))
+    elif isinstance(value, dict):
+        _plugin(parent, name, value, base, files)
+    elif isinstance(value, bool):
+        ET.SubElement(parent, "boolean", name=name, value="true" if value else "false")
+    elif isinstance(value, (int, np.integer)):
+        ET.SubElement(parent, "integer", name=name, value=str(int(value)))
+    elif isinstance(value, (float, np.floating)):
+        ET.SubElement(parent, "float", name=name, value=_fmt(value))
+    elif isinstance(value, str):
+        if name == "filename":
+            value = rel_path(value, base)
+        ET.SubElement(parent, "string", name=name, value=value)
+    elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 3:
+        tag = "vector" if name in VECTOR_KEYS else "point"
+        ET.SubElement(parent, tag, name=name, value=", ".join(_fmt(v) for v in value))
+    else:
+        raise UsdRelightError(f"cannot write Mitsuba property {name}={value!r}")
+
+
+def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top: bool = False) -> None:
+    ptype = d["type"]
+    tag = TAG_OF.get(ptype)
+    if tag is None:
+        raise UsdRelightError(f"no Mitsuba XML tag known for plugin type '{ptype}'")
+    attrs = {"type": ptype}
+    if top:
+        attrs["id"] = key
+    elif tag == "texture" or key not in (tag, "film", "sampler", "rfilter"):
+        attrs["name"] = key
+    el = ET.SubElement(parent, tag, **attrs)
+    if ptype == "envmap" and "tint" in d:
+        src = d["filename"]
+        dst = base / "textures" / f"{Path(src).stem}_{key}_tinted.exr"
+        write_image(dst, read_photo(src) * np.asarray(d["tint"], np.float32), "float")
+        files.append(str(dst))
+        d = {**{k: v for k, v in d.items() if k != "tint"}, "filename": str(dst)}
+    for k, v in d.items():
+        if k == "type" or v is None:
+            continue
+        _to_xml(el, k, v, base, files)
+
+
+def write_to_string(stage, base_dir, spp: int = 64, max_depth: int = 3) -> tuple[str, list, Counter]:
+    """Returns ``(xml_text, written_files, warnings)``; meshes go to ``base_dir/meshes``."""
+    base = Path(base_dir).absolute()
+    rec = read_scene(stage)
+    integrator = None
+    settings_extra = _custom_mitsuba(stage, rec)
+    if settings_extra.get("integrator"):
+        integrator = settings_extra["integrator"]
+    d = scene_dict(rec, spp=spp, max_depth=max_depth, mesh_dir=base / "meshes", integrator=integrator)
+    _restore_extras(stage, d)
+    files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]
+    root = ET.Element("scene", version="3.0.0")
+    for k, v in d.items():
+        if k == "type":
+            continue
+        if k == "integrator":
+            _plugin(root, "integrator", v, base, files)
+        elif k == "sensor":
+            _plugin(root, "sensor", v, base, files)
+        else:
+            _plugin(root, k, v, base, files, top=True)
+    ET.indent(root, space="    ")
+    comment = ("<!-- Written by usdrelight from a USD stage. Units: UsdLux radiance L = intensity * 2^exposure * "
+               "color; point lights: intensity = L [W/sr]; directional: irradiance = L. -->\n")
+    return comment + ET.tostring(root, encoding="unicode") + "\n", files, rec.warnings
+
+
+def write_to_file(stage, path, spp: int = 64, max_depth: int = 3) -> dict:
+    path = Path(path).absolute()
+    text, files, warnings = write_to_string(stage, path.parent, spp, max_depth)
+    write_text_atomic(path, text)
+    return {"files": [str(path)] + files, "warnings": dict(warnings)}
+
+
+def _custom_mitsuba(stage, rec) -> dict:
+    from pxr import UsdRender
+
+    path = stage.GetMetadata("renderSettingsPrimPath") or ""
+    prim = stage.GetPrimAtPath(path) if path else None
+    if prim and prim.IsA(UsdRender.Settings):
+        data = prim.GetCustomDataByKey("mitsuba")
+        if data:
+            try:
+                return json.loads(data)
+            except (TypeError, ValueError):
+                return {}
+    return {}
+
+
+def _restore_extras(stage, d: dict) -> None:
+    """Put back Mitsuba-only properties kept in customData['mitsuba'] by the XML reader."""
+    for prim in stage.Traverse():
+        data = prim.GetCustomDataByKey("mitsuba")
+        if not data:
+            continue
+        try:
+            extra = json.loads(data)
+        except (TypeError, ValueError):
+            continue
+        key = safe_name(str(prim.GetPath()))
+        if key in d and isinstance(d[key], dict):
+            for k, v in extra.items():
+                if k == "texture" and isinstance(v, str):
+                    v = {"type": "bitmap", "filename": v}
+                d[key][k] = v

@@ -1,0 +1,194 @@
+"""The shape of the code: sub-packages in the pipeline's order, imports that flow one way, no circles,
+no module over 400 lines, and the logic that must exist once defined once.
+
+Read from the source with ``ast`` (nothing is imported), so a violation names the file and line.
+"""
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Source folder -> the package it installs as (pyproject's package-dir).
+SOURCES = {ROOT / "usdrelight": "usdrelight", ROOT / "converters": "usdrelight.converters",
+           ROOT / "schemas": "usdrelight.schemas"}
+#: The data flow, upstream first: a module may import its own layer and the layers before it, never later ones.
+LAYERS = [
+    ("leaf", ["usdrelight", "usdrelight._llvm", "usdrelight.errors", "usdrelight.atomic", "usdrelight.imageio",
+              "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.schemas"]),
+    ("estimate", ["usdrelight.estimate"]),
+    ("stage", ["usdrelight.stage"]),
+    ("mitsuba", ["usdrelight.mitsuba"]),
+    ("fit", ["usdrelight.fit"]),
+    ("neural", ["usdrelight.neural"]),
+    ("converters", ["usdrelight.converters"]),
+    ("cli", ["usdrelight.cli", "usdrelight.__main__"]),
+]
+#: Modules allowed to import project modules inside functions: the CLI loads a subcommand's code only when
+#: that subcommand runs (so `usdrelight --help` and `validate` start fast). Nothing else may defer an import.
+LAZY_OK = {"usdrelight.cli"}
+MAX_LINES = 400
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for folder, pkg in SOURCES.items():
+        for path in folder.rglob("*.py"):
+            rel = path.relative_to(folder).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            out[".".join([pkg, *parts])] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _is_package(name: str) -> bool:
+    return MODULES[name].name == "__init__.py"
+
+
+def _resolve(module: str, node: ast.ImportFrom | ast.Import) -> list[str]:
+    """Project modules an import statement loads (relative imports resolved; 'from P import m' -> P.m)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names if a.name.split(".")[0] == "usdrelight"]
+    if node.level:
+        base = module.split(".") if _is_package(module) else module.split(".")[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        target = ".".join(base + ([node.module] if node.module else []))
+    else:
+        target = node.module or ""
+    if target.split(".")[0] != "usdrelight":
+        return []
+    out = []
+    for a in node.names:
+        sub = f"{target}.{a.name}"
+        out.append(sub if sub in MODULES else target)
+    return out
+
+
+def _imports(module: str):
+    """(imported module, line, inside a function?) for each project import of ``module``."""
+    tree = ast.parse(MODULES[module].read_text())
+    found = []
+
+    def walk(node, in_function):
+        for child in ast.iter_child_nodes(node):
+            nested = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                for target in _resolve(module, child):
+                    if target in MODULES:
+                        found.append((target, child.lineno, in_function))
+            walk(child, nested)
+    walk(tree, False)
+    return found
+
+
+def _where(module: str) -> str:
+    path = MODULES[module]
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def _layer(module: str) -> int:
+    best, best_len = None, -1
+    for i, (_, prefixes) in enumerate(LAYERS):
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and len(p) > best_len:
+                best, best_len = i, len(p)
+    assert best is not None, f"{module} belongs to no layer: add it to LAYERS"
+    return best
+
+
+def test_every_module_is_in_a_layer_and_imports_only_upstream():
+    bad = []
+    for mod in MODULES:
+        for target, line, _ in _imports(mod):
+            if _layer(target) > _layer(mod):
+                bad.append(f"{_where(mod)}:{line} ({LAYERS[_layer(mod)][0]}) imports {target} "
+                           f"({LAYERS[_layer(target)][0]})")
+    assert not bad, "upward imports:\n" + "\n".join(bad)
+
+
+def test_no_project_import_is_hidden_inside_a_function():
+    bad = [f"{_where(mod)}:{line} imports {target}"
+           for mod in MODULES if mod not in LAZY_OK for target, line, inside in _imports(mod) if inside]
+    assert not bad, "imports inside functions:\n" + "\n".join(bad)
+
+
+def test_no_import_circles():
+    graph = {m: {t for t, _, _ in _imports(m) if t != m} for m in MODULES}
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def strongconnect(v):  # Tarjan
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                strongconnect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+    for v in graph:
+        if v not in index:
+            strongconnect(v)
+    assert not cycles, f"import circles: {cycles}"
+
+
+def test_the_architecture_check_sees_a_circle_and_an_upward_import(tmp_path):
+    """The checks above must be able to fail: fake modules with a circle and an upward import."""
+    MODULES["usdrelight.stage._probe_a"] = tmp_path / "a.py"
+    MODULES["usdrelight.stage._probe_b"] = tmp_path / "b.py"
+    (tmp_path / "a.py").write_text("from ._probe_b import x\nfrom ..fit import run\n")
+    (tmp_path / "b.py").write_text("from . import _probe_a\n\ndef f():\n    from ..errors import UsdRelightError\n")
+    try:
+        with pytest.raises(AssertionError, match="_probe_a"):
+            test_no_import_circles()
+        with pytest.raises(AssertionError, match="imports usdrelight.fit.run"):
+            test_every_module_is_in_a_layer_and_imports_only_upstream()
+        with pytest.raises(AssertionError, match="b.py:4 imports usdrelight.errors"):
+            test_no_project_import_is_hidden_inside_a_function()
+    finally:
+        del MODULES["usdrelight.stage._probe_a"], MODULES["usdrelight.stage._probe_b"]
+
+
+def test_no_module_over_the_size_limit():
+    long = {str(p.relative_to(ROOT)): n for p in MODULES.values() if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, f"modules over {MAX_LINES} lines: {long}"
+
+
+@pytest.mark.parametrize("pattern, home", [
+    # the RGB -> UsdLux intensity/colour split
+    (r"def split_rgb\b|def _rgb_split\b", "usdrelight/stage/lux.py"),
+    # stage metadata (up axis, metres) is set in one place
+    (r"SetStageUpAxis\(", "usdrelight/stage/create.py"),
+    (r"SetStageMetersPerUnit\(", "usdrelight/stage/create.py"),
+    # render settings and the Lambertian material
+    (r"UsdRender\.Settings\.Define\(", "usdrelight/stage/create.py"),
+    (r"\"UsdPreviewSurface\"\)", "usdrelight/stage/create.py"),
+    (r"\"UsdUVTexture\"\)", "usdrelight/stage/create.py"),
+    # camera rescaling, ONNX sessions, atomic file replacement
+    (r"max_side / max\(", "usdrelight/intrinsics.py"),
+    (r"InferenceSession\(", "usdrelight/onnx_runtime.py"),
+    (r"os\.replace\(|\.replace\(path\)|tempfile\.mkstemp\(", "usdrelight/atomic.py"),
+])
+def test_shared_logic_is_defined_once(pattern, home):
+    hits = []
+    for path in MODULES.values():
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            if re.search(pattern, line):
+                hits.append(f"{path.relative_to(ROOT)}:{i}")
+    homes = {h.rsplit(":", 1)[0] for h in hits}
+    assert homes == {home}, f"{pattern!r} found in {hits}, expected only in {home}"

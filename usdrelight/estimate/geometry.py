@@ -1,0 +1,124 @@
+"""Monocular geometry: per-pixel 3D points in the OpenCV camera frame, three ways.
+
+1. Precomputed maps: a z-depth map (``.npy``/``.exr``/``.pfm``; metres; 0, negative, NaN or Inf
+   = invalid) or a point map (H, W, 3) in the OpenCV camera frame with +Inf/NaN for invalid
+   pixels, as MoGe's ``infer()`` returns it.
+2. An ONNX model following the geometry contract in :mod:`usdrelight.onnx_models`.
+3. A built-in prior that needs no weights (:func:`box_room_prior`). It is a *rough guess*: a
+   camera 1.6 m above a flat floor facing a wall 6 m away. It lets ``build`` run with only a
+   photo, but the geometry has nothing to do with the photo's content.
+
+Whatever the source, the result satisfies the pipeline's invariant: every valid point
+reprojects onto the centre of its own pixel with the returned intrinsics. Point maps are made
+to satisfy it by keeping their z-depth and re-casting x, y along the pixel rays.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..imageio import read_map
+from ..intrinsics import DEFAULT_FOV_X_DEG, Intrinsics
+from .onnx_models import run_geometry_model
+from .records import GeometryEstimate, Photo
+
+log = logging.getLogger(__name__)
+
+PRIOR_CAMERA_HEIGHT_M = 1.6
+PRIOR_WALL_DISTANCE_M = 6.0
+
+
+def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
+    if arr.shape[:2] != (photo.height, photo.width):
+        raise UsdRelightError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]} but the photo is "
+                              f"{photo.width}x{photo.height}")
+
+
+def from_depth(depth: np.ndarray, intrinsics: Intrinsics, valid: np.ndarray | None = None,
+               source: str = "depth") -> GeometryEstimate:
+    """Unproject a z-depth map (H, W); non-finite or non-positive depth is invalid."""
+    depth = np.asarray(depth, dtype=np.float64)
+    ok = np.isfinite(depth) & (depth > 0)
+    if valid is not None:
+        ok &= valid
+    z = np.where(ok, depth, 0.0)
+    return GeometryEstimate(intrinsics.unproject(z), ok, intrinsics, source)
+
+
+def from_points(points: np.ndarray, intrinsics: Intrinsics | None, valid: np.ndarray | None = None,
+                source: str = "points") -> GeometryEstimate:
+    """Use a point map's z-depth; intrinsics default to the least-squares fit of the map."""
+    points = np.asarray(points, dtype=np.float64)
+    ok = np.all(np.isfinite(points), axis=-1) & (points[..., 2] > 0)
+    if valid is not None:
+        ok &= valid
+    if not ok.any():
+        raise UsdRelightError("the point map has no valid pixel (all NaN/Inf or behind the camera)")
+    if intrinsics is None:
+        intrinsics = Intrinsics.fit_to_points(np.where(ok[..., None], points, 0), ok)
+    return from_depth(np.where(ok, points[..., 2], 0.0), intrinsics, ok, source)
+
+
+def box_room_prior(intrinsics: Intrinsics) -> np.ndarray:
+    """Rough z-depth prior: floor ``PRIOR_CAMERA_HEIGHT_M`` below a level camera, wall at 6 m."""
+    rays = intrinsics.pixel_rays()
+    down = rays[..., 1]  # OpenCV +Y is down
+    with np.errstate(divide="ignore"):
+        floor_z = np.where(down > 1e-6, PRIOR_CAMERA_HEIGHT_M / np.maximum(down, 1e-6), np.inf)
+    return np.minimum(floor_z, PRIOR_WALL_DISTANCE_M).astype(np.float32)
+
+
+def resolve_intrinsics(photo: Photo, intrinsics_file=None, fov_x: float | None = None) -> Intrinsics | None:
+    """Intrinsics from a JSON file or a horizontal field of view; None when neither is given."""
+    if intrinsics_file is not None and fov_x is not None:
+        raise UsdRelightError("give either --intrinsics or --fov-x, not both")
+    if intrinsics_file is not None:
+        return Intrinsics.from_json(intrinsics_file, photo.width, photo.height)
+    if fov_x is not None:
+        return Intrinsics.from_fov_x(float(fov_x), photo.width, photo.height)
+    return None
+
+
+def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrinsics: Intrinsics | None = None,
+                      mask: np.ndarray | None = None, model=None) -> GeometryEstimate:
+    """Pick the geometry source by what was given: depth map, point map, ONNX model, or prior."""
+    given = [x for x in (depth_file, points_file, model) if x is not None]
+    if len(given) > 1:
+        raise UsdRelightError("give only one geometry source: --depth, --points or --geometry-model")
+    if depth_file is not None:
+        depth = read_map(depth_file, 1)[..., 0]
+        _check_size(depth, photo, "depth map", depth_file)
+        if intrinsics is None:
+            log.warning("no intrinsics given; assuming a %.0f degree horizontal field of view", DEFAULT_FOV_X_DEG)
+            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+        geo = from_depth(depth, intrinsics, mask, source=f"depth:{Path(depth_file).name}")
+    elif points_file is not None:
+        pts = read_map(points_file, 3)
+        _check_size(pts, photo, "point map", points_file)
+        geo = from_points(pts, intrinsics, mask, source=f"points:{Path(points_file).name}")
+    elif model is not None:
+        pts, ok, K = run_geometry_model(model, photo.rgb)
+        if mask is not None:
+            ok &= mask
+        if intrinsics is None and K is not None:
+            intrinsics = Intrinsics.from_normalized(K, photo.width, photo.height)
+        if not ok.any():
+            raise UsdRelightError(f"geometry model {Path(model).name} returned no valid pixel")
+        if intrinsics is None and np.any(pts[ok][:, :2] != 0):
+            intrinsics = Intrinsics.fit_to_points(pts, ok)
+        if intrinsics is None:
+            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+        geo = from_depth(pts[..., 2], intrinsics, ok, source=f"onnx:{Path(model).name}")
+    else:
+        if intrinsics is None:
+            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+        log.warning("no depth, point map or geometry model given: using the rough box-room prior "
+                    "(flat floor and back wall); the mesh will not follow the photo's content")
+        geo = from_depth(box_room_prior(intrinsics), intrinsics, mask, source="prior:box-room")
+        geo.metric = False
+    if not geo.valid.any():
+        raise UsdRelightError("geometry has no valid pixel (depth all invalid, or masked out)")
+    return geo

@@ -1,0 +1,68 @@
+"""Typed records that hand data from one pipeline stage to the next (photo -> estimates -> mesh).
+
+All images are float32 (H, W, C) linear RGB, row 0 at the top; points are in the OpenCV camera
+frame (+X right, +Y down, +Z forward) in metres unless the source is only relative.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..intrinsics import Intrinsics
+
+
+@dataclass
+class Photo:
+    """The input photograph, decoded to linear RGB."""
+
+    path: Path
+    rgb: np.ndarray  # (H, W, 3) float32, linear
+
+    @property
+    def height(self) -> int:
+        return int(self.rgb.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.rgb.shape[1])
+
+
+@dataclass
+class GeometryEstimate:
+    """Per-pixel 3D points that reproject exactly onto their pixels with ``intrinsics``."""
+
+    points: np.ndarray  # (H, W, 3) float32, OpenCV camera frame; garbage where not valid
+    valid: np.ndarray  # (H, W) bool
+    intrinsics: Intrinsics
+    source: str  # e.g. "depth:file", "points:file", "onnx:<model>", "prior:box-room"
+    metric: bool = True  # False when the scale is only relative
+
+    @property
+    def depth(self) -> np.ndarray:
+        return np.where(self.valid, self.points[..., 2], 0.0).astype(np.float32)
+
+
+@dataclass
+class Decomposition:
+    """Intrinsic decomposition I = A * S + R; the diffuse image D = A * S is the fit target."""
+
+    albedo: np.ndarray  # (H, W, 3) in [0, 1]
+    shading: np.ndarray  # (H, W, 3) >= 0, diffuse shading
+    residual: np.ndarray  # (H, W, 3), I - A * S (non-diffuse effects)
+    source: str
+
+    @property
+    def diffuse(self) -> np.ndarray:
+        return (self.albedo * self.shading).astype(np.float32)
+
+
+@dataclass
+class PhotoEstimates:
+    """Everything estimated from one photograph; the input of mesh and stage building."""
+
+    photo: Photo
+    geometry: GeometryEstimate
+    decomposition: Decomposition
+    notes: list[str] = field(default_factory=list)

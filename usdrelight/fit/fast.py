@@ -1,0 +1,218 @@
+"""``--method fast``: the render is linear in the environment and the light intensities, so those are
+solved exactly (non-negative least squares) for given light positions; positions are refined by Adam on
+the reduced objective (variable projection), with analytic gradients of the point-light transport.
+Primary hits, environment visibility and the indirect gather are computed once (:mod:`usdrelight.fit.transport`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .problem import FitProblem
+from .transport import Transport, build_transport
+
+
+def initial_positions(prob: FitProblem, k: int) -> np.ndarray:
+    """The paper's initialisation: a sqrt(K) x sqrt(K) grid at the centre of the scene (fronto-parallel
+    to the camera, spanning half the scene's extent)."""
+    if k == 0:
+        return np.zeros((0, 3))
+    side = int(np.ceil(np.sqrt(k)))
+    lo, hi = prob.p.min(0), prob.p.max(0)
+    cam = prob.scene.camera.to_world
+    right, up = cam[:3, 0] / np.linalg.norm(cam[:3, 0]), cam[:3, 1] / np.linalg.norm(cam[:3, 1])
+    span = 0.25 * (hi - lo)
+    sx, sy = abs(span @ right), abs(span @ up)
+    t = np.linspace(-1, 1, side) if side > 1 else np.zeros(1)
+    gx, gy = np.meshgrid(t, t)
+    pts = prob.center[None] + gx.ravel()[:, None] * sx * right + gy.ravel()[:, None] * sy * up
+    return pts[:k]
+
+
+def keep_off_surfaces(pos: np.ndarray, tree, pts: np.ndarray, d_min: float, camera: np.ndarray) -> np.ndarray:
+    """Push lights closer than ``d_min`` to a visible surface point out to ``d_min``, on the camera's side.
+
+    A light a few millimetres from a surface makes a pixel-sized 1/r^2 hot spot that no 2.5D reconstruction
+    can confirm; keeping ``d_min`` (3% of the scene extent by default) stops the fit from chasing noise there.
+    """
+    if len(pos) == 0 or d_min <= 0:
+        return pos
+    out = pos.copy()
+    for _ in range(4):
+        dist, j = tree.query(out)
+        close = dist < d_min
+        if not close.any():
+            break
+        away = out[close] - pts[j[close]]
+        norm = np.linalg.norm(away, axis=1, keepdims=True)
+        towards_cam = camera[None] - pts[j[close]]
+        away = np.where(norm > 1e-12 * d_min, away / np.maximum(norm, 1e-300),
+                        towards_cam / np.linalg.norm(towards_cam, axis=1, keepdims=True))
+        out[close] = pts[j[close]] + away * d_min * 1.001
+    return out
+
+
+@dataclass
+class FitState:
+    positions: np.ndarray  # (K, 3)
+    theta: np.ndarray  # (3, K + J)
+    mse: float
+    iterations: int
+    curve: list = field(default_factory=list)  # [seconds, mse]
+    seconds: float = 0.0
+
+
+def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, lr_rel: float = 0.03,
+             env_samples: int = 128, indirect_samples: int = 32, seed: int = 0, progress=None,
+             transport: Transport | None = None, positions: np.ndarray | None = None,
+             smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None) -> tuple[FitState, Transport]:
+    t0 = time.perf_counter()
+    tr = transport or build_transport(prob, env_shape, env_samples, indirect_samples, seed)
+    pos = initial_positions(prob, k) if positions is None else np.array(positions, np.float64)
+    lo, hi = prob.p.min(0), prob.p.max(0)
+    box_lo, box_hi = lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo)
+    tree = cKDTree(prob.p)
+    d_min = min_distance_rel * prob.extent
+    pos = keep_off_surfaces(pos, tree, prob.p, d_min, prob.scene.camera.to_world[:3, 3])
+    lr = lr_rel * prob.extent
+    m = np.zeros_like(pos)
+    v = np.zeros_like(pos)
+    best = None
+    curve = []
+    N = prob.n_pixels
+    its = iterations if len(pos) else 1
+    for it in range(its):
+        g, dg = tr.point_columns(pos, with_grad=True)
+        theta, mse, res = tr.solve(g, smooth=smooth)
+        curve.append([time.perf_counter() - t0, mse])
+        if best is None or mse < best.mse:
+            best = FitState(pos.copy(), theta, mse, it + 1)
+        if progress:
+            progress(it + 1, its, mse)
+        if callback is not None:
+            callback(it, time.perf_counter() - t0, pos.copy(), theta.copy())
+        if len(pos) == 0 or it == its - 1:
+            break
+        # VarPro gradient of the MSE w.r.t. light positions (intensities at their optimum)
+        w = np.zeros((N, len(pos)))
+        for c in range(3):
+            a = prob.albedo[:, c]
+            u = a * res[c]
+            w += (u + a * (tr.P.T @ u))[:, None] * theta[c, :len(pos)][None, :]
+        w *= 2.0 / (3 * N)
+        grad = np.einsum("nk,nkd->kd", w, dg)
+        m = 0.9 * m + 0.1 * grad
+        v = 0.999 * v + 0.001 * grad ** 2
+        step = lr * (m / (1 - 0.9 ** (it + 1))) / (np.sqrt(v / (1 - 0.999 ** (it + 1))) + 1e-30)
+        pos = keep_off_surfaces(np.clip(pos - np.nan_to_num(step), box_lo, box_hi), tree, prob.p, d_min,
+                                prob.scene.camera.to_world[:3, 3])
+    best.curve = curve
+    best.iterations = its
+    best.seconds = time.perf_counter() - t0
+    return best, tr
+
+
+def prune(state: FitState, tr: Transport, prob: FitProblem, tol: float = 0.01, smooth: float = 1e-3,
+          refine_iterations: int = 8, candidates: int = 3) -> tuple[FitState, bool]:
+    """Leave out what the scene does not need.
+
+    Repeatedly try to remove the point light with the smallest contribution (up to ``candidates`` per
+    round): the remaining lights are re-fitted for ``refine_iterations`` (positions and intensities), and
+    the removal is kept when the fit's RMSE stays within ``tol`` (1%) of the full fit's. Then the
+    environment is dropped the same way. Returns (state, environment kept).
+    """
+    base = np.sqrt(state.mse)
+    pos, theta, mse = state.positions.copy(), state.theta, state.mse
+    J = tr.H.shape[1]
+    env_on = J > 0
+    while len(pos) > 0:
+        g = tr.point_columns(pos)
+        Tk = tr.point_matrices(g)
+        contrib = [np.sqrt(np.mean(np.stack([Tk[c][:, i] * theta[c, i] for c in range(3)]) ** 2)) for i in range(len(pos))]
+        removed = False
+        for i in np.argsort(contrib)[:candidates]:
+            rest = np.delete(pos, i, 0)
+            if len(rest):
+                st, _ = fit_fast(prob, len(rest), tr.env_shape, refine_iterations, transport=tr, positions=rest,
+                                 smooth=smooth)
+                cand = (st.positions, st.theta, st.mse)
+            else:
+                th, ms, _ = tr.solve(np.zeros((prob.n_pixels, 0)), smooth=smooth)
+                cand = (rest, th, ms)
+            if np.sqrt(cand[2]) <= base * (1 + tol):
+                pos, theta, mse = cand
+                removed = True
+                break
+        if not removed:
+            break
+    if env_on:
+        th, ms, _ = tr.solve(tr.point_columns(pos), env=False, smooth=smooth)
+        if np.sqrt(ms) <= base * (1 + tol):
+            env_on, theta, mse = False, th, ms
+    return FitState(pos, theta, mse, state.iterations, state.curve, state.seconds), env_on
+
+
+def candidate_positions(prob: FitProblem, per_axis: int = 5, min_distance_rel: float = 0.03) -> np.ndarray:
+    """A regular 3D grid of candidate light positions over the scene's box (grown by a quarter on each
+    side), without the points closer than ``min_distance_rel`` of the extent to a visible surface."""
+    lo, hi = prob.p.min(0), prob.p.max(0)
+    pad = 0.25 * (hi - lo)
+    axes = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], per_axis) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    dist, _ = cKDTree(prob.p).query(grid)
+    return grid[dist >= min_distance_rel * prob.extent]
+
+
+def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, tol: float = 0.02,
+                    refine_iterations: int = 20, env_samples: int = 128, indirect_samples: int = 32, seed: int = 0,
+                    smooth: float = 1e-3, progress=None, callback=None) -> tuple[FitState, Transport]:
+    """Forward selection: add the candidate light that best explains the residual, re-fit every light's
+    position and intensity (VarPro), and stop at ``k`` lights or when a new light improves the RMSE by less
+    than ``tol``. A scene lit by one light ends with one light; the light budget ``k`` is a maximum."""
+    t0 = time.perf_counter()
+    tr = build_transport(prob, env_shape, env_samples, indirect_samples, seed)
+    cands = candidate_positions(prob)
+    sub = np.arange(0, prob.n_pixels, max(1, prob.n_pixels // 20000))  # selection on a pixel subset
+    gc_full = tr.point_columns(cands)
+    pos = np.zeros((0, 3))
+    theta, mse, res = tr.solve(np.zeros((prob.n_pixels, 0)), smooth=smooth)
+    curve = [[time.perf_counter() - t0, mse]]
+    best = FitState(pos, theta, mse, 0)
+    used = 0
+    while len(pos) < k and len(cands):
+        Tc = tr.point_matrices(gc_full)
+        score = np.zeros(len(cands))
+        for c in range(3):
+            num = np.maximum(-(Tc[c][sub].T @ res[c][sub]), 0.0)
+            den = np.einsum("ij,ij->j", Tc[c][sub], Tc[c][sub]) + 1e-30
+            score += num ** 2 / den
+        j = int(np.argmax(score))
+        if score[j] <= 0:
+            break
+        trial = np.concatenate([pos, cands[j:j + 1]])
+        st, _ = fit_fast(prob, len(trial), env_shape, refine_iterations, transport=tr, positions=trial, smooth=smooth)
+        used += st.iterations
+        curve.append([time.perf_counter() - t0, st.mse])
+        if np.sqrt(st.mse) > np.sqrt(best.mse) * (1 - tol):
+            break  # the new light does not pay for itself
+        pos, theta, mse = st.positions, st.theta, st.mse
+        best = FitState(pos.copy(), theta, mse, used)
+        theta_, mse_, res = tr.solve(tr.point_columns(pos), smooth=smooth)
+        if progress:
+            progress(len(pos), k, mse)
+        if callback is not None:
+            callback(len(pos), time.perf_counter() - t0, pos.copy(), theta.copy())
+    if len(pos) and iterations > refine_iterations:
+        st, _ = fit_fast(prob, len(pos), env_shape, iterations - refine_iterations, transport=tr, positions=pos,
+                         smooth=smooth)
+        used += st.iterations
+        curve.append([time.perf_counter() - t0, st.mse])
+        if st.mse < best.mse:
+            best = FitState(st.positions, st.theta, st.mse, used)
+    best.curve = curve
+    best.iterations = max(used, 1)
+    best.seconds = time.perf_counter() - t0
+    return best, tr

@@ -1,0 +1,146 @@
+"""``usdrelight fit``: fit the photo's lighting (environment map + point lights) to the diffuse image D.
+
+Error measures: :mod:`usdrelight.fit.result`. The fitted lights go into the stage's fitted-lights layer; the fit's
+error and time are recorded through RelightProvenanceAPI; ``--report DIR`` writes fit_report.json and a
+plot of error against run time.
+"""
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..imageio import write_image
+from ..mitsuba.render import render_record
+from ..stage.lights_layer import write_fitted_lights
+from ..stage.records import LightRecord, PointLightValue, TextureRecord
+from .adam import fit_adam
+from .fast import fit_fast_greedy, prune as prune_lights
+from .problem import FitProblem, load_problem
+from .report import write_report
+from .result import FitReport, FitResult, masked_mse, psnr
+from .transport import build_transport
+
+log = logging.getLogger(__name__)
+
+ENV_UPSAMPLE = 8  # fast: env cells written as 8x8 texel blocks so bilinear lookup stays piecewise constant
+PRUNE_TOL = 0.01
+
+
+def fast_result(prob: FitProblem, k: int, env_shape, iterations: int, prune: bool = True, progress=None,
+                **kw) -> FitResult:
+    t0 = time.perf_counter()
+    state, tr = fit_fast_greedy(prob, k, env_shape, iterations, progress=progress, **kw)
+    env_on = env_shape[0] * env_shape[1] > 0
+    if prune:
+        state, env_on = prune_lights(state, tr, prob, PRUNE_TOL)
+    seconds = time.perf_counter() - t0
+    K = len(state.positions)
+    lights = tuple(PointLightValue(state.positions[i], state.theta[:, i]) for i in range(K))
+    env = None
+    if env_on:
+        cells = state.theta[:, K:].T.reshape(env_shape[0], env_shape[1], 3)
+        env = np.repeat(np.repeat(cells, ENV_UPSAMPLE, 0), ENV_UPSAMPLE, 1)
+    peak = float(prob.target.max())
+    return FitResult("fast", state.mse, psnr(state.mse, peak), seconds, state.iterations, lights, env,
+                     state.curve, prob.width, prob.height)
+
+
+def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_TOL) -> FitResult:
+    """Drop lights (and the environment) whose own contribution to the render, predicted by the
+    transport model, has an RMS below ``tol`` (1%) of the RMS of D. Used after ``adam``."""
+    env_shape = (8, 16)
+    tr = build_transport(prob, env_shape, env_samples=64, indirect_samples=8)
+    rms_d = float(np.sqrt(np.mean(prob.target ** 2)))
+    keep = []
+    if res.lights:
+        g = tr.point_columns(np.array([light.position for light in res.lights]))
+        Tk = tr.point_matrices(g)
+        for i, light in enumerate(res.lights):
+            contrib = np.stack([Tk[c][:, i] * light.rgb[c] for c in range(3)], 1)
+            if np.sqrt(np.mean(contrib ** 2)) >= tol * rms_d:
+                keep.append(i)
+    env = res.env
+    if env is not None:
+        h, w = env.shape[:2]
+        cells = env[: h - h % env_shape[0], : w - w % env_shape[1]].reshape(
+            env_shape[0], h // env_shape[0], env_shape[1], w // env_shape[1], 3).mean((1, 3)).reshape(-1, 3)
+        TH = tr.env_blocks()[0]
+        contrib = np.stack([TH[c] @ cells[:, c] for c in range(3)], 1)
+        if np.sqrt(np.mean(contrib ** 2)) < tol * rms_d:
+            env = None
+    return replace(res, lights=tuple(res.lights[i] for i in keep), env=env)
+
+
+def render_fitted(prob: FitProblem, lights, env: np.ndarray | None, spp: int = 64, max_depth: int = 3,
+                  seed: int = 0) -> np.ndarray:
+    """Render the problem's geometry under the given lights (PointLightValue) with Mitsuba (the converter's units)."""
+    with tempfile.TemporaryDirectory() as td:
+        recs = []
+        for i, light in enumerate(lights):
+            m = np.eye(4)
+            m[:3, 3] = light.position
+            recs.append(LightRecord(f"/fit/Point{i}", "sphere", m, np.asarray(light.rgb, np.float64),
+                                    treat_as_point=True))
+        if env is not None:
+            path = Path(td) / "env.exr"
+            write_image(path, env, "float")
+            recs.append(LightRecord("/fit/Env", "dome", np.eye(4), np.ones(3), texture=TextureRecord(str(path), "raw")))
+        # emitters hidden from camera rays: D is compared where the mesh covers the pixel, and a partly
+        # covered pixel must not pick up the environment seen through a cut in the 2.5D mesh
+        return render_record(prob.scene.with_lights(recs), {"beauty"}, spp=spp, max_depth=max_depth, seed=seed,
+                             hide_emitters=True)["beauty"]
+
+
+def _parse_env_res(text) -> tuple:
+    if isinstance(text, (tuple, list)):
+        return tuple(int(x) for x in text)
+    try:
+        h, w = (int(x) for x in str(text).lower().split("x"))
+    except ValueError:
+        raise UsdRelightError(f"--env-res must look like HxW (e.g. 8x16), got {text!r}") from None
+    if h < 0 or w < 0 or (h == 0) != (w == 0):
+        raise UsdRelightError(f"--env-res must be positive (or 0x0 for no environment), got {text!r}")
+    return h, w
+
+
+def fit_stage(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
+              max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0) -> FitReport:
+    """Fit, write the fitted-lights layer, verify by rendering with Mitsuba, and report."""
+    if lights < 0 or lights > 256:
+        raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
+    t_all = time.perf_counter()
+    prob = load_problem(stage_path, max_side)
+    if method == "fast":
+        env_shape = _parse_env_res(env_res or "8x16")
+        res = fast_result(prob, lights, env_shape, iterations or 40, progress=progress, seed=seed)
+    elif method == "adam":
+        env_shape = _parse_env_res(env_res or "128x256")
+        res = fit_adam(prob, lights, env_shape, iterations or 200, progress=progress, seed=seed)
+        res = prune_by_contribution(prob, res)
+    else:
+        raise UsdRelightError(f"unknown --method {method!r} (adam or fast)")
+    for light in res.lights:
+        if not (np.all(np.isfinite(light.position)) and np.all(np.isfinite(light.rgb))):
+            raise UsdRelightError("the fit diverged (non-finite light); nothing was written")
+    if res.env is not None and not np.all(np.isfinite(res.env)):
+        raise UsdRelightError("the fit diverged (non-finite environment); nothing was written")
+    # verification: render the fitted lights with Mitsuba, as the converter would
+    t = time.perf_counter()
+    img = render_fitted(prob, res.lights, res.env, spp=verify_spp, seed=seed + 1)
+    render_mse = masked_mse(prob, img)
+    peak = float(prob.target.max())
+    stage_dir = Path(stage_path).resolve().parent
+    write_fitted_lights(stage_dir, list(res.lights), res.env, res.provenance())
+    report = FitReport(res.method, float(res.mse), float(res.psnr_db), float(res.seconds), int(res.iterations),
+                       render_mse, psnr(render_mse, peak), time.perf_counter() - t, len(res.lights),
+                       res.env is not None, [res.width, res.height], prob.n_pixels, peak, res.curve,
+                       time.perf_counter() - t_all, dict(res.extra))
+    if report_dir is not None:
+        write_report(report_dir, report.to_dict(), prob.target_image(), img)
+    return report

@@ -1,0 +1,249 @@
+"""Scene records (:mod:`usdrelight.stage.records`) -> a Mitsuba 3 scene dict.
+
+The dict is plain data built separately from loading (``mi.load_dict``). Meshes are either created
+in memory (``mesh_dir=None``, for rendering) or written as binary PLY files into ``mesh_dir`` (for XML);
+transforms are numpy 4x4 matrices wrapped in :class:`Matrix` until :func:`to_mitsuba` turns them into
+``mi.ScalarTransform4f``. Units follow :mod:`usdrelight.stage.lux`.
+
+Frames: Mitsuba's camera looks down +Z with +X to the left of the image and +Y up; USD's looks down
+-Z with +X to the right, so ``sensor.to_world = camera.to_world @ diag(-1, 1, -1)``. The principal
+point is ``principal_point_offset_x = 0.5 - cx / W``, ``principal_point_offset_y = 0.5 - cy / H``
+(corner-origin pixel units, y down; measured: a positive offset moves the principal point left/up). Mitsuba's bitmap texture has v = 0 at the top row, USD's st has
+t = 0 at the bottom, so mesh texcoords are (s, 1 - t).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import write_bytes_atomic
+from ..errors import UsdRelightError
+from ..stage.lux import emitted_radiance, light_direction, world_scale
+from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
+from .runtime import load_mitsuba
+
+log = logging.getLogger(__name__)
+
+FLIP_Z = np.diag([1.0, -1.0, -1.0, 1.0])  # local +Z -> -Z (right-handed): Mitsuba emitters face +Z
+CAMERA_FLIP = np.diag([-1.0, 1.0, -1.0, 1.0])  # USD camera frame <-> Mitsuba camera frame
+
+
+@dataclass
+class Matrix:
+    """A 4x4 column-vector-convention transform kept as numpy until loading."""
+
+    m: np.ndarray
+
+
+def _rgb(v) -> dict:
+    return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(np.asarray(v, np.float64), (3,))]}
+
+
+def _texture(tex: TextureRecord, warnings) -> dict:
+    if tuple(tex.scale[:3]) != (1.0, 1.0, 1.0) or any(tex.bias[:3]):
+        warnings["UsdUVTexture scale/bias (ignored)"] += 1
+    if tex.channel not in ("rgb",):
+        warnings[f"UsdUVTexture output '{tex.channel}' used as colour (rgb used)"] += 1
+    return {"type": "bitmap", "filename": tex.path, "raw": bool(tex.linear), "filter_type": "bilinear",
+            "wrap_mode": "clamp"}
+
+
+def _value(v, warnings) -> dict:
+    return _texture(v, warnings) if isinstance(v, TextureRecord) else _rgb(v)
+
+
+def _scalar(v, default: float, what: str, warnings) -> float:
+    if isinstance(v, TextureRecord):
+        warnings[f"textured {what} (constant {default} used)"] += 1
+        return default
+    return float(v)
+
+
+def bsdf_dict(mat: MaterialRecord, warnings) -> dict:
+    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table)."""
+    if mat.is_lambertian:
+        inner = {"type": "diffuse", "reflectance": _value(mat.diffuse, warnings)}
+    else:
+        rough = min(max(_scalar(mat.roughness, 0.5, "roughness", warnings), 0.0), 1.0)
+        metal = min(max(_scalar(mat.metallic, 0.0, "metallic", warnings), 0.0), 1.0)
+        if mat.use_specular_workflow:
+            inner = {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
+                     "specular_reflectance": _value(mat.specular, warnings), "alpha": max(rough * rough, 1e-3),
+                     "int_ior": float(mat.ior), "nonlinear": False}
+        elif metal >= 1.0:
+            inner = {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
+                     "alpha": max(rough * rough, 1e-3)}
+        else:
+            f0 = ((mat.ior - 1.0) / (mat.ior + 1.0)) ** 2
+            inner = {"type": "principled", "base_color": _value(mat.diffuse, warnings), "metallic": metal,
+                     "roughness": max(rough, 1e-3), "specular": float(min(max(f0 / 0.08, 0.0), 1.0))}
+    return {"type": "twosided", "bsdf": inner}
+
+
+def write_ply(path: Path, pts, faces, normals, uv) -> None:
+    """Binary little-endian PLY (through trimesh) with the vertex properties Mitsuba reads:
+    x y z, nx ny nz when ``normals`` are given, u v when ``uv`` is given (Mitsuba's v = 0 at the top)."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(pts, np.float64), np.asarray(faces, np.int64), process=False, validate=False,
+                           vertex_normals=None if normals is None else np.asarray(normals, np.float64))
+    if uv is not None:
+        mesh.vertex_attributes["u"] = np.asarray(uv[:, 0], np.float32)
+        mesh.vertex_attributes["v"] = np.asarray(uv[:, 1], np.float32)
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary", vertex_normal=normals is not None,
+                                           include_attributes=True)
+    write_bytes_atomic(path, data)
+
+
+def safe_name(name: str) -> str:
+    """A prim path as a Mitsuba object id: alphanumerics kept, the rest '_'."""
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_") or "mesh"
+
+
+def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warnings=None) -> dict:
+    cam = scene.camera
+    if cam is None:
+        raise UsdRelightError("the stage has no camera to render from")
+    k = cam.intrinsics
+    if abs(k.fx - k.fy) > 1e-6 * k.fx and warnings is not None:
+        warnings["non-square pixels (Mitsuba renders square pixels; fx used)"] += 1
+    return {
+        "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
+        "principal_point_offset_x": 0.5 - k.cx / k.width, "principal_point_offset_y": 0.5 - k.cy / k.height,
+        "near_clip": cam.near, "far_clip": cam.far, "to_world": Matrix(cam.to_world @ CAMERA_FLIP),
+        "film": {"type": "hdrfilm", "width": k.width, "height": k.height, "rfilter": {"type": rfilter},
+                 "pixel_format": "rgb"},
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+    }
+
+
+def emitter_dicts(light: LightRecord, warnings) -> dict:
+    """Mitsuba emitter (or emissive shape) dicts for one UsdLux light, keyed by name."""
+    L = emitted_radiance(light)
+    name = safe_name(light.path)
+    if light.kind == "sphere" and light.treat_as_point:
+        pos = light.to_world[:3, 3]
+        if light.cone_angle_deg is not None:
+            cutoff = min(max(light.cone_angle_deg, 1e-3), 90.0)
+            if light.cone_angle_deg > 90:
+                warnings["ShapingAPI cone wider than 90 degrees (clamped)"] += 1
+            rot = light.to_world[:3, :3] / np.maximum(world_scale(light.to_world), 1e-300)
+            m = np.eye(4)
+            m[:3, :3] = rot
+            m[:3, 3] = pos
+            return {name: {"type": "spot", "intensity": _rgb(L), "cutoff_angle": cutoff,
+                           "beam_width": max(cutoff * (1.0 - light.cone_softness), 1e-4),
+                           "to_world": Matrix(m @ FLIP_Z)}}
+        return {name: {"type": "point", "position": [float(x) for x in pos], "intensity": _rgb(L)}}
+    if light.cone_angle_deg is not None:
+        warnings["ShapingAPI on an area, distant or dome light (ignored)"] += 1
+    emitter = {"type": "area", "radiance": _rgb(L)}
+    black = {"type": "diffuse", "reflectance": _rgb(0.0)}
+    if light.kind == "sphere":
+        r = light.radius
+        return {name: {"type": "sphere", "to_world": Matrix(light.to_world @ np.diag([r, r, r, 1.0])),
+                       "emitter": emitter, "bsdf": black}}
+    if light.kind == "disk":
+        r = light.radius
+        return {name: {"type": "disk", "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([r, r, 1.0, 1.0])),
+                       "emitter": emitter, "bsdf": black}}
+    if light.kind == "rect":
+        return {name: {"type": "rectangle", "emitter": emitter, "bsdf": black,
+                       "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([light.width / 2, light.height / 2, 1, 1]))}}
+    if light.kind == "distant":
+        if light.angle_deg > 0:
+            warnings["DistantLight angle > 0 (rendered as a sharp directional light)"] += 1
+        return {name: {"type": "directional", "direction": [float(x) for x in light_direction(light)],
+                       "irradiance": _rgb(L)}}
+    if light.kind == "dome":
+        if light.texture is None:
+            return {name: {"type": "constant", "radiance": _rgb(L)}}
+        rot = light.to_world.copy()
+        rot[:3, :3] = rot[:3, :3] / np.maximum(world_scale(rot), 1e-300)
+        d = {"type": "envmap", "filename": light.texture.path, "to_world": Matrix(rot)}
+        if np.allclose(L, L[0]):
+            d["scale"] = float(L[0])
+        else:
+            d["scale"] = 1.0
+            d["tint"] = [float(x) for x in L]  # applied by to_mitsuba / the XML writer (baked texture)
+        return {name: d}
+    raise UsdRelightError(f"unsupported light kind {light.kind}")
+
+
+def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_dir: str | Path | None = None,
+               integrator: dict | None = None) -> dict:
+    """The Mitsuba scene dict. ``mesh_dir``: write PLY files there (for XML) instead of in-memory meshes."""
+    warnings = scene.warnings
+    d = {"type": "scene",
+         "integrator": integrator or {"type": "path", "max_depth": int(max_depth)}}
+    if scene.camera is not None:
+        d["sensor"] = sensor_dict(scene, spp, warnings=warnings)
+    used = set()
+
+    def key(base):
+        k, i = base, 1
+        while k in used:
+            i += 1
+            k = f"{base}_{i}"
+        used.add(k)
+        return k
+
+    for mesh in scene.meshes:
+        uv = None if mesh.uv is None else np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
+        k = key(safe_name(mesh.path))
+        bsdf = bsdf_dict(mesh.material, warnings)
+        if mesh_dir is not None:
+            mdir = Path(mesh_dir)
+            mdir.mkdir(parents=True, exist_ok=True)
+            ply = mdir / f"{k}.ply"
+            write_ply(ply, mesh.points, mesh.faces, mesh.normals, uv)
+            d[k] = {"type": "ply", "filename": str(ply), "bsdf": bsdf, "face_normals": mesh.normals is None}
+        else:
+            d[k] = {"type": "_mesh", "points": mesh.points, "faces": mesh.faces, "normals": mesh.normals,
+                    "uv": uv, "bsdf": bsdf}
+    for shape in scene.shapes:
+        d[key(safe_name(shape.path))] = {"type": shape.kind, "to_world": Matrix(shape.to_world),
+                                     "bsdf": bsdf_dict(shape.material, warnings)}
+    for light in scene.lights:
+        for name, e in emitter_dicts(light, warnings).items():
+            d[key(name)] = e
+    return d
+
+
+def _make_mesh(mi, name: str, spec: dict):
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(to_mitsuba(spec["bsdf"], mi))
+    has_n, has_uv = spec["normals"] is not None, spec["uv"] is not None
+    mesh = mi.Mesh(name, len(spec["points"]), len(spec["faces"]), props, has_vertex_normals=has_n,
+                   has_vertex_texcoords=has_uv)
+    p = mi.traverse(mesh)
+    p["vertex_positions"] = mi.Float(np.ascontiguousarray(spec["points"], np.float32).ravel())
+    p["faces"] = mi.UInt32(np.ascontiguousarray(spec["faces"], np.uint32).ravel())
+    if has_n:
+        p["vertex_normals"] = mi.Float(np.ascontiguousarray(spec["normals"], np.float32).ravel())
+    if has_uv:
+        p["vertex_texcoords"] = mi.Float(np.ascontiguousarray(spec["uv"], np.float32).ravel())
+    p.update()
+    return mesh
+
+
+def to_mitsuba(d, mi=None, name: str = "root"):
+    """Replace :class:`Matrix` and in-memory mesh specs by Mitsuba objects (ready for ``mi.load_dict``)."""
+    if mi is None:
+        mi = load_mitsuba()
+    if isinstance(d, Matrix):
+        return mi.ScalarTransform4f(d.m.tolist())
+    if isinstance(d, dict):
+        if d.get("type") == "_mesh":
+            return _make_mesh(mi, name, d)
+        if d.get("type") == "envmap" and "tint" in d:
+            bmp = np.array(mi.Bitmap(d["filename"]).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, False))
+            out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}
+            out["bitmap"] = mi.Bitmap((bmp * np.asarray(d["tint"], np.float32)).astype(np.float32))
+            return out
+        return {k: to_mitsuba(v, mi, k) for k, v in d.items()}
+    return d

@@ -1,0 +1,194 @@
+"""The neural render stage: (D~, A, invalid mask) -> a photorealistic relit image, with onnxruntime.
+
+Model contract (what ``--model`` must satisfy; the shipped model in ``usdrelight/models`` does):
+    input  ``input``   float32 [1, 7, H, W]: channels 0-2 the hole-filled diffuse render D~ (linear RGB, >= 0),
+                       3-5 the hole-filled albedo A (linear RGB in [0, 1]), 6 the invalid mask (1 where the
+                       primary ray hits no geometry, else 0). H and W: any size (the runner pads to a multiple
+                       of 16 by edge replication and crops the result).
+    output ``output``  float32 [1, 3, H, W]: the relit image, linear RGB (Rec.709), >= 0.
+Large images are processed in overlapping tiles (feathered seams).
+
+Hole filling (before the network): pull-push pyramid interpolation (Gortler et al. 1996): invalid pixels get
+the mask-weighted average of the coarser level, recursively, so holes are filled smoothly from their borders.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..imageio import read_map, write_image
+from ..mitsuba.render import aov_kind, render_stage
+from ..onnx_runtime import first_line, open_session
+from ..stage.read import read_scene
+from ..stage.validate import open_stage
+
+log = logging.getLogger(__name__)
+
+MODEL_DIR = Path(__file__).resolve().parents[1] / "models"
+DEFAULT_MODEL = MODEL_DIR / "relight_unet.onnx"
+MULTIPLE = 16
+TILE = 1024
+OVERLAP = 64
+
+
+def hole_fill(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Pull-push fill of the pixels where ``valid`` is False; valid pixels are returned unchanged."""
+    img = np.asarray(img, np.float64)
+    w = valid.astype(np.float64)
+    if w.all():
+        return img.astype(np.float32)
+    if not w.any():
+        return np.zeros_like(img, dtype=np.float32)
+    levels = [(img * w[..., None], w)]
+    while min(levels[-1][1].shape) > 1:
+        s, ww = levels[-1]
+        h, wd = ww.shape
+        ph, pw = h + h % 2, wd + wd % 2
+        sp = np.zeros((ph, pw, img.shape[2]))
+        wp = np.zeros((ph, pw))
+        sp[:h, :wd], wp[:h, :wd] = s, ww
+        s2 = sp.reshape(ph // 2, 2, pw // 2, 2, -1).sum((1, 3))
+        w2 = wp.reshape(ph // 2, 2, pw // 2, 2).sum((1, 3))
+        levels.append((s2, w2))
+    # push: from coarse to fine, fill where the weight is zero
+    s, ww = levels[-1]
+    avg = s / np.maximum(ww, 1e-12)[..., None]
+    for s, ww in reversed(levels[:-1]):
+        h, wd = ww.shape
+        up = np.repeat(np.repeat(avg, 2, 0), 2, 1)[:h, :wd]
+        cur = s / np.maximum(ww, 1e-12)[..., None]
+        avg = np.where((ww > 0)[..., None], cur, up)
+    out = np.where(valid[..., None], img, avg)
+    return out.astype(np.float32)
+
+
+def build_input(dtilde: np.ndarray, albedo: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The 7-channel network input (7, H, W) from the AOVs, holes filled."""
+    for name, a in (("diffuse", dtilde), ("albedo", albedo)):
+        if not np.all(np.isfinite(a)):
+            raise UsdRelightError(f"the {name} AOV contains NaN or Inf pixels")
+    if dtilde.shape != albedo.shape or dtilde.shape[:2] != valid.shape:
+        raise UsdRelightError(f"AOV sizes differ: diffuse {dtilde.shape[:2]}, albedo {albedo.shape[:2]}, "
+                              f"valid {valid.shape}")
+    d = hole_fill(np.maximum(dtilde, 0.0), valid)
+    a = hole_fill(np.clip(albedo, 0.0, 1.0), valid)
+    inv = (~valid).astype(np.float32)[..., None]
+    return np.concatenate([d, a, inv], 2).transpose(2, 0, 1).astype(np.float32)
+
+
+class RelightModel:
+    """An onnxruntime session checked against the model contract."""
+
+    def __init__(self, path=None):
+        self.path = Path(path) if path is not None else DEFAULT_MODEL
+        self.session = open_session(self.path)
+        ins, outs = self.session.get_inputs(), self.session.get_outputs()
+        if len(ins) != 1 or ins[0].name != "input" or (isinstance(ins[0].shape[1], int) and ins[0].shape[1] != 7):
+            raise UsdRelightError(f"model {self.path.name} breaks the contract: expected one input 'input' "
+                                  f"[1, 7, H, W], found {[(i.name, i.shape) for i in ins]}")
+        if not any(o.name == "output" for o in outs):
+            raise UsdRelightError(f"model {self.path.name} breaks the contract: no output named 'output' "
+                                  f"(found {[o.name for o in outs]})")
+
+    def _run(self, x: np.ndarray) -> np.ndarray:
+        c, h, w = x.shape
+        ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
+        xp = np.pad(x, ((0, 0), (0, ph), (0, pw)), mode="edge")
+        try:
+            y = self.session.run(["output"], {"input": xp[None]})[0]
+        except Exception as exc:
+            raise UsdRelightError(f"model {self.path.name} failed: {first_line(exc)}") from None
+        if y.ndim != 4 or y.shape[1] != 3:
+            raise UsdRelightError(f"model {self.path.name} breaks the contract: output shape {y.shape}, "
+                                  f"expected [1, 3, H, W]")
+        return y[0, :, :h, :w]
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """(7, H, W) -> (H, W, 3), tiled for large images; never returns NaN/Inf."""
+        _, h, w = x.shape
+        if h <= TILE and w <= TILE:
+            y = self._run(x)
+        else:
+            y = np.zeros((3, h, w), np.float32)
+            wsum = np.zeros((h, w), np.float32)
+            step = TILE - OVERLAP
+            for y0 in range(0, max(h - OVERLAP, 1), step):
+                for x0 in range(0, max(w - OVERLAP, 1), step):
+                    y1, x1 = min(y0 + TILE, h), min(x0 + TILE, w)
+                    t = self._run(x[:, y0:y1, x0:x1])
+                    ry = np.minimum(np.arange(y1 - y0) + 1, np.arange(y1 - y0)[::-1] + 1).clip(max=OVERLAP)
+                    rx = np.minimum(np.arange(x1 - x0) + 1, np.arange(x1 - x0)[::-1] + 1).clip(max=OVERLAP)
+                    wt = np.outer(ry, rx).astype(np.float32)
+                    y[:, y0:y1, x0:x1] += t * wt
+                    wsum[y0:y1, x0:x1] += wt
+            y /= np.maximum(wsum, 1e-12)
+        out = np.nan_to_num(y.transpose(1, 2, 0), nan=0.0, posinf=0.0, neginf=0.0)
+        return np.maximum(out, 0.0).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class NeuralResult:
+    """The files of one relit image."""
+
+    exr: Path
+    """Linear RGB (Rec.709) float EXR."""
+    png: Path
+    """sRGB 8-bit PNG for viewing (scaled down by the 99.5th percentile when the image exceeds 1)."""
+    seconds: dict = field(default_factory=dict)
+    """Wall time per step (hole_fill, network, write; total when the caller adds it)."""
+
+
+def find_aovs(stage_path) -> dict:
+    """Product file paths of the diffuse, albedo and valid AOVs declared by the stage (by sourceName)."""
+    rec = read_scene(open_stage(stage_path))
+    base = Path(stage_path).resolve().parent
+    found = {}
+    for p in rec.products:
+        kinds = [aov_kind(v) for v in p.vars]
+        if len(kinds) == 1:
+            key = {"beauty": "diffuse"}.get(kinds[0], kinds[0])
+            found[key] = (p.name, base / p.product_name)
+    missing = [k for k in ("diffuse", "albedo", "valid") if k not in found]
+    if missing:
+        raise UsdRelightError(f"{stage_path} declares no RenderProduct for {missing}")
+    return found
+
+
+def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = "relit") -> NeuralResult:
+    sec = {}
+    t = time.perf_counter()
+    x = build_input(dtilde, albedo, valid)
+    sec["hole_fill"] = time.perf_counter() - t
+    t = time.perf_counter()
+    y = model(x)
+    sec["network"] = time.perf_counter() - t
+    t = time.perf_counter()
+    out = Path(out_dir)
+    exr = write_image(out / f"{name}.exr", y, "float")
+    png = write_image(out / f"{name}.png", y / max(float(np.percentile(y, 99.5)), 1e-6) if y.max() > 1 else y,
+                      "uint8", srgb=True)
+    sec["write"] = time.perf_counter() - t
+    return NeuralResult(exr, png, sec)
+
+
+def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool = False, spp: int = 64) -> NeuralResult:
+    """``usdrelight neural``: read the stage's AOVs (rendering missing ones when asked) and run the network."""
+    t0 = time.perf_counter()
+    aovs = find_aovs(stage_path)
+    missing = [name for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and not path.is_file()]
+    if missing and render_missing:
+        render_stage(stage_path, None, aovs=missing, spp=spp)
+    elif missing:
+        paths = [str(aovs[k][1]) for k in ("diffuse", "albedo", "valid") if aovs[k][0] in missing]
+        raise UsdRelightError(f"missing AOV file(s) {paths}: run `usdrelight render` first or pass --render-missing")
+    dt = read_map(aovs["diffuse"][1], 3)
+    alb = read_map(aovs["albedo"][1], 3)
+    valid = read_map(aovs["valid"][1], 1)[..., 0] > 0.5
+    model = RelightModel(model_path)
+    res = run_neural(dt, alb, valid, model, out_dir or Path(stage_path).resolve().parent / "neural")
+    return replace(res, seconds={**res.seconds, "total": time.perf_counter() - t0})

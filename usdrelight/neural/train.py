@@ -1,0 +1,190 @@
+"""``usdrelight train``: learn (D~, A, invalid mask) -> I from self-supervised pairs and export ONNX.
+
+Needs the ``train`` extra (torch). Uses a GPU when torch sees one, the CPU otherwise.
+Network: a small U-Net (3 levels, ``width`` channels at the top) that predicts a correction to the
+brightness-normalised D~: out = s * relu(D~ / s + f(D~ / s, A, mask)), s = mean of D~ over valid pixels, so
+the exported graph takes and returns linear RGB (the model contract of :mod:`usdrelight.neural`).
+Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on images
+normalised by s; whole images (s is an image-level statistic, so crops would shift it) and horizontal flips.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path, write_text_atomic
+from ..errors import UsdRelightError
+from .model import build_input
+from .pairs import prepare_pairs
+
+log = logging.getLogger(__name__)
+
+
+def _torch():
+    try:
+        import torch
+    except ImportError:
+        raise UsdRelightError("training needs torch: pip install 'usdrelight[train]'") from None
+    return torch
+
+
+def make_model(width: int = 16):
+    torch = _torch()
+    nn = torch.nn
+
+    def block(i, o):
+        return nn.Sequential(nn.Conv2d(i, o, 3, padding=1), nn.LeakyReLU(0.1), nn.Conv2d(o, o, 3, padding=1),
+                             nn.LeakyReLU(0.1))
+
+    class RelightNet(nn.Module):
+        def __init__(self):
+            super().__init__()
+            c = width
+            self.e1, self.e2, self.e3 = block(7, c), block(c, 2 * c), block(2 * c, 4 * c)
+            self.mid = block(4 * c, 4 * c)
+            self.d3, self.d2, self.d1 = block(8 * c, 2 * c), block(4 * c, c), block(2 * c, c)
+            self.head = nn.Conv2d(c, 3, 1)
+            self.pool = nn.AvgPool2d(2)
+            nn.init.zeros_(self.head.weight)
+            nn.init.zeros_(self.head.bias)
+
+        def forward(self, x):
+            d, a, inv = x[:, 0:3], x[:, 3:6], x[:, 6:7]
+            valid = 1.0 - inv
+            s = (d * valid).sum(dim=(1, 2, 3), keepdim=True) / (3.0 * valid.sum(dim=(1, 2, 3), keepdim=True) + 1e-6)
+            s = s + 1e-6
+            dn = d / s
+            h = torch.cat([dn, a, inv], 1)
+            e1 = self.e1(h)
+            e2 = self.e2(self.pool(e1))
+            e3 = self.e3(self.pool(e2))
+            m = self.mid(self.pool(e3))
+            up = torch.nn.functional.interpolate
+            u3 = self.d3(torch.cat([up(m, scale_factor=2.0, mode="nearest"), e3], 1))
+            u2 = self.d2(torch.cat([up(u3, scale_factor=2.0, mode="nearest"), e2], 1))
+            u1 = self.d1(torch.cat([up(u2, scale_factor=2.0, mode="nearest"), e1], 1))
+            return torch.relu(dn + self.head(u1)) * s
+
+    return RelightNet()
+
+
+def gradient_loss(pred, target, scales: int = 4):
+    torch = _torch()
+    loss = 0.0
+    p, t = pred, target
+    for _ in range(scales):
+        dx = lambda z: z[..., :, 1:] - z[..., :, :-1]  # noqa: E731
+        dy = lambda z: z[..., 1:, :] - z[..., :-1, :]  # noqa: E731
+        loss = loss + (dx(p) - dx(t)).abs().mean() + (dy(p) - dy(t)).abs().mean()
+        p, t = torch.nn.functional.avg_pool2d(p, 2), torch.nn.functional.avg_pool2d(t, 2)
+    return loss
+
+
+def pairs_to_arrays(pairs):
+    xs = [build_input(p.dtilde, p.albedo, p.valid) for p in pairs]
+    ys = [p.photo.transpose(2, 0, 1).astype(np.float32) for p in pairs]
+    return xs, ys
+
+
+def train_model(pairs, steps: int = 1500, batch: int = 4, crop: int = 0, lr: float = 2e-3, width: int = 16,
+                seed: int = 0, progress=None):
+    """Returns (model, log dict)."""
+    torch = _torch()
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    xs, ys = pairs_to_arrays(pairs)
+    model = make_model(width).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    t0 = time.perf_counter()
+    curve = []
+    for step in range(steps):
+        xb, yb = [], []
+        for _ in range(batch):
+            i = int(rng.integers(len(xs)))
+            x, y = xs[i], ys[i]
+            _, h, w = x.shape
+            # crop = 0: whole images (cut to a multiple of 16), so the brightness normalisation s inside the
+            # network sees the same pixels in training as at inference
+            ch = min(crop, h - h % 16) if crop else h - h % 16
+            cw = min(crop, w - w % 16) if crop else w - w % 16
+            r0, c0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+            xc, yc = x[:, r0:r0 + ch, c0:c0 + cw], y[:, r0:r0 + ch, c0:c0 + cw]
+            if rng.random() < 0.5:
+                xc, yc = xc[:, :, ::-1], yc[:, :, ::-1]
+            xb.append(np.ascontiguousarray(xc))
+            yb.append(np.ascontiguousarray(yc))
+        X = torch.from_numpy(np.stack(xb)).to(device)
+        Y = torch.from_numpy(np.stack(yb)).to(device)
+        valid = 1.0 - X[:, 6:7]
+        s = (X[:, :3] * valid).sum(dim=(1, 2, 3), keepdim=True) / (3 * valid.sum(dim=(1, 2, 3), keepdim=True) + 1e-6) + 1e-6
+        P = model(X)
+        loss = torch.mean((P / s - Y / s) ** 2) + 0.5 * gradient_loss(P / s, Y / s)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        if step % 25 == 0 or step == steps - 1:
+            curve.append([time.perf_counter() - t0, float(loss.detach())])
+            if progress:
+                progress(step + 1, steps, float(loss.detach()))
+    return model.cpu().eval(), {"steps": steps, "batch": batch, "crop": crop, "lr": lr, "width": width,
+                                "seconds": time.perf_counter() - t0, "device": device, "loss_curve": curve,
+                                "parameters": int(sum(p.numel() for p in model.parameters()))}
+
+
+def export_onnx(model, path) -> Path:
+    torch = _torch()
+    path = Path(path)
+    dummy = torch.zeros(1, 7, 64, 96)
+    with atomic_path(path) as tmp:
+        torch.onnx.export(model, (dummy,), str(tmp), input_names=["input"], output_names=["output"],
+                          opset_version=17, dynamic_axes={"input": {2: "H", 3: "W"}, "output": {2: "H", 3: "W"}},
+                          dynamo=False)
+    return path
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """What ``usdrelight train`` made. The same numbers are in the JSON log beside the model."""
+
+    model: Path
+    """The ONNX model written (the contract of :mod:`usdrelight.neural.model`)."""
+    log: Path
+    """The JSON training log beside it."""
+    pairs: int
+    """Training pairs used (after dropping the worst fits)."""
+    pair_names: list
+    """Their photo names."""
+    pairs_seconds: float
+    """Wall time to build, fit and render the pairs."""
+    steps: int
+    """Optimiser steps."""
+    seconds: float
+    """Wall time of training."""
+    parameters: int
+    """Trainable parameters of the network."""
+    device: str
+    """cpu | cuda."""
+    loss_curve: list
+    """[[seconds, loss], ...] every 25 steps."""
+
+
+def train_folder(data_dir, out_onnx, work_dir=None, steps: int = 1500, progress=None, **kw) -> TrainResult:
+    """The `usdrelight train` job: pairs from a training folder, training, ONNX export, a JSON log."""
+    work = Path(work_dir) if work_dir else Path(out_onnx).with_suffix("").with_name(Path(out_onnx).stem + "_work")
+    t0 = time.perf_counter()
+    pairs = prepare_pairs(data_dir, work)
+    t_pairs = time.perf_counter() - t0
+    model, info = train_model(pairs, steps=steps, progress=progress, **kw)
+    export_onnx(model, out_onnx)
+    info.update(pairs=len(pairs), pair_names=[p.name for p in pairs], pairs_seconds=t_pairs)
+    log_path = write_text_atomic(Path(out_onnx).with_suffix(".json"), json.dumps(info, indent=2) + "\n")
+    return TrainResult(Path(out_onnx), log_path, len(pairs), info["pair_names"], t_pairs, info["steps"],
+                       info["seconds"], info["parameters"], info["device"], info["loss_curve"])

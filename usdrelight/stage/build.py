@@ -1,0 +1,123 @@
+"""``usdrelight build``: photo -> estimates -> mesh -> stage, as one library call."""
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..estimate.decomposition import estimate_decomposition
+from ..estimate.geometry import estimate_geometry, resolve_intrinsics
+from ..estimate.records import Photo, PhotoEstimates
+from ..imageio import read_map, read_photo
+from ..mesh import DEFAULT_MAX_GRAZING_DEG, triangulate
+from .write import write_stage
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BuildOptions:
+    """Inputs of ``usdrelight build`` besides the photo (README: "Inputs of build")."""
+
+    depth: Path | None = None
+    """z-depth map in metres (.npy/.exr/.pfm); 0, negative, NaN, Inf = invalid."""
+    points: Path | None = None
+    """Point map H x W x 3 in the OpenCV camera frame (MoGe), Inf/NaN = invalid."""
+    intrinsics: Path | None = None
+    """Intrinsics JSON (OpenCV pixels or MoGe's normalized 3x3)."""
+    fov_x: float | None = None
+    """Horizontal field of view in degrees (square pixels, centred principal point)."""
+    albedo: Path | None = None
+    """Linear albedo map A (CID hr_alb)."""
+    shading: Path | None = None
+    """Linear diffuse shading map S (CID dif_shd); needs ``albedo``."""
+    mask: Path | None = None
+    """Valid-pixel mask: non-zero pixels are kept."""
+    geometry_model: Path | None = None
+    """ONNX geometry model (README: model contracts)."""
+    albedo_model: Path | None = None
+    """ONNX albedo model (README: model contracts)."""
+    stride: int = 1
+    """Keep every N-th pixel row and column as vertices (``--decimate``)."""
+    max_grazing_deg: float = DEFAULT_MAX_GRAZING_DEG
+    """Cut triangles seen at more than this angle between normal and view ray, degrees."""
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """What ``build`` made, for the CLI summary and for batch tools."""
+
+    stage: Path
+    """The root layer written (OUTDIR/scene.usda)."""
+    width: int
+    """Photo width in pixels."""
+    height: int
+    """Photo height in pixels."""
+    n_vertices: int
+    """Mesh vertices."""
+    n_faces: int
+    """Mesh triangles."""
+    vertex_fraction: float
+    """Vertices / pixels."""
+    triangles_cut: int
+    """Triangles removed at depth discontinuities."""
+    geometry_source: str
+    """Where the geometry came from (e.g. depth:FILE, onnx:MODEL, prior:box-room)."""
+    albedo_source: str
+    """Where the albedo came from (maps:FILE, onnx:MODEL, retinex)."""
+    intrinsics: dict
+    """fx, fy, cx, cy in the OpenCV convention (pixel centres at integers), width, height."""
+    seconds: dict = field(default_factory=dict)
+    """Wall time per step (read, geometry, albedo, mesh, write, total)."""
+    files: dict = field(default_factory=dict)
+    """Relative file name -> bytes, for every file of the stage."""
+
+
+@contextmanager
+def _timed(seconds: dict, name: str, progress=None):
+    t = time.perf_counter()
+    yield
+    seconds[name] = time.perf_counter() - t
+    if progress is not None:
+        progress(name)
+
+
+def load_mask(path, photo: Photo) -> np.ndarray:
+    m = read_map(path, 1)[..., 0]
+    if m.shape != (photo.height, photo.width):
+        raise UsdRelightError(f"mask {path} is {m.shape[1]}x{m.shape[0]} but the photo is {photo.width}x{photo.height}")
+    return np.isfinite(m) & (m > 0.5 * float(np.nanmax(m) if np.isfinite(m).any() else 1.0))
+
+
+def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
+    """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
+    opts = opts or BuildOptions()
+    sec: dict = {}
+    t0 = time.perf_counter()
+    with _timed(sec, "read", progress):
+        photo = Photo(Path(photo_path), read_photo(photo_path))
+        if photo.width < 2 or photo.height < 2:
+            raise UsdRelightError(f"photo {photo_path} is too small ({photo.width}x{photo.height})")
+        mask = load_mask(opts.mask, photo) if opts.mask is not None else None
+        intr = resolve_intrinsics(photo, opts.intrinsics, opts.fov_x)
+    with _timed(sec, "geometry", progress):
+        geo = estimate_geometry(photo, depth_file=opts.depth, points_file=opts.points, intrinsics=intr,
+                                mask=mask, model=opts.geometry_model)
+    with _timed(sec, "albedo", progress):
+        dec = estimate_decomposition(photo, albedo_file=opts.albedo, shading_file=opts.shading,
+                                     model=opts.albedo_model)
+    with _timed(sec, "mesh", progress):
+        mesh = triangulate(geo.points, geo.valid, stride=opts.stride, max_grazing_deg=opts.max_grazing_deg)
+    with _timed(sec, "write", progress):
+        built = write_stage(PhotoEstimates(photo, geo, dec), mesh, outdir)
+    sec["total"] = time.perf_counter() - t0
+    return BuildResult(
+        stage=built.path, width=photo.width, height=photo.height, n_vertices=mesh.n_vertices,
+        n_faces=mesh.n_faces, vertex_fraction=mesh.n_vertices / float(photo.width * photo.height),
+        triangles_cut=mesh.triangles_cut, geometry_source=geo.source, albedo_source=dec.source,
+        intrinsics=geo.intrinsics.opencv(), seconds=sec, files=built.files)

@@ -1,0 +1,76 @@
+"""Pinhole intrinsics <-> ``UsdGeom.Camera`` that reproduces them exactly.
+
+Frames: the camera sits at the origin with no transform, looking down -Z with +Y up (USD's camera
+convention). An OpenCV camera-frame point (x, y, z) is the USD point (x, -y, -z).
+
+Apertures and focal length share one unit (millimetres by convention: the horizontal aperture is
+36 mm, a full-frame sensor); only their ratios affect the projection. For a W x H image with
+corner-origin pixel intrinsics (fx, fy, cx, cy):
+
+    focalLength              = fx * 36 / W
+    horizontalAperture       = W * focalLength / fx           (= 36)
+    verticalAperture         = H * focalLength / fy
+    horizontalApertureOffset = (W / 2 - cx) * focalLength / fx
+    verticalApertureOffset   = (cy - H / 2) * focalLength / fy   (image y points down, USD y up)
+
+and RenderSettings ``pixelAspectRatio = fy / fx`` so that aperture aspect = resolution aspect x
+pixel aspect (no aperture conforming ever happens).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..intrinsics import Intrinsics
+
+SENSOR_WIDTH_MM = 36.0
+OPENCV_TO_USD = np.diag([1.0, -1.0, -1.0])
+
+
+def opencv_to_usd(points: np.ndarray) -> np.ndarray:
+    """OpenCV camera frame (x right, y down, z forward) -> USD camera/world frame."""
+    p = np.asarray(points).copy()
+    p[..., 1:] *= -1
+    return p
+
+
+def usd_camera_params(intr: Intrinsics) -> dict:
+    """UsdGeom.Camera attribute values (floats) that reproduce ``intr``."""
+    focal = intr.fx * SENSOR_WIDTH_MM / intr.width
+    return {
+        "focalLength": focal,
+        "horizontalAperture": intr.width * focal / intr.fx,
+        "verticalAperture": intr.height * focal / intr.fy,
+        "horizontalApertureOffset": (intr.width / 2.0 - intr.cx) * focal / intr.fx,
+        "verticalApertureOffset": (intr.cy - intr.height / 2.0) * focal / intr.fy,
+        "pixelAspectRatio": intr.fy / intr.fx,
+    }
+
+
+def author_usd_camera(camera, intr: Intrinsics, near: float, far: float) -> dict:
+    """Author a perspective ``UsdGeom.Camera`` that reproduces ``intr``; returns the parameters."""
+    from pxr import Gf, UsdGeom
+
+    params = usd_camera_params(intr)
+    camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
+    camera.CreateFocalLengthAttr(float(params["focalLength"]))
+    camera.CreateHorizontalApertureAttr(float(params["horizontalAperture"]))
+    camera.CreateVerticalApertureAttr(float(params["verticalAperture"]))
+    camera.CreateHorizontalApertureOffsetAttr(float(params["horizontalApertureOffset"]))
+    camera.CreateVerticalApertureOffsetAttr(float(params["verticalApertureOffset"]))
+    camera.CreateClippingRangeAttr(Gf.Vec2f(float(near), float(far)))
+    return params
+
+
+def intrinsics_from_usd_camera(camera, width: int, height: int, time=None) -> Intrinsics:
+    """Inverse of :func:`usd_camera_params` for a ``UsdGeom.Camera`` rendered at ``width`` x ``height``."""
+    from pxr import Usd
+
+    t = Usd.TimeCode.Default() if time is None else time
+    f = float(camera.GetFocalLengthAttr().Get(t))
+    ha = float(camera.GetHorizontalApertureAttr().Get(t))
+    va = float(camera.GetVerticalApertureAttr().Get(t))
+    ho = float(camera.GetHorizontalApertureOffsetAttr().Get(t))
+    vo = float(camera.GetVerticalApertureOffsetAttr().Get(t))
+    fx = f * width / ha
+    fy = f * height / va
+    return Intrinsics(fx, fy, width / 2.0 - ho * fx / f, height / 2.0 + vo * fy / f, width, height)

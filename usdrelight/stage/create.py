@@ -1,0 +1,105 @@
+"""The one place usdrelight creates stages and authors the pieces every stage it writes shares.
+
+* :func:`create_stage`: a new stage (on disk or in memory) with the metadata set once: ``upAxis = Y``,
+  ``metersPerUnit = 1`` (metres), a default prim of kind ``assembly`` (``Xform``).
+* :func:`author_render_settings`: ``/Render`` with RenderSettings, one RenderVar and one RenderProduct per
+  AOV (:mod:`usdrelight.stage.aovs`), and the stage's ``renderSettingsPrimPath``.
+* :func:`define_preview_material`, :func:`author_lambertian`, :func:`author_uv_texture`: UsdPreviewSurface
+  materials; a Lambertian surface is the specular workflow with a black specular colour and roughness 1.
+Used by the stage writer (:mod:`usdrelight.stage.write`) and by converters that make stages.
+"""
+from __future__ import annotations
+
+from .aovs import Aov
+from .layout import RENDER_SCOPE, RENDER_SETTINGS
+
+
+def create_stage(path=None, root: str = "/Scene", kind: str | None = "assembly", doc: str | None = None):
+    """A new ``Usd.Stage`` at ``path`` (in memory when None) with usdrelight's stage metadata and its
+    default prim ``root`` (an Xform of model kind ``kind``; None = no kind)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path)) if path is not None else Usd.Stage.CreateInMemory()
+    if doc:
+        stage.GetRootLayer().documentation = doc
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    prim = UsdGeom.Xform.Define(stage, root).GetPrim()
+    stage.SetDefaultPrim(prim)
+    if kind:
+        Usd.ModelAPI(prim).SetKind(kind)
+    return stage
+
+
+def author_render_settings(stage, camera_path: str, width: int, height: int, aovs: list[Aov],
+                           pixel_aspect: float | None = None):
+    """RenderSettings at ``/Render/Settings`` rendering ``aovs`` (one Var + one Product each) from
+    ``camera_path`` at ``width`` x ``height``; returns the ``UsdRender.Settings``."""
+    from pxr import Gf, Sdf, UsdGeom, UsdRender
+
+    for scope in (RENDER_SCOPE, RENDER_SCOPE + "/Vars", RENDER_SCOPE + "/Products"):
+        UsdGeom.Scope.Define(stage, scope)
+    settings = UsdRender.Settings.Define(stage, RENDER_SETTINGS)
+    settings.CreateResolutionAttr(Gf.Vec2i(int(width), int(height)))
+    if pixel_aspect is not None:
+        settings.CreatePixelAspectRatioAttr(float(pixel_aspect))
+    settings.CreateCameraRel().SetTargets([Sdf.Path(camera_path)])
+    products = []
+    for aov in aovs:
+        var = UsdRender.Var.Define(stage, f"{RENDER_SCOPE}/Vars/{aov.name}")
+        var.CreateDataTypeAttr(aov.data_type)
+        var.CreateSourceNameAttr(aov.source_name)
+        var.CreateSourceTypeAttr(aov.source_type)
+        var.GetPrim().SetDocumentation(aov.doc)
+        prod = UsdRender.Product.Define(stage, f"{RENDER_SCOPE}/Products/{aov.name}")
+        prod.CreateProductNameAttr(aov.product_name)
+        prod.CreateOrderedVarsRel().SetTargets([var.GetPath()])
+        products.append(prod.GetPath())
+    settings.CreateProductsRel().SetTargets(products)
+    stage.SetMetadata("renderSettingsPrimPath", RENDER_SETTINGS)
+    return settings
+
+
+def define_preview_material(stage, path: str):
+    """A Material at ``path`` whose surface is a UsdPreviewSurface ``Surface``; returns (material, shader)."""
+    from pxr import UsdGeom, UsdShade
+
+    parent = path.rsplit("/", 1)[0]
+    if parent and not stage.GetPrimAtPath(parent):
+        UsdGeom.Scope.Define(stage, parent)
+    mat = UsdShade.Material.Define(stage, path)
+    surf = UsdShade.Shader.Define(stage, path + "/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    return mat, surf
+
+
+def author_lambertian(surface) -> None:
+    """Make a UsdPreviewSurface purely diffuse: specular workflow, black specular colour, roughness 1."""
+    from pxr import Gf, Sdf
+
+    surface.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    surface.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0, 0, 0))
+    surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(1.0)
+
+
+def author_uv_texture(stage, surface, input_name: str, file: str, color_space: str, texture_path: str,
+                      reader_path: str, wrap: str | None = None):
+    """Connect ``surface``'s colour input ``input_name`` to a UsdUVTexture at ``texture_path`` reading ``file``
+    (an asset path) through the ``st`` primvar (a UsdPrimvarReader_float2 at ``reader_path``)."""
+    from pxr import Sdf, UsdShade
+
+    tex = UsdShade.Shader.Define(stage, texture_path)
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(Sdf.AssetPath(file))
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
+    if wrap:
+        tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap)
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap)
+    reader = UsdShade.Shader.Define(stage, reader_path)
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surface.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    return tex

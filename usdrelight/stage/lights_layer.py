@@ -1,0 +1,72 @@
+"""Write fitted lighting into a stage's fitted-lights layer (``lights_fitted.usda``) as UsdLux.
+
+* Point lights -> SphereLight, treatAsPoint, radius 0, normalize off: intensity * color = RGB radiant
+  intensity in W/sr (exactly what the Mitsuba converter maps to a ``point`` emitter).
+* Environment -> DomeLight, intensity 1, latlong EXR (OpenEXR layout) holding the radiance, written to
+  ``lights/fitted_env.exr``; omitted when the fit found it negligible.
+* Fit provenance goes on /Scene through RelightProvenanceAPI attributes (usdrelight:fit:*).
+The user-lights layer is never touched. The file is written to a temporary name and renamed.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import UsdRelightError
+from ..imageio import write_image
+from .layout import FITTED_ENV_TEXTURE, FITTED_LIGHTS, FITTED_LIGHTS_SCOPE, LIGHTS, ROOT
+from .lux import set_light_rgb
+from .records import FitProvenance, PointLightValue
+
+ENV_TEXTURE = FITTED_ENV_TEXTURE
+
+
+def write_fitted_lights(stage_dir, points: list[PointLightValue], env: np.ndarray | None, fit: FitProvenance) -> Path:
+    """Rewrite ``stage_dir/lights_fitted.usda``; ``env``: (h, w, 3) latlong radiance or None."""
+    from pxr import Sdf
+
+    stage_dir = Path(stage_dir)
+    for p in points:
+        if not (np.all(np.isfinite(p.position)) and np.all(np.isfinite(p.rgb))):
+            raise UsdRelightError("refusing to write a non-finite fitted light")
+    if env is not None:
+        write_image(stage_dir / ENV_TEXTURE, np.maximum(env, 0.0), "float")
+    elif (stage_dir / ENV_TEXTURE).exists():
+        (stage_dir / ENV_TEXTURE).unlink()  # a stale map of an earlier fit is no longer used
+    with atomic_path(stage_dir / FITTED_LIGHTS) as tmp:
+        tmp.unlink()  # Sdf.Layer.CreateNew wants a new file
+        _author_layer(Sdf.Layer.CreateNew(str(tmp)), points, env, fit)
+    return stage_dir / FITTED_LIGHTS
+
+
+def _author_layer(layer, points: list[PointLightValue], env, fit: FitProvenance) -> None:
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    layer.documentation = "Fitted lights (usdrelight fit); rewritten by build and fit."
+    stage = Usd.Stage.Open(layer)
+    root = stage.OverridePrim(ROOT)
+    for name, value, typ in (("usdrelight:fit:method", fit.method, Sdf.ValueTypeNames.Token),
+                             ("usdrelight:fit:mse", fit.mse, Sdf.ValueTypeNames.Float),
+                             ("usdrelight:fit:psnrDb", fit.psnr_db, Sdf.ValueTypeNames.Float),
+                             ("usdrelight:fit:seconds", fit.seconds, Sdf.ValueTypeNames.Float),
+                             ("usdrelight:fit:iterations", fit.iterations, Sdf.ValueTypeNames.Int)):
+        root.CreateAttribute(name, typ, custom=False, variability=Sdf.VariabilityUniform).Set(value)
+    if points or env is not None:
+        UsdGeom.Scope.Define(stage, LIGHTS)
+        UsdGeom.Scope.Define(stage, FITTED_LIGHTS_SCOPE)
+    if env is not None:
+        dome = UsdLux.DomeLight.Define(stage, FITTED_LIGHTS_SCOPE + "/Environment")
+        dome.CreateTextureFileAttr(Sdf.AssetPath("./" + ENV_TEXTURE))
+        dome.CreateTextureFormatAttr("latlong")
+        dome.CreateIntensityAttr(1.0)
+    for i, p in enumerate(points):
+        light = UsdLux.SphereLight.Define(stage, f"{FITTED_LIGHTS_SCOPE}/Point{i}")
+        set_light_rgb(light, p.rgb)
+        light.CreateTreatAsPointAttr(True)
+        light.CreateRadiusAttr(0.0)
+        light.CreateNormalizeAttr(False)
+        UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*map(float, p.position)))
+    root.SetSpecifier(Sdf.SpecifierOver)  # /Scene is defined by scene.usda; this layer only adds to it
+    layer.Save()

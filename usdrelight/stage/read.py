@@ -1,0 +1,221 @@
+"""Read a USD stage into plain, renderer-neutral records (what the converters and renderers consume).
+
+All matrices are numpy 4x4 in the column-vector convention (``p_world = M @ [p, 1]``); USD's
+``Gf.Matrix4d`` (row-vector convention) is transposed on the way in. Positions are in the stage's
+units, in world space. Nothing here imports a renderer.
+
+Supported: Mesh and UsdPreviewSurface (see :mod:`usdrelight.stage.read_geometry`), Sphere, Cube, Plane
+gprims; Camera (through RenderSettings); RenderProducts and RenderVars;
+SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and ShapingAPI.
+Anything else is counted in ``warnings`` (one line per kind), never dropped silently.
+"""
+from __future__ import annotations
+
+import logging
+from collections import Counter
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from .camera import intrinsics_from_usd_camera
+from .read_geometry import read_material, read_mesh
+from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
+
+log = logging.getLogger(__name__)
+
+
+def gf_to_np(m) -> np.ndarray:
+    """Gf.Matrix4d (row-vector convention) -> numpy column-vector convention."""
+    return np.array(m, dtype=np.float64).T
+
+# ---- lights -----------------------------------------------------------------------------------
+def light_radiance(prim) -> np.ndarray:
+    """UsdLux: L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled)."""
+    from pxr import UsdLux
+
+    api = UsdLux.LightAPI(prim)
+    intensity = float(api.GetIntensityAttr().Get())
+    exposure = float(api.GetExposureAttr().Get())
+    color = np.asarray(api.GetColorAttr().Get(), dtype=np.float64)
+    L = intensity * 2.0 ** exposure * color
+    if api.GetEnableColorTemperatureAttr().Get():
+        L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get())), np.float64)
+    if not np.all(np.isfinite(L)):
+        raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
+    return L
+
+
+def read_light(prim, xf: np.ndarray, warnings) -> LightRecord | None:
+    from pxr import UsdLux
+
+    L = light_radiance(prim)
+    common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
+              "normalize": bool(UsdLux.LightAPI(prim).GetNormalizeAttr().Get())}
+    path = common["path"]
+    if prim.HasAPI(UsdLux.ShapingAPI):
+        sh = UsdLux.ShapingAPI(prim)
+        angle = float(sh.GetShapingConeAngleAttr().Get())
+        if angle < 180.0:
+            common["cone_angle_deg"] = angle
+            common["cone_softness"] = float(sh.GetShapingConeSoftnessAttr().Get())
+        if float(sh.GetShapingFocusAttr().Get() or 0.0) != 0.0:
+            warnings["ShapingAPI focus (ignored)"] += 1
+        if sh.GetShapingIesFileAttr().Get() and sh.GetShapingIesFileAttr().Get().path:
+            warnings["ShapingAPI IES profile (ignored)"] += 1
+    t = prim.GetTypeName()
+    if t == "SphereLight":
+        s = UsdLux.SphereLight(prim)
+        r = float(s.GetRadiusAttr().Get())
+        return LightRecord(kind="sphere", radius=r, treat_as_point=bool(s.GetTreatAsPointAttr().Get()) or r == 0.0,
+                           **common)
+    if t == "DiskLight":
+        return LightRecord(kind="disk", radius=float(UsdLux.DiskLight(prim).GetRadiusAttr().Get()), **common)
+    if t == "RectLight":
+        r = UsdLux.RectLight(prim)
+        if r.GetTextureFileAttr().Get() and r.GetTextureFileAttr().Get().path:
+            warnings["RectLight texture (ignored; uniform radiance used)"] += 1
+        return LightRecord(kind="rect", width=float(r.GetWidthAttr().Get()), height=float(r.GetHeightAttr().Get()),
+                           **common)
+    if t == "DistantLight":
+        return LightRecord(kind="distant", angle_deg=float(UsdLux.DistantLight(prim).GetAngleAttr().Get()), **common)
+    if t in ("DomeLight", "DomeLight_1"):
+        d = UsdLux.DomeLight(prim) if t == "DomeLight" else UsdLux.DomeLight_1(prim)
+        tex = None
+        asset = d.GetTextureFileAttr().Get()
+        if asset is not None and asset.path:
+            if not asset.resolvedPath:
+                raise UsdRelightError(f"DomeLight texture not found: {asset.path} ({path})")
+            fmt = d.GetTextureFormatAttr().Get()
+            if fmt not in ("automatic", "latlong"):
+                warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
+            tex = TextureRecord(asset.resolvedPath, "auto")
+        if t == "DomeLight_1" and d.GetPoleAxisAttr().Get() == "Z":
+            common["to_world"] = xf @ _rot_x(90.0)
+        return LightRecord(kind="dome", texture=tex, **common)
+    warnings[f"light type {t} (not converted)"] += 1
+    return None
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]], dtype=np.float64)
+
+
+# ---- camera and settings ----------------------------------------------------------------------
+def _settings_prim(stage):
+    from pxr import UsdRender
+
+    path = stage.GetMetadata("renderSettingsPrimPath")
+    if path:
+        prim = stage.GetPrimAtPath(path)
+        if prim and prim.IsA(UsdRender.Settings):
+            return UsdRender.Settings(prim)
+    for prim in stage.Traverse():
+        if prim.IsA(UsdRender.Settings):
+            return UsdRender.Settings(prim)
+    return None
+
+
+def _read_products(stage, settings) -> tuple[ProductRecord, ...]:
+    from pxr import UsdRender
+
+    products = []
+    for ppath in settings.GetProductsRel().GetTargets():
+        prod = UsdRender.Product(stage.GetPrimAtPath(ppath))
+        if not prod:
+            continue
+        render_vars = []
+        for vpath in prod.GetOrderedVarsRel().GetTargets():
+            var = UsdRender.Var(stage.GetPrimAtPath(vpath))
+            if var:
+                render_vars.append(RenderVarRecord(vpath.name, str(var.GetSourceNameAttr().Get()),
+                                                   str(var.GetSourceTypeAttr().Get()), str(var.GetDataTypeAttr().Get())))
+        products.append(ProductRecord(ppath.name, str(prod.GetProductNameAttr().Get()), tuple(render_vars)))
+    return tuple(products)
+
+
+def _read_camera(cam_prim, resolution, xcache, t, warnings) -> tuple[CameraRecord, tuple]:
+    from pxr import UsdGeom
+
+    cam = UsdGeom.Camera(cam_prim)
+    if cam.GetProjectionAttr().Get(t) != UsdGeom.Tokens.perspective:
+        warnings["orthographic camera (rendered as perspective)"] += 1
+    if resolution is None:
+        ha, va = float(cam.GetHorizontalApertureAttr().Get(t)), float(cam.GetVerticalApertureAttr().Get(t))
+        resolution = (640, max(1, int(round(640 * va / ha))))
+    W, H = resolution
+    intr = intrinsics_from_usd_camera(cam, W, H, t)
+    near, far = cam.GetClippingRangeAttr().Get(t)
+    return CameraRecord(str(cam_prim.GetPath()), intr, gf_to_np(xcache.GetLocalToWorldTransform(cam_prim)),
+                        float(near), float(far)), resolution
+
+
+def _shape(prim, xf, mat, t) -> ShapeRecord | None:
+    from pxr import UsdGeom
+
+    name = str(prim.GetPath())
+    if prim.IsA(UsdGeom.Sphere):
+        r = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t))
+        return ShapeRecord(name, "sphere", xf @ np.diag([r, r, r, 1.0]), mat)
+    if prim.IsA(UsdGeom.Cube):
+        h = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) / 2
+        return ShapeRecord(name, "cube", xf @ np.diag([h, h, h, 1.0]), mat)
+    if prim.IsA(UsdGeom.Plane):
+        p = UsdGeom.Plane(prim)
+        w, l = float(p.GetWidthAttr().Get(t)) / 2, float(p.GetLengthAttr().Get(t)) / 2
+        axis = p.GetAxisAttr().Get(t)
+        # Plane: width along the first in-plane axis, length along the second; normal along `axis`.
+        basis = {"Z": np.eye(4), "X": np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]]),
+                 "Y": np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])}[axis]
+        return ShapeRecord(name, "rectangle", xf @ basis @ np.diag([w, l, 1.0, 1.0]), mat)
+    return None
+
+
+def read_scene(stage, time=None) -> SceneRecord:
+    """Collect everything a renderer needs from ``stage`` into a :class:`SceneRecord`."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    t = Usd.TimeCode.Default() if time is None else time
+    warnings: Counter = Counter()
+    meshes, shapes, lights = [], [], []
+    xcache = UsdGeom.XformCache(t)
+    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        img = UsdGeom.Imageable(prim)
+        if img and prim.IsA(UsdGeom.Imageable):
+            if img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or \
+                    img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
+                continue
+        if prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or prim.IsA(UsdLux.NonboundableLightBase):
+            light = read_light(prim, gf_to_np(xcache.GetLocalToWorldTransform(prim)), warnings)
+            if light is not None:
+                lights.append(light)
+            continue
+        if not prim.IsA(UsdGeom.Gprim):
+            if prim.IsA(UsdGeom.PointInstancer):
+                warnings["PointInstancer (not converted)"] += 1
+            continue
+        xf = gf_to_np(xcache.GetLocalToWorldTransform(prim))
+        mat = read_material(prim, warnings)
+        if prim.IsA(UsdGeom.Mesh):
+            meshes.extend(read_mesh(prim, xf, mat, warnings))
+            continue
+        shape = _shape(prim, xf, mat, t)
+        if shape is None:
+            warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
+        else:
+            shapes.append(shape)
+    settings = _settings_prim(stage)
+    cam_prim, resolution, products = None, None, ()
+    if settings is not None:
+        res = settings.GetResolutionAttr().Get()
+        resolution = (int(res[0]), int(res[1])) if res is not None else None
+        targets = settings.GetCameraRel().GetTargets()
+        cam_prim = stage.GetPrimAtPath(targets[0]) if targets else None
+        products = _read_products(stage, settings)
+    if cam_prim is None:
+        cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
+    camera = None
+    if cam_prim is not None and cam_prim.IsA(UsdGeom.Camera):
+        camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings)
+    return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
+                       float(UsdGeom.GetStageMetersPerUnit(stage)), str(UsdGeom.GetStageUpAxis(stage)), warnings)

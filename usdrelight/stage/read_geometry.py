@@ -1,0 +1,215 @@
+"""Read the geometry of a USD stage: materials (UsdPreviewSurface) and meshes, as :mod:`records <usdrelight.stage.records>`.
+
+Meshes: polygons fan-triangulated (holes ignored with a warning); normals and st with vertex / varying /
+faceVarying / uniform / constant interpolation, indexed or not; leftHanded orientation and mirroring
+transforms flip the winding; material-bind GeomSubsets split a mesh into one record per material.
+Materials: UsdPreviewSurface inputs as constants or UsdUVTexture records. What is not represented is
+counted in ``warnings`` (one line per kind). Matrices: column-vector convention (see records).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from .records import MaterialRecord, MeshRecord, TextureRecord
+
+
+# ---- materials --------------------------------------------------------------------------------
+def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | None:
+    from pxr import UsdShade
+
+    sid = shader.GetIdAttr().Get()
+    if sid != "UsdUVTexture":
+        warnings[f"shader '{sid}' feeding a UsdPreviewSurface input (constant used)"] += 1
+        return None
+    f = shader.GetInput("file")
+    asset = f.Get() if f else None
+    if asset is None or not asset.path:
+        warnings["UsdUVTexture without a file"] += 1
+        return None
+    resolved = asset.resolvedPath or ""
+    if not resolved:
+        raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()})")
+    cs = shader.GetInput("sourceColorSpace")
+    scale = shader.GetInput("scale")
+    bias = shader.GetInput("bias")
+    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto",
+                         tuple(scale.Get()) if scale and scale.Get() is not None else (1, 1, 1, 1),
+                         tuple(bias.Get()) if bias and bias.Get() is not None else (0, 0, 0, 0),
+                         output_name)
+
+
+def _input_value(shader, name, default, warnings):
+    from pxr import UsdShade
+
+    inp = shader.GetInput(name)
+    if not inp:
+        return default
+    if inp.HasConnectedSource():
+        src, out_name, _ = inp.GetConnectedSource()
+        tex = _texture_from_source(UsdShade.Shader(src.GetPrim()), str(out_name), warnings)
+        if tex is not None:
+            return tex
+    v = inp.Get()
+    if v is None:
+        return default
+    return tuple(float(x) for x in v) if hasattr(v, "__len__") else float(v)
+
+
+def read_material(prim, warnings) -> MaterialRecord:
+    from pxr import UsdShade
+
+    mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    if not mat:
+        return MaterialRecord()
+    surf = mat.ComputeSurfaceSource()[0]
+    if not surf or surf.GetIdAttr().Get() != "UsdPreviewSurface":
+        warnings[f"material without a UsdPreviewSurface ({mat.GetPath()}): grey diffuse used"] += 1
+        return MaterialRecord(path=str(mat.GetPath()))
+    d = MaterialRecord()
+    ior = _input_value(surf, "ior", d.ior, warnings)
+    rec = MaterialRecord(
+        path=str(mat.GetPath()),
+        diffuse=_input_value(surf, "diffuseColor", d.diffuse, warnings),
+        roughness=_input_value(surf, "roughness", d.roughness, warnings),
+        metallic=_input_value(surf, "metallic", d.metallic, warnings),
+        specular=_input_value(surf, "specularColor", d.specular, warnings),
+        use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings)),
+        ior=d.ior if isinstance(ior, TextureRecord) else float(ior),
+        opacity=_input_value(surf, "opacity", d.opacity, warnings),
+        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings))
+    for name in ("normal", "displacement", "occlusion", "clearcoat"):
+        inp = surf.GetInput(name)
+        if inp and (inp.HasConnectedSource() or (inp.Get() not in (None, 0.0))):
+            warnings[f"UsdPreviewSurface input '{name}' (ignored)"] += 1
+    if rec.opacity != 1.0:
+        warnings["UsdPreviewSurface opacity < 1 (rendered opaque)"] += 1
+    if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
+        warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
+    return rec
+
+
+# ---- meshes -----------------------------------------------------------------------------------
+def _fan(counts: np.ndarray):
+    """Fan triangulation: (corner indices (T, 3), face of each triangle (T,))."""
+    counts = counts.astype(np.int64)
+    starts = np.cumsum(counts) - counts
+    ntri = np.maximum(counts - 2, 0)
+    tri_face = np.repeat(np.arange(len(counts)), ntri)
+    first = np.cumsum(ntri) - ntri
+    k = np.arange(int(ntri.sum())) - np.repeat(first, ntri)
+    c0 = starts[tri_face]
+    return np.stack([c0, c0 + k + 1, c0 + k + 2], 1), tri_face
+
+
+def _primvar(pv, n_points, n_corners, n_faces):
+    """Flattened primvar values and their interpolation class: 'point' | 'corner' | 'face' | 'constant'."""
+    vals = pv.ComputeFlattened()
+    if vals is None:
+        return None, None
+    arr = np.asarray(vals, dtype=np.float64)
+    interp = pv.GetInterpolation()
+    kind = {"vertex": "point", "varying": "point", "faceVarying": "corner", "uniform": "face",
+            "constant": "constant"}.get(interp)
+    expected = {"point": n_points, "corner": n_corners, "face": n_faces, "constant": 1}.get(kind)
+    if kind is None or arr.shape[0] != expected:
+        return None, None
+    return arr, kind
+
+
+def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name: str = "st") -> list[MeshRecord]:
+    from pxr import UsdGeom, UsdShade
+
+    mesh = UsdGeom.Mesh(prim)
+    pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    if len(pts) == 0 or len(counts) == 0:
+        warnings["empty mesh (skipped)"] += 1
+        return []
+    if counts.sum() != len(idx) or idx.max(initial=0) >= len(pts) or idx.min(initial=0) < 0:
+        raise UsdRelightError(f"mesh {prim.GetPath()} has inconsistent faceVertexCounts/Indices")
+    if np.any(counts < 3):
+        warnings["faces with fewer than 3 vertices (skipped)"] += 1
+    if mesh.GetHoleIndicesAttr().Get():
+        warnings["mesh holeIndices (holes filled)"] += 1
+    if mesh.GetSubdivisionSchemeAttr().Get() not in (None, "none"):
+        warnings["subdivision surfaces (rendered as the control mesh)"] += 1
+    corners, tri_face = _fan(counts)
+    left = mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
+    A = xf[:3, :3]
+    if left != (np.linalg.det(A) < 0):
+        corners = corners[:, [0, 2, 1]]
+    n_corners = len(idx)
+    pv_api = UsdGeom.PrimvarsAPI(prim)
+    normals, nkind = None, None
+    pv = pv_api.GetPrimvar("normals")
+    if pv and pv.HasValue():
+        normals, nkind = _primvar(pv, len(pts), n_corners, len(counts))
+    if normals is None and mesh.GetNormalsAttr().HasValue():
+        arr = np.asarray(mesh.GetNormalsAttr().Get(), dtype=np.float64)
+        interp = mesh.GetNormalsInterpolation()
+        nkind = {"vertex": "point", "varying": "point", "faceVarying": "corner", "uniform": "face"}.get(interp)
+        expected = {"point": len(pts), "corner": n_corners, "face": len(counts)}.get(nkind)
+        normals = arr if nkind and len(arr) == expected else None
+    uv, ukind = None, None
+    pv = pv_api.GetPrimvar(st_name)
+    if not (pv and pv.HasValue()):
+        for cand in pv_api.GetPrimvarsWithValues():
+            if cand.GetTypeName().role == "TextureCoordinate" or str(cand.GetTypeName()).startswith("texCoord2"):
+                pv = cand
+                break
+    if pv and pv.HasValue():
+        uv, ukind = _primvar(pv, len(pts), n_corners, len(counts))
+    # Build the vertex layout: welded (per point) unless some attribute varies per corner/face.
+    per_corner = any(k in ("corner", "face") for k in (nkind, ukind))
+    tri_corner_ids = corners.reshape(-1)
+    if per_corner:
+        v_pts = pts[idx[tri_corner_ids]]
+        faces = np.arange(len(tri_corner_ids)).reshape(-1, 3)
+
+        def expand(a, k):
+            if a is None:
+                return None
+            if k == "point":
+                return a[idx[tri_corner_ids]]
+            if k == "corner":
+                return a[tri_corner_ids]
+            if k == "face":
+                return np.repeat(a[tri_face], 3, axis=0)
+            return np.repeat(a, len(tri_corner_ids), axis=0)
+        v_n, v_uv = expand(normals, nkind), expand(uv, ukind)
+    else:
+        v_pts = pts
+        faces = idx[corners]
+        v_n = normals if nkind == "point" else (np.repeat(normals, len(pts), 0) if nkind == "constant" else None)
+        v_uv = uv if ukind == "point" else (np.repeat(uv, len(pts), 0) if ukind == "constant" else None)
+    w_pts = v_pts @ A.T + xf[:3, 3]
+    if v_n is not None:
+        v_n = v_n @ np.linalg.inv(A)
+        ln = np.linalg.norm(v_n, axis=1, keepdims=True)
+        v_n = np.where(ln > 0, v_n / np.maximum(ln, 1e-300), 0.0)
+    ds = bool(mesh.GetDoubleSidedAttr().Get())
+    # GeomSubsets bound to their own materials split the triangles.
+    subsets = UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()
+    records = []
+    taken = np.zeros(len(faces), bool)
+    for sub in subsets:
+        ids = np.asarray(sub.GetIndicesAttr().Get() or [], dtype=np.int64)
+        sel = np.isin(tri_face, ids) & ~taken
+        if not sel.any():
+            continue
+        taken |= sel
+        records.append(_compact(str(sub.GetPath()), w_pts, faces[sel], v_n, v_uv,
+                                read_material(sub.GetPrim(), warnings), ds))
+    if not taken.all():
+        records.append(_compact(str(prim.GetPath()), w_pts, faces[~taken], v_n, v_uv, material, ds))
+    return records
+
+
+def _compact(path, pts, faces, normals, uv, material, ds) -> MeshRecord:
+    used = np.unique(faces)
+    remap = np.full(len(pts), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return MeshRecord(path, pts[used], remap[faces], None if normals is None else normals[used],
+                      None if uv is None else uv[used], material, ds)

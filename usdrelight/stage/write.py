@@ -1,0 +1,169 @@
+"""Write a usdrelight scene: a human-readable root layer composing geometry, lights and render settings.
+
+Layout of ``OUTDIR``: :mod:`usdrelight.stage.layout` (file names and prim paths). The mesh layer holds
+/Scene/Photo/Mesh (points, triangles, normals, st, extent); the albedo texture is read "raw".
+
+Sublayer order (strongest first): user lights, fitted lights, geometry, so a user's opinion wins.
+Stage metadata: upAxis Y, metersPerUnit 1 (metres), defaultPrim /Scene, renderSettingsPrimPath.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, schemas
+from ..atomic import publish, temp_dir_beside
+from ..errors import UsdRelightError
+from ..estimate.records import PhotoEstimates
+from ..imageio import write_image
+from ..mesh import PixelMesh
+from .aovs import AOVS, BUILD_AOVS
+from .camera import author_usd_camera, opencv_to_usd
+from .create import author_lambertian, author_render_settings, author_uv_texture, create_stage, \
+    define_preview_material
+from .layout import (ALBEDO_TEXTURE, CAMERA, DIFFUSE_TARGET, FITTED_LIGHTS, GEOMETRY, MATERIAL, MESH, PHOTO,
+                     ROOT, SCENE, USER_LIGHTS, USER_LIGHTS_SCOPE)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BuiltStage:
+    """What :func:`write_stage` wrote."""
+
+    path: Path
+    """The root layer, ``OUTDIR/scene.usda``."""
+    n_vertices: int
+    """Mesh vertices (one per valid, kept pixel)."""
+    n_faces: int
+    """Mesh triangles."""
+    files: dict
+    """Relative file name -> size in bytes, for every file of the new version."""
+
+
+def _write_light_layer(path: Path, doc: str) -> None:
+    """An empty light layer (no prims): lights are added under their scope when there are any."""
+    path.write_text(f'#usda 1.0\n(\n    doc = """{doc}"""\n)\n')
+
+
+def _write_geometry(path: Path, mesh: PixelMesh) -> None:
+    from pxr import Gf, Sdf, UsdGeom, Vt
+
+    stage = create_stage(path, ROOT, kind=None)
+    stage.DefinePrim(PHOTO, "Xform")
+    m = UsdGeom.Mesh.Define(stage, MESH)
+    pts = opencv_to_usd(mesh.points).astype(np.float32)
+    nrm = opencv_to_usd(mesh.normals).astype(np.float32)
+    m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
+    m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(mesh.n_faces, 3, np.int32)))
+    m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(mesh.faces.reshape(-1).astype(np.int32)))
+    m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(nrm))
+    m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    m.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    m.CreateDoubleSidedAttr(False)
+    lo, hi = pts.min(0), pts.max(0)
+    m.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    st = UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    st.Set(Vt.Vec2fArray.FromNumpy(mesh.st.astype(np.float32)))
+    stage.GetRootLayer().Save()
+
+
+def _author_material(stage) -> None:
+    from pxr import UsdShade
+
+    mat, surf = define_preview_material(stage, MATERIAL)
+    author_lambertian(surf)
+    author_uv_texture(stage, surf, "diffuseColor", "./" + ALBEDO_TEXTURE, "raw", MATERIAL + "/AlbedoTexture",
+                      MATERIAL + "/StReader", wrap="clamp")
+    UsdShade.MaterialBindingAPI.Apply(stage.OverridePrim(MESH)).Bind(mat)
+
+
+def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs) -> None:
+    from pxr import Kind, Sdf, Usd, UsdGeom
+
+    stage = create_stage(path, ROOT, Kind.Tokens.assembly,
+                         doc=f"usdrelight {__version__}: relightable scene built from {est.photo.path.name}. "
+                             f"Camera {CAMERA} reproduces the photo's intrinsics; add your own lights in "
+                             f"{USER_LIGHTS} under {USER_LIGHTS_SCOPE}.")
+    layer = stage.GetRootLayer()
+    root = stage.GetPrimAtPath(ROOT)
+    photo = UsdGeom.Xform.Define(stage, PHOTO).GetPrim()
+    Usd.ModelAPI(photo).SetKind(Kind.Tokens.component)
+
+    intr = est.geometry.intrinsics
+    z = mesh.points[:, 2]
+    params = author_usd_camera(UsdGeom.Camera.Define(stage, CAMERA), intr, float(z.min()) * 0.5, float(z.max()) * 2.0)
+
+    _author_material(stage)
+    root.AddAppliedSchema(schemas.PROVENANCE_API)
+    root.GetAttribute("usdrelight:version").Set(__version__)
+    root.GetAttribute("usdrelight:sourcePhoto").Set(Sdf.AssetPath(str(est.photo.path.resolve())))
+    root.GetAttribute("usdrelight:geometryEstimator").Set(est.geometry.source)
+    root.GetAttribute("usdrelight:albedoEstimator").Set(est.decomposition.source)
+    root.GetAttribute("usdrelight:diffuseTarget").Set(Sdf.AssetPath("./" + DIFFUSE_TARGET))
+    author_render_settings(stage, CAMERA, intr.width, intr.height, [AOVS[name] for name in aovs],
+                           pixel_aspect=params["pixelAspectRatio"])
+    # Sublayers last, so the prims above are authored as full definitions in this layer.
+    layer.subLayerPaths = ["./" + USER_LIGHTS, "./" + FITTED_LIGHTS, "./" + GEOMETRY]
+    layer.Save()
+
+
+def _install(tmp: Path, outdir: Path) -> None:
+    """Move a finished build from ``tmp`` into ``outdir``; scene.usda last; user layer kept."""
+    if not outdir.exists():
+        publish(tmp, outdir)
+        return
+    if not outdir.is_dir():
+        raise UsdRelightError(f"output {outdir} exists and is not a directory")
+    files = sorted(p for p in tmp.rglob("*") if p.is_file())
+    files.sort(key=lambda p: p.name == SCENE)
+    for src in files:
+        rel = src.relative_to(tmp)
+        dst = outdir / rel
+        if rel.as_posix() == USER_LIGHTS and dst.exists():
+            log.info("keeping the existing user-lights layer %s", dst)
+            continue
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        publish(src, dst)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=BUILD_AOVS) -> BuiltStage:
+    """Write the scene into ``outdir`` atomically (temporary sibling directory, then rename)."""
+    schemas.register()  # before USD's schema registry is first used in this process
+    outdir = Path(outdir).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise UsdRelightError(f"output {outdir} exists and is not a directory")
+    try:
+        outdir.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise UsdRelightError(f"cannot write to {outdir}: a parent path is not a directory") from None
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    try:
+        tmp = temp_dir_beside(outdir)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    try:
+        (tmp / "textures").mkdir()
+        (tmp / "estimates").mkdir()
+        write_image(tmp / ALBEDO_TEXTURE, est.decomposition.albedo, "half")
+        write_image(tmp / DIFFUSE_TARGET, est.decomposition.diffuse, "float")
+        _write_geometry(tmp / GEOMETRY, mesh)
+        _write_light_layer(tmp / FITTED_LIGHTS, "Fitted lights (usdrelight fit); rewritten by build and fit.")
+        _write_light_layer(tmp / USER_LIGHTS, "Your own lights: put them under /Scene/Lights/User. "
+                                              "usdrelight never overwrites this layer.")
+        _author_root(tmp / SCENE, est, mesh, aovs)
+        sizes = {p.relative_to(tmp).as_posix(): p.stat().st_size for p in tmp.rglob("*") if p.is_file()}
+        _install(tmp, outdir)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return BuiltStage(outdir / SCENE, mesh.n_vertices, mesh.n_faces, sizes)
