@@ -13,8 +13,9 @@ from pathlib import Path
 from usdrelight.errors import UsdRelightError
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-#: suffix -> module name inside this package; filled in as converters land.
-REGISTRY: dict[str, str] = {".xml": "mitsuba_xml", ".blend": "blender", ".py": "blender"}
+#: suffix -> module name inside this package.
+REGISTRY: dict[str, str] = {".xml": "mitsuba_xml", ".blend": "blender", ".py": "blender",
+                            ".glb": "mesh_files", ".ply": "mesh_files", ".obj": "mesh_files"}
 
 
 def converter_for(path: str | Path):

@@ -280,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=_positive_int, default=1500)
     tr.set_defaults(func=cmd_train)
 
-    c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML",
+    c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML, Blender, glTF/PLY/OBJ",
                        description="Convert SRC to DST, each format chosen by its suffix.")
     c.add_argument("src", type=Path)
     c.add_argument("dst", type=Path)
