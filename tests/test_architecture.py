@@ -23,6 +23,7 @@ LAYERS = [
     ("stage", ["usdrelight.stage"]),
     ("mitsuba", ["usdrelight.mitsuba"]),
     ("fit", ["usdrelight.fit"]),
+    ("engine", ["usdrelight.engine"]),
     ("neural", ["usdrelight.neural"]),
     ("converters", ["usdrelight.converters"]),
     ("cli", ["usdrelight.cli", "usdrelight.__main__"]),

@@ -11,6 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 from .errors import UsdRelightError
 
@@ -153,13 +155,23 @@ def cmd_neural(args) -> int:
 def cmd_relight(args) -> int:
     from .neural.relight import relight
 
-    rep = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
-                  max_side=args.max_side)
-    sec = rep.seconds
-    summary = {"exr": str(rep.exr), "png": str(rep.png), "diffuse": str(rep.diffuse), "lights": rep.lights,
-               "resolution": list(rep.resolution), "seconds": {k: round(v, 4) for k, v in sec.items()}}
-    _emit(args, summary, f"wrote {rep.exr} and {rep.png} ({rep.resolution[0]}x{rep.resolution[1]}, {rep.lights} "
-                         f"light(s)); " + ", ".join(f"{k} {v:.2f} s" for k, v in sec.items()))
+    res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
+                  max_side=args.max_side, renderer=args.renderer, sequence=args.sequence)
+
+    def secs(d):
+        return {k: round(v, 4) for k, v in d.items()}
+    frames = [{"exr": str(f.exr), "png": str(f.png), "diffuse": str(f.diffuse), "lights": f.lights,
+               "seconds": secs(f.seconds)} for f in res.frames]
+    first = res.frames[0]
+    summary = {"renderer": res.renderer, "cache": None if res.cache_hit is None else ("hit" if res.cache_hit else "built"),
+               "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
+               "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,
+               "seconds": secs({**res.seconds, **(first.seconds if args.sequence is None else {}),
+                                "total": res.seconds["total"]})}
+    per_frame = np.median([f.seconds["total"] for f in res.frames])
+    _emit(args, summary, f"wrote {len(res.frames)} relit frame(s) to {first.exr.parent} ({res.resolution[0]}x"
+                         f"{res.resolution[1]}, {res.renderer} renderer, {first.lights} light(s)); prepare "
+                         f"{res.seconds['prepare']:.2f} s, {per_frame:.2f} s per frame")
     return 0
 
 
@@ -262,11 +274,17 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Relight the photo: user lights (layer and --light), render AOVs, network.")
     rl.add_argument("stage", type=Path)
     rl.add_argument("--light", action="append", metavar="SPEC",
-                    help="point:X,Y,Z:R,G,B | sun:DX,DY,DZ:R,G,B | dome:R,G,B (repeatable)")
+                    help="point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
+                         "dome:R,G,B (repeatable; applies to every frame)")
+    rl.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
+                    help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "
+                         "render_diffuse_NNNN.exr")
+    rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
+                    help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
     rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
     rl.add_argument("--model", type=Path)
     rl.add_argument("-o", "--output", type=Path)
-    rl.add_argument("--spp", type=_positive_int, default=32)
+    rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
     rl.add_argument("--max-side", type=_positive_int, help="render at most this many pixels on the longer side")
     rl.set_defaults(func=cmd_relight)
 

@@ -83,26 +83,24 @@ def diffuse_target_path(stage) -> Path:
     return Path(asset.resolvedPath)
 
 
-def load_problem(stage_path, max_side: int = 512, target=None) -> FitProblem:
-    """Prepare a fit: read the stage, D, and trace one primary ray per pixel at the fit resolution."""
-    stage = open_stage(stage_path)
-    rec = read_scene(stage).with_lights(())  # the fit models lighting from scratch
-    if rec.camera is None:
-        raise UsdRelightError(f"{stage_path} has no camera")
-    if not rec.meshes and not rec.shapes:
-        raise UsdRelightError(f"{stage_path} has no geometry to light")
-    D = read_photo(diffuse_target_path(stage)) if target is None else np.asarray(target, np.float32)
-    k = rec.camera.intrinsics
-    if D.shape[:2] != (k.height, k.width):
-        raise UsdRelightError(f"diffuse target is {D.shape[1]}x{D.shape[0]} but the camera renders "
-                              f"{k.width}x{k.height}")
-    if not np.all(np.isfinite(D)):
-        raise UsdRelightError("diffuse target contains NaN or Inf")
-    rec = rec.with_camera(rec.camera.limited(max_side))
-    W, H = rec.resolution
-    D = resize_image(D, W, H)
+def geometry_scene(rec: SceneRecord):
+    """The Mitsuba scene of ``rec``'s geometry and camera, without lights (for visibility rays)."""
     mi = load_mitsuba()
-    scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=1, max_depth=2), mi))
+    return mi.load_dict(to_mitsuba(scene_dict(rec.with_lights(()), spp=1, max_depth=2), mi))
+
+
+def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stage_path=None) -> FitProblem:
+    """Trace one primary ray per pixel of ``rec``'s camera at ``max_side``; ``target`` is D at the camera's
+    full resolution (None: zeros, for renderers that need the hits but no target)."""
+    if rec.camera is None:
+        raise UsdRelightError(f"{stage_path or 'the stage'} has no camera")
+    if not rec.meshes and not rec.shapes:
+        raise UsdRelightError(f"{stage_path or 'the stage'} has no geometry to light")
+    rec = rec.with_lights(()).with_camera(rec.camera.limited(max_side))
+    W, H = rec.resolution
+    D = np.zeros((H, W, 3), np.float32) if target is None else resize_image(target, W, H)
+    mi = load_mitsuba()
+    scene = geometry_scene(rec)
     ray, si = trace_pixel_centres(mi, scene, W, H)
     hit = np.array(si.is_valid(), bool)
     p = np.array(si.p, np.float64).T
@@ -115,13 +113,31 @@ def load_problem(stage_path, max_side: int = 512, target=None) -> FitProblem:
     ng[np.einsum("ij,ij->i", ng, d) > 0] *= -1
     ok = hit & np.all(np.isfinite(p), 1) & np.all(np.isfinite(n), 1) & np.all(np.isfinite(D.reshape(-1, 3)), 1)
     if not ok.any():
-        raise UsdRelightError("no pixel of the fit sees geometry (empty valid mask)")
+        raise UsdRelightError("no pixel of the camera sees geometry (empty valid mask)")
     rows, cols = np.divmod(np.nonzero(ok)[0], W)
     P = p[ok]
     lo, hi = P.min(0), P.max(0)
     extent = float(np.linalg.norm(hi - lo))
     if not np.isfinite(extent) or extent <= 0:
         extent = float(np.linalg.norm(P.mean(0))) or 1.0
-    return FitProblem(Path(stage_path), rec, W, H, D.reshape(-1, 3)[ok].astype(np.float64),
-                      np.stack([rows, cols], 1), P, n[ok], ng[ok], np.clip(alb[ok], 0.0, 1.0), (lo + hi) / 2,
-                      extent, scene)
+    return FitProblem(Path(stage_path) if stage_path else Path(), rec, W, H,
+                      D.reshape(-1, 3)[ok].astype(np.float64), np.stack([rows, cols], 1), P, n[ok], ng[ok],
+                      np.clip(alb[ok], 0.0, 1.0), (lo + hi) / 2, extent, scene)
+
+
+def load_problem(stage_path, max_side: int = 512, target=None) -> FitProblem:
+    """Prepare a fit: read the stage, D, and trace one primary ray per pixel at the fit resolution."""
+    stage = open_stage(stage_path)
+    rec = read_scene(stage)
+    if rec.camera is None:
+        raise UsdRelightError(f"{stage_path} has no camera")
+    if not rec.meshes and not rec.shapes:
+        raise UsdRelightError(f"{stage_path} has no geometry to light")
+    D = read_photo(diffuse_target_path(stage)) if target is None else np.asarray(target, np.float32)
+    k = rec.camera.intrinsics
+    if D.shape[:2] != (k.height, k.width):
+        raise UsdRelightError(f"diffuse target is {D.shape[1]}x{D.shape[0]} but the camera renders "
+                              f"{k.width}x{k.height}")
+    if not np.all(np.isfinite(D)):
+        raise UsdRelightError("diffuse target contains NaN or Inf")
+    return problem_from_scene(rec, max_side, D, stage_path)

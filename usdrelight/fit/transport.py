@@ -35,7 +35,7 @@ def direction_to_cell(d: np.ndarray, shape) -> np.ndarray:
     return i * bw + j
 
 
-def _frames(n: np.ndarray):
+def tangent_frames(n: np.ndarray):
     """Orthonormal tangent frames (t, b) for normals n (Duff et al. 2017)."""
     sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
     a = -1.0 / (sign + n[:, 2])
@@ -47,14 +47,15 @@ def _frames(n: np.ndarray):
 
 def cosine_directions(n: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
     """Cosine-weighted directions around each normal; u1, u2 of shape (N, S) in [0, 1)."""
-    t, b = _frames(n)
+    t, b = tangent_frames(n)
     r = np.sqrt(u1)
     phi = 2 * np.pi * u2
     x, y, z = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u1))
     return x[..., None] * t[:, None] + y[..., None] * b[:, None] + z[..., None] * n[:, None]
 
 
-def _rays(mi, o: np.ndarray, d: np.ndarray, maxt=None):
+def rays(mi, o: np.ndarray, d: np.ndarray, maxt=None):
+    """A Mitsuba ray batch from numpy origins (N, 3), unit directions (N, 3) and optional max distances (N,)."""
     ray = mi.Ray3f(mi.Point3f(*[o[:, k].astype(np.float32) for k in range(3)]),
                    mi.Vector3f(*[d[:, k].astype(np.float32) for k in range(3)]))
     if maxt is not None:
@@ -112,7 +113,7 @@ class Transport:
             vis = np.zeros(N, bool)
             if front.any():
                 dir_ = d[front] / r[front, None]
-                occl = np.array(prob.mi_scene.ray_test(_rays(mi, o[front], dir_, np.maximum(r[front] - 2 * self.eps, 0))),
+                occl = np.array(prob.mi_scene.ray_test(rays(mi, o[front], dir_, np.maximum(r[front] - 2 * self.eps, 0))),
                                 bool)
                 vis[front] = ~occl
             m = vis & front
@@ -212,7 +213,7 @@ def build_transport(prob: FitProblem, env_shape=(8, 16), env_samples: int = 128,
             u1, u2 = stratified(len(n_), env_samples, rng)
             dirs = cosine_directions(n_, u1, u2).reshape(-1, 3)
             orig = np.repeat(o[sl], env_samples, axis=0)
-            occl = np.array(prob.mi_scene.ray_test(_rays(mi, orig, dirs)), bool)
+            occl = np.array(prob.mi_scene.ray_test(rays(mi, orig, dirs)), bool)
             cells = direction_to_cell(dirs, env_shape)
             rows = np.repeat(np.arange(len(n_)), env_samples)
             flat = rows * J + cells
@@ -224,7 +225,7 @@ def build_transport(prob: FitProblem, env_shape=(8, 16), env_samples: int = 128,
         u1, u2 = stratified(N, M, rng)
         dirs = cosine_directions(prob.n, u1, u2).reshape(-1, 3)
         orig = np.repeat(o, M, axis=0)
-        si = prob.mi_scene.ray_intersect(_rays(mi, orig, dirs))
+        si = prob.mi_scene.ray_intersect(rays(mi, orig, dirs))
         hit = np.array(si.is_valid(), bool)
         y = np.array(si.p, np.float64).T
         pix = _project_to_pixels(prob, y[hit])

@@ -59,17 +59,38 @@ class RenderResult:
     """What the Mitsuba mapping could not represent: one line per kind -> count."""
 
 
+def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5)):
+    """One camera ray per pixel through the point ``offset`` (pixel units, (0.5, 0.5) = centre) of each pixel,
+    row-major: returns (rays, surface interactions)."""
+    sensor = scene.sensors()[0]
+    dx, dy = offset
+    jj, ii = np.meshgrid((np.arange(width) + dx) / width, (np.arange(height) + dy) / height)
+    pos = mi.Point2f(jj.ravel().astype(np.float32), ii.ravel().astype(np.float32))
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+    return ray, scene.ray_intersect(ray)
+
+
 def trace_pixel_centres(mi, scene, width: int, height: int):
     """One camera ray through each pixel centre, row-major: returns (rays, surface interactions).
 
     Centres are nudged by (1/64, 1/128) px: a ray through the exact centre passes exactly through a
     vertex of a pixel mesh, where Mitsuba's (non-watertight) triangle test can miss every triangle."""
-    sensor = scene.sensors()[0]
     dx, dy = PRIMARY_RAY_NUDGE_PX
-    jj, ii = np.meshgrid((np.arange(width) + 0.5 + dx) / width, (np.arange(height) + 0.5 + dy) / height)
-    pos = mi.Point2f(jj.ravel().astype(np.float32), ii.ravel().astype(np.float32))
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
-    return ray, scene.ray_intersect(ray)
+    return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy))
+
+
+def footprint_albedo(mi, scene, width: int, height: int, k: int = 4) -> np.ndarray:
+    """(H * W, 3) diffuse albedo averaged over each pixel's area with k x k stratified rays, misses counting
+    as 0: what a box pixel filter sees of the albedo (coverage included)."""
+    acc = np.zeros((width * height, 3))
+    dx, dy = PRIMARY_RAY_NUDGE_PX
+    for i in range(k):
+        for j in range(k):
+            _, si = trace_pixels(mi, scene, width, height, ((j + 0.5) / k + dx, (i + 0.5) / k + dy))
+            hit = np.array(si.is_valid(), bool)
+            alb = np.array(si.bsdf().eval_diffuse_reflectance(si), np.float64).T
+            acc += np.where(hit[:, None] & np.isfinite(alb), alb, 0.0)
+    return np.clip(acc / (k * k), 0.0, 1.0)
 
 
 def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, wanted: set) -> dict:

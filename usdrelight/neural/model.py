@@ -159,6 +159,16 @@ def find_aovs(stage_path) -> dict:
     return found
 
 
+def write_relit(out_dir, name: str, image: np.ndarray) -> tuple[Path, Path]:
+    """``out_dir/name.exr`` (linear float) and ``out_dir/name.png`` (sRGB 8-bit, scaled down by the 99.5th
+    percentile when the image exceeds 1)."""
+    out = Path(out_dir)
+    exr = write_image(out / f"{name}.exr", image, "float")
+    view = image / max(float(np.percentile(image, 99.5)), 1e-6) if image.max() > 1 else image
+    png = write_image(out / f"{name}.png", view, "uint8", srgb=True)
+    return exr, png
+
+
 def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = "relit") -> NeuralResult:
     sec = {}
     t = time.perf_counter()
@@ -168,10 +178,7 @@ def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = 
     y = model(x)
     sec["network"] = time.perf_counter() - t
     t = time.perf_counter()
-    out = Path(out_dir)
-    exr = write_image(out / f"{name}.exr", y, "float")
-    png = write_image(out / f"{name}.png", y / max(float(np.percentile(y, 99.5)), 1e-6) if y.max() > 1 else y,
-                      "uint8", srgb=True)
+    exr, png = write_relit(out_dir, name, y)
     sec["write"] = time.perf_counter() - t
     return NeuralResult(exr, png, sec)
 

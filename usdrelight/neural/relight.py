@@ -1,119 +1,188 @@
-"""``usdrelight relight``: the interactive loop in one call: apply lights, render the AOVs, run the network.
+"""Relighting: a stage's lights + new lights -> D~ -> the network -> the relit photo.
 
-Lights: the stage's user-lights layer, plus any given with ``--light`` (not written to disk: they live in an
-in-memory session layer), plus the fitted lights when ``with_fitted`` (the photo's own lighting).
-Light syntax: ``point:X,Y,Z:R,G,B`` (radiant intensity, W/sr), ``sun:DX,DY,DZ:R,G,B`` (irradiance, W/m^2,
-travelling along D) or ``dome:R,G,B`` (radiance); coordinates in the stage's frame (for `build` stages:
-camera at the origin looking down -Z, +Y up, metres).
+:class:`RelightSession` is the Python API for tools that keep the engine alive (a web app, a batch job): open a
+stage once, then :meth:`RelightSession.render` any number of light sets, in memory. :func:`relight` is the
+``usdrelight relight`` command: one light set, or a sequence of them (``--sequence LIGHTS.json``), written to
+disk. New lights use the ``--light`` syntax (:mod:`usdrelight.stage.light_specs`); they are never written to
+the stage. The stage's user lights always apply; its fitted lights (the photo's own lighting) with
+``with_fitted``.
+
+Renderers: ``fast`` (default; :mod:`usdrelight.engine`, light-independent work cached in ``STAGE_DIR/cache``)
+or ``mitsuba`` (path tracing, the reference). The fast renderer handles Lambertian scenes; for others the
+session falls back to Mitsuba with one warning. Emitters are never visible to camera rays in either.
 """
 from __future__ import annotations
 
+import json
+import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ..engine.renderer import CACHE_DIR, EngineSettings, FastRenderer
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import render_record
-from ..stage.layout import FITTED_LIGHTS_SCOPE, RELIGHT_LIGHTS_SCOPE
-from ..stage.lux import frame_pointing_along, set_light_rgb
+from ..stage.layout import FITTED_LIGHTS_SCOPE
+from ..stage.light_specs import parse_lights
 from ..stage.read import read_scene
 from ..stage.validate import open_stage
-from .model import RelightModel, run_neural
+from .model import RelightModel, build_input, write_relit
+
+log = logging.getLogger(__name__)
+RENDERERS = ("fast", "mitsuba")
+
+
+@dataclass(frozen=True)
+class RelitFrame:
+    """One relit image, in memory (linear RGB, row 0 at the top)."""
+
+    image: np.ndarray
+    """(H, W, 3) the network's relit photo."""
+    diffuse: np.ndarray
+    """(H, W, 3) D~, the diffuse render the network was given."""
+    albedo: np.ndarray
+    """(H, W, 3) albedo AOV."""
+    valid: np.ndarray
+    """(H, W) bool: the pixel sees geometry."""
+    lights: int
+    """Lights rendered (user, fitted when asked, and the frame's own)."""
+    seconds: dict = field(default_factory=dict)
+    """Wall time: render, hole_fill, network, total."""
+
+
+class RelightSession:
+    """A stage opened for relighting: prepared once, then rendered for any light set."""
+
+    def __init__(self, stage_path, *, max_side: int | None = 512, renderer: str = "fast", with_fitted: bool = False,
+                 model_path=None, spp: int = 32, max_depth: int = 3, settings: EngineSettings | None = None):
+        if renderer not in RENDERERS:
+            raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
+        if spp < 1 or max_depth < 2:
+            raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+        t0 = time.perf_counter()
+        self.stage_path = Path(stage_path)
+        rec = read_scene(open_stage(stage_path))
+        if rec.camera is None:
+            raise UsdRelightError(f"{stage_path} has no camera")
+        self.base_lights = tuple(l for l in rec.lights
+                                 if with_fitted or not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        self.scene = rec.with_camera(rec.camera.limited(max_side))
+        self.spp, self.max_depth = spp, max_depth
+        self.model = RelightModel(model_path)
+        self.seconds = {"read": time.perf_counter() - t0}
+        self.engine = None
+        if renderer == "fast":
+            settings = replace(settings or EngineSettings(), max_side=max_side, max_depth=max_depth)
+            try:
+                self.engine = FastRenderer(rec, settings, self.stage_path.resolve().parent / CACHE_DIR)
+            except UsdRelightError as exc:
+                log.warning("fast renderer not used (%s): rendering with Mitsuba", exc)
+        self.renderer = "fast" if self.engine is not None else "mitsuba"
+        self.seconds["prepare"] = time.perf_counter() - t0
+
+    @property
+    def cache_hit(self) -> bool | None:
+        """Whether the fast renderer found its prepared data on disk (None with Mitsuba)."""
+        return None if self.engine is None else self.engine.cache_hit
+
+    def render(self, lights=()) -> RelitFrame:
+        """Relight with the stage's lights plus ``lights`` (``--light`` strings or LightRecords)."""
+        t0 = time.perf_counter()
+        all_lights = list(self.base_lights) + parse_lights(lights)
+        if not all_lights:
+            raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
+                                  "or pass --with-fitted")
+        if self.engine is not None:
+            aovs = self.engine.render(all_lights)
+            beauty, albedo, valid = aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5
+        else:
+            out = render_record(self.scene.with_lights(all_lights), {"beauty", "albedo", "valid"}, spp=self.spp,
+                                max_depth=self.max_depth, hide_emitters=True)
+            beauty, albedo, valid = out["beauty"], out["albedo"], out["valid"][..., 0] > 0.5
+        sec = {"render": time.perf_counter() - t0}
+        t = time.perf_counter()
+        x = build_input(beauty, albedo, valid)
+        sec["hole_fill"] = time.perf_counter() - t
+        t = time.perf_counter()
+        image = self.model(x)
+        sec["network"] = time.perf_counter() - t
+        sec["total"] = time.perf_counter() - t0
+        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec)
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    """The files of one relit frame."""
+
+    exr: Path
+    """Relit photo, linear float EXR."""
+    png: Path
+    """Relit photo, sRGB PNG."""
+    diffuse: Path
+    """D~, linear float EXR."""
+    lights: int
+    """Lights rendered."""
+    seconds: dict
+    """render, hole_fill, network, write, total."""
 
 
 @dataclass(frozen=True)
 class RelightResult:
-    """What one ``usdrelight relight`` call wrote and how long each step took."""
+    """What ``usdrelight relight`` wrote."""
 
-    exr: Path
-    """The relit photo, linear float EXR."""
-    png: Path
-    """The relit photo, sRGB PNG."""
-    diffuse: Path
-    """The diffuse render D~ the network was given, linear float EXR."""
-    lights: int
-    """Lights the render used (user, --light, and fitted ones when asked)."""
+    frames: tuple[FrameFiles, ...]
+    """One entry per frame (one for a single relight)."""
     resolution: tuple
-    """(width, height) of the result, pixels."""
+    """(width, height) of the frames, pixels."""
+    renderer: str
+    """fast | mitsuba (what rendered, after any fallback)."""
+    cache_hit: bool | None
+    """Fast renderer: prepared data found on disk; None with Mitsuba."""
     seconds: dict
-    """Wall time per step: read, render, hole_fill, network, write, total."""
+    """read, prepare (includes read), total."""
 
 
-def _floats(text: str, n: int, what: str) -> list[float]:
+def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame) -> FrameFiles:
+    t = time.perf_counter()
+    exr, png = write_relit(out_dir, f"relit{suffix}", frame.image)
+    diffuse = write_image(out_dir / f"render_diffuse{suffix}.exr", frame.diffuse, "float")
+    sec = {**frame.seconds, "write": time.perf_counter() - t}
+    sec["total"] = frame.seconds["total"] + sec["write"]
+    return FrameFiles(exr, png, diffuse, frame.lights, sec)
+
+
+def read_sequence(path) -> list[list[str]]:
+    """LIGHTS.json: a JSON list of frames, each a list of ``--light`` strings."""
+    path = Path(path)
     try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise UsdRelightError(f"bad {what} {text!r}: expected {n} comma-separated numbers") from None
-    if len(v) != n or not all(np.isfinite(v)):
-        raise UsdRelightError(f"bad {what} {text!r}: expected {n} finite numbers")
-    return v
-
-
-def parse_light(spec: str) -> dict:
-    parts = spec.split(":")
-    kind = parts[0].lower()
-    if kind == "point" and len(parts) == 3:
-        return {"kind": "point", "position": _floats(parts[1], 3, "position"), "rgb": _floats(parts[2], 3, "colour")}
-    if kind == "sun" and len(parts) == 3:
-        d = _floats(parts[1], 3, "direction")
-        if np.linalg.norm(d) == 0:
-            raise UsdRelightError("sun direction must not be zero")
-        return {"kind": "sun", "direction": d, "rgb": _floats(parts[2], 3, "colour")}
-    if kind == "dome" and len(parts) == 2:
-        return {"kind": "dome", "rgb": _floats(parts[1], 3, "colour")}
-    raise UsdRelightError(f"bad --light {spec!r}: use point:X,Y,Z:R,G,B, sun:DX,DY,DZ:R,G,B or dome:R,G,B")
-
-
-def author_cli_lights(stage, lights: list[dict]) -> None:
-    """Author lights into the stage's session layer (nothing is written to disk)."""
-    from pxr import Gf, UsdGeom, UsdLux
-
-    if not lights:
-        return
-    stage.SetEditTarget(stage.GetSessionLayer())
-    UsdGeom.Scope.Define(stage, RELIGHT_LIGHTS_SCOPE)
-    for i, l in enumerate(lights):
-        path = f"{RELIGHT_LIGHTS_SCOPE}/Light{i}"
-        if l["kind"] == "point":
-            prim = UsdLux.SphereLight.Define(stage, path)
-            prim.CreateTreatAsPointAttr(True)
-            prim.CreateRadiusAttr(0.0)
-            UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(*l["position"]))
-        elif l["kind"] == "sun":
-            prim = UsdLux.DistantLight.Define(stage, path)
-            m = frame_pointing_along(l["direction"])
-            UsdGeom.Xformable(prim).AddTransformOp().Set(Gf.Matrix4d(m.T.tolist()))
-        else:
-            prim = UsdLux.DomeLight.Define(stage, path)
-        set_light_rgb(prim, l["rgb"])
+        frames = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise UsdRelightError(f"cannot read the light sequence {path}: {type(exc).__name__}") from None
+    if not isinstance(frames, list) or not frames or not all(
+            isinstance(f, list) and all(isinstance(s, str) for s in f) for f in frames):
+        raise UsdRelightError(f"{path}: expected a non-empty JSON list of frames, each a list of --light strings")
+    return frames
 
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
-            max_depth: int = 3, max_side: int | None = None) -> RelightResult:
-    sec = {}
-    t = time.perf_counter()
-    stage = open_stage(stage_path)
-    author_cli_lights(stage, [parse_light(s) if isinstance(s, str) else s for s in lights])
-    rec = read_scene(stage)
-    if not with_fitted:
-        rec = rec.with_lights(l for l in rec.lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
-    if not rec.lights:
-        raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
-                              "or pass --with-fitted")
-    if rec.camera is None:
-        raise UsdRelightError(f"{stage_path} has no camera")
-    rec = rec.with_camera(rec.camera.limited(max_side))
-    model = RelightModel(model_path)
-    sec["read"] = time.perf_counter() - t
-    t = time.perf_counter()
-    aovs = render_record(rec, {"beauty", "albedo", "valid"}, spp=spp, max_depth=max_depth)
-    sec["render"] = time.perf_counter() - t
+            max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None) -> RelightResult:
+    """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or with ``sequence`` (a LIGHTS.json
+    path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame."""
+    t0 = time.perf_counter()
+    frames = read_sequence(sequence) if sequence is not None else None
+    parse_lights(lights)  # bad specs fail before any work
+    for f in frames or []:
+        parse_lights(f)
+    session = RelightSession(stage_path, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
+                             model_path=model_path, spp=spp, max_depth=max_depth)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
-    res = run_neural(aovs["beauty"], aovs["albedo"], aovs["valid"][..., 0] > 0.5, model, out_dir)
-    diffuse = write_image(out_dir / "render_diffuse.exr", aovs["beauty"], "float")
-    sec.update(res.seconds)
-    sec["total"] = sum(sec.values())
-    return RelightResult(res.exr, res.png, diffuse, len(rec.lights), tuple(aovs["beauty"].shape[1::-1]), sec)
+    written = []
+    for i, extra in enumerate(frames if frames is not None else [[]]):
+        frame = session.render(list(lights) + list(extra))
+        written.append(_write_frame(out_dir, f"_{i:04d}" if frames is not None else "", frame))
+    h, w = frame.image.shape[:2]
+    return RelightResult(tuple(written), (w, h), session.renderer, session.cache_hit,
+                         {**session.seconds, "total": time.perf_counter() - t0})

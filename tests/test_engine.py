@@ -1,0 +1,215 @@
+"""The fast relight renderer: closed forms per light kind, agreement with Mitsuba, its cache, sequences."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from usd_scenes import add_closed_form_light, looking_down_at_floor
+from usdrelight.engine.renderer import CACHE_DIR, EngineSettings, FastRenderer
+from usdrelight.imageio import read_map, write_image
+from usdrelight.mitsuba.render import render_record
+from usdrelight.stage.light_specs import parse_light
+from usdrelight.stage.lux import frame_pointing_along
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.records import LightRecord
+from usdrelight.stage.validate import open_stage
+
+from conftest import EXAMPLES
+
+ALBEDO = 0.5
+
+
+def _floor(tmp_path):
+    stage = looking_down_at_floor(tmp_path / "floor.usda", width=16, height=12)
+    stage.GetRootLayer().Save()
+    return read_scene(open_stage(tmp_path / "floor.usda"))
+
+
+def _centre(img):
+    h, w = img.shape[:2]
+    return img[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1].mean((0, 1))
+
+
+def _at(pos, direction=None):
+    m = np.eye(4) if direction is None else frame_pointing_along(direction)
+    m[:3, 3] = pos
+    return m
+
+
+def _rect_irradiance(L, w, h, d):
+    """E below the centre of a w x h rectangle of radiance L at distance d (four corner rectangles)."""
+    X, Y = (w / 2) / d, (h / 2) / d
+    corner = X / math.sqrt(1 + X * X) * math.atan(Y / math.sqrt(1 + X * X)) \
+        + Y / math.sqrt(1 + Y * Y) * math.atan(X / math.sqrt(1 + Y * Y))
+    return 4 * (L / 2) * corner
+
+
+# each case: light over the floor (camera 1 m above it looking down), expected centre radiance a/pi * E
+CLOSED_FORMS = {
+    "point": (LightRecord("/p", "sphere", _at([0, 1, 0]), np.full(3, 20.0), treat_as_point=True), ALBEDO * 20 / np.pi),
+    "spot": (LightRecord("/s", "sphere", _at([0, 1, 0], [0, -1, 0]), np.full(3, 20.0), treat_as_point=True,
+                         cone_angle_deg=30.0, cone_softness=0.2), ALBEDO * 20 / np.pi),
+    "sphere": (LightRecord("/sp", "sphere", _at([0, 1, 0]), np.full(3, 10.0), radius=0.2), ALBEDO * 10 * 0.2 ** 2),
+    "disk": (LightRecord("/d", "disk", _at([0, 1, 0], [0, -1, 0]), np.full(3, 4.0), radius=0.5),
+             ALBEDO * 4 * 0.25 / 1.25),
+    "rect": (LightRecord("/r", "rect", _at([0, 1, 0], [0, -1, 0]), np.full(3, 4.0), width=0.6, height=0.4),
+             ALBEDO / np.pi * _rect_irradiance(4.0, 0.6, 0.4, 1.0)),
+    "distant": (LightRecord("/sun", "distant", frame_pointing_along([0, -1, 0]), np.full(3, 3.0)), ALBEDO * 3 / np.pi),
+    "distant_wide": (LightRecord("/sun", "distant", frame_pointing_along([0, -1, 0]), np.full(3, 3.0), angle_deg=20.0),
+                     ALBEDO * 3 / np.pi * (1 + math.cos(math.radians(10))) / 2),
+    "dome": (LightRecord("/dome", "dome", np.eye(4), np.full(3, 0.8)), ALBEDO * 0.8),
+}
+
+
+@pytest.fixture(scope="module")
+def floor_renderer(tmp_path_factory):
+    rec = _floor(tmp_path_factory.mktemp("floor"))
+    return FastRenderer(rec, EngineSettings(max_side=None, area_samples=64, max_depth=2))
+
+
+@pytest.mark.parametrize("kind", sorted(CLOSED_FORMS))
+def test_closed_forms(floor_renderer, kind):
+    light, expected = CLOSED_FORMS[kind]
+    np.testing.assert_allclose(_centre(floor_renderer.render([light]).beauty), expected, rtol=0.02)
+
+
+def test_the_usdlux_closed_form_scenes_agree(tmp_path):
+    """The same three lights the Mitsuba tests use, authored in USD and read back."""
+    for kind in ("point", "dome", "distant"):
+        stage = looking_down_at_floor(tmp_path / f"{kind}.usda", width=16, height=12)
+        expected = add_closed_form_light(stage, kind)
+        stage.GetRootLayer().Save()
+        rec = read_scene(open_stage(tmp_path / f"{kind}.usda"))
+        img = FastRenderer(rec, EngineSettings(max_side=None)).render(rec.lights).beauty
+        np.testing.assert_allclose(_centre(img), expected, rtol=0.02)
+
+
+@pytest.fixture(scope="module")
+def procedural(tmp_path_factory):
+    from usdrelight.stage.build import BuildOptions, build
+
+    ex = EXAMPLES / "procedural"
+    out = tmp_path_factory.mktemp("proc") / "st"
+    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
+                                              albedo=ex / "albedo.exr"))
+    return out / "scene.usda"
+
+
+SCENE_LIGHTS = {
+    "point": ["point:0.5,1.0,-2.5:3,2.5,2"],
+    "spot": ["spot:0,1.5,-2:0.2,-1,-0.5:8,8,8:30:0.4"],
+    "sun": ["sun:0.4,-1,-0.3:2,2,2"],
+    "sun_wide": ["sun:0.4,-1,-0.3:2,2,2:10"],
+    "dome": ["dome:0.5,0.6,0.8"],
+    "sphere": [LightRecord("/sp", "sphere", _at([-0.5, 1.0, -2.0]), np.full(3, 20.0), radius=0.15)],
+    "rect": [LightRecord("/r", "rect", _at([0.3, 1.6, -3.0], [0, -1, 0.2]), np.full(3, 6.0), width=0.8, height=0.5)],
+    "disk": [LightRecord("/d", "disk", _at([-0.6, 1.5, -2.5], [0.3, -1, 0]), np.full(3, 6.0), radius=0.3)],
+}
+
+
+@pytest.fixture(scope="module")
+def proc_renderer(procedural):
+    rec = read_scene(open_stage(procedural))
+    return rec, FastRenderer(rec, EngineSettings(max_side=128))
+
+
+@pytest.mark.parametrize("kind", sorted(SCENE_LIGHTS))
+def test_fast_matches_mitsuba_on_the_procedural_scene(proc_renderer, kind):
+    rec, fr = proc_renderer
+    lights = [parse_light(s) if isinstance(s, str) else s for s in SCENE_LIGHTS[kind]]
+    fast = fr.render(lights).beauty
+    ref = render_record(rec.with_lights(lights).with_camera(rec.camera.limited(128)), {"beauty"}, spp=512,
+                        max_depth=3, hide_emitters=True)["beauty"]
+    valid = fr.render(lights).valid[..., 0] > 0
+    rel = np.sqrt(np.mean((fast[valid] - ref[valid]) ** 2)) / np.sqrt(np.mean(ref[valid] ** 2))
+    assert abs(fast[valid].mean() / ref[valid].mean() - 1) < 0.03
+    assert rel < 0.08, rel  # 512-spp noise included
+
+
+def test_textured_dome_matches_mitsuba(proc_renderer, tmp_path):
+    from usd_scenes import asymmetric_latlong
+
+    rec, fr = proc_renderer
+    write_image(tmp_path / "sky.exr", asymmetric_latlong(32, 64) * 0.5 + 0.05, "float")
+    from usdrelight.stage.records import TextureRecord
+
+    rot = np.eye(4)
+    rot[:3, :3] = frame_pointing_along([1, 0, 0.3])[:3, :3]
+    dome = LightRecord("/sky", "dome", rot, np.array([1.0, 0.9, 0.8]), texture=TextureRecord(str(tmp_path / "sky.exr"), "raw"))
+    fast = fr.render([dome])
+    ref = render_record(rec.with_lights([dome]).with_camera(rec.camera.limited(128)), {"beauty"}, spp=512,
+                        max_depth=3, hide_emitters=True)["beauty"]
+    v = fast.valid[..., 0] > 0
+    assert abs(fast.beauty[v].mean() / ref[v].mean() - 1) < 0.04
+    # a rotated (wrong) dome differs: the test can tell orientations apart
+    flipped = LightRecord("/sky", "dome", np.diag([-1.0, 1, -1, 1]) @ rot, dome.radiance, texture=dome.texture)
+    assert abs(fr.render([flipped]).beauty[v].mean() / ref[v].mean() - 1) > 0.08
+
+
+def test_renders_are_deterministic_and_finite(proc_renderer):
+    _, fr = proc_renderer
+    lights = [parse_light(s) for s in ("point:0.5,1,-2.5:3,3,3", "sun:0,-1,-1:1,1,1:5")]
+    a, b = fr.render(lights).beauty, fr.render(lights).beauty
+    assert np.array_equal(a, b) and np.all(np.isfinite(a)) and a.min() >= 0
+
+
+def test_cache_is_reused_and_invalidated(procedural, tmp_path):
+    import shutil
+
+    stage = tmp_path / "st"
+    shutil.copytree(procedural.parent, stage)
+    settings = EngineSettings(max_side=64)
+    rec = read_scene(open_stage(stage / "scene.usda"))
+    first = FastRenderer(rec, settings, stage / CACHE_DIR)
+    assert not first.cache_hit and len(list((stage / CACHE_DIR).glob("relight-*.npz"))) == 1
+    second = FastRenderer(read_scene(open_stage(stage / "scene.usda")), settings, stage / CACHE_DIR)
+    assert second.cache_hit and second.key == first.key
+    light = [parse_light("point:0.5,1,-2.5:3,3,3")]
+    assert np.array_equal(first.render(light).beauty, second.render(light).beauty)
+    # a new albedo texture (same file name): new key, rebuilt, and the render follows the new albedo
+    alb = read_map(stage / "textures" / "albedo.exr", 3)
+    write_image(stage / "textures" / "albedo.exr", alb * 0.5, "half")
+    third = FastRenderer(read_scene(open_stage(stage / "scene.usda")), settings, stage / CACHE_DIR)
+    assert not third.cache_hit and third.key != first.key
+    ratio = third.render(light).beauty.sum() / first.render(light).beauty.sum()
+    assert 0.3 < ratio < 0.6  # half the albedo: direct light halves, the bounce quarters
+    assert len(list((stage / CACHE_DIR).glob("relight-*.npz"))) == 1  # the stale cache is gone
+    # new geometry: new key
+    rec = read_scene(open_stage(stage / "scene.usda"))
+    moved = rec.meshes[0].__class__(**{**rec.meshes[0].__dict__, "points": rec.meshes[0].points * 1.01})
+    assert FastRenderer(rec.__class__(**{**rec.__dict__, "meshes": (moved,)}), settings).key != third.key
+
+
+def test_sequence_writes_numbered_frames_and_reports_times(cli, procedural, tmp_path):
+    seq = tmp_path / "lights.json"
+    seq.write_text(json.dumps([["point:0.5,1,-2.5:3,3,3"], ["point:-0.5,1,-2.5:3,3,3"], ["sun:0,-1,-1:1,1,1"]]))
+    rep = cli.json("relight", procedural, "--sequence", seq, "--light", "dome:0.05,0.05,0.05", "--max-side", "96",
+                   "-o", tmp_path / "out")
+    assert rep["renderer"] == "fast" and len(rep["frames"]) == 3 and "prepare" in rep["seconds"]
+    for i, f in enumerate(rep["frames"]):
+        for key in ("render", "network", "total"):
+            assert f["seconds"][key] >= 0
+        for name in (f"relit_{i:04d}.exr", f"relit_{i:04d}.png", f"render_diffuse_{i:04d}.exr"):
+            assert (tmp_path / "out" / name).is_file()
+    d0, d1 = (read_map(tmp_path / "out" / f"render_diffuse_{i:04d}.exr", 3) for i in (0, 1))
+    w = d0.shape[1]
+    # the light moved from right to left: so did the light in the image
+    assert d0[:, w // 2:].mean() > d0[:, :w // 2].mean() and d1[:, :w // 2].mean() > d1[:, w // 2:].mean()
+    bad = tmp_path / "bad.json"
+    bad.write_text('[["point:1,2"]]')
+    rc, _, err = cli("relight", procedural, "--sequence", bad)
+    assert rc == 2 and "bad --light" in err
+
+
+def test_single_relight_keeps_its_file_names_and_second_call_hits_the_cache(cli, procedural, tmp_path):
+    args = ("relight", procedural, "--light", "point:0.5,1,-2.5:3,3,3", "--max-side", "80", "-o", tmp_path / "one")
+    first = cli.json(*args)
+    second = cli.json(*args)
+    assert second["cache"] == "hit" and first["frames"][0]["exr"].endswith("relit.exr")
+    for name in ("relit.exr", "relit.png", "render_diffuse.exr"):
+        assert (tmp_path / "one" / name).is_file()
+    rc, _, err = cli("relight", procedural, "--light", "point:0,1,-2:1,-100,1")
+    assert rc == 2 and "must be >= 0" in err

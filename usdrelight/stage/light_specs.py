@@ -1,0 +1,83 @@
+"""The ``--light`` syntax: one light per string, in the stage's frame and UsdLux units.
+
+    point:X,Y,Z:R,G,B                         point light (SphereLight treatAsPoint): radiant intensity, W/sr
+    spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT]     the same, shaped: pointing along D, ShapingAPI coneAngle CONE
+                                              (degrees, half-angle) and coneSoftness SOFT in [0, 1] (default 0)
+    sun:DX,DY,DZ:R,G,B[:ANGLE]                DistantLight travelling along D: irradiance W/m^2; angular
+                                              diameter ANGLE in degrees (default 0: sharp)
+    dome:R,G,B                                untextured DomeLight: radiance
+
+For `build` stages the frame is the camera's: camera at the origin looking down -Z, +Y up, metres. Colours
+are linear RGB, finite and >= 0; directions non-zero.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from .layout import RELIGHT_LIGHTS_SCOPE
+from .lux import frame_pointing_along
+from .records import LightRecord
+
+SYNTAX = ("point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
+          "dome:R,G,B")
+
+
+def _floats(text: str, n: int, what: str, spec: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")], np.float64)
+    except ValueError:
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be {n} comma-separated numbers") from None
+    if len(v) != n or not np.all(np.isfinite(v)):
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be {n} finite numbers")
+    return v
+
+
+def _colour(text: str, spec: str) -> np.ndarray:
+    rgb = _floats(text, 3, "the colour", spec)
+    if np.any(rgb < 0):
+        raise UsdRelightError(f"bad --light {spec!r}: colours must be >= 0 (a light cannot remove light)")
+    return rgb
+
+
+def _direction(text: str, spec: str) -> np.ndarray:
+    d = _floats(text, 3, "the direction", spec)
+    if np.linalg.norm(d) == 0:
+        raise UsdRelightError(f"bad --light {spec!r}: the direction must not be zero")
+    return d
+
+
+def _angle(text: str, spec: str, what: str, lo: float, hi: float) -> float:
+    v = float(_floats(text, 1, what, spec)[0])
+    if not lo <= v <= hi:
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be in [{lo:g}, {hi:g}]")
+    return v
+
+
+def parse_light(spec: str, index: int = 0) -> LightRecord:
+    """One ``--light`` string as a light record (path ``/Scene/Lights/Relight/Light<index>``)."""
+    parts = str(spec).split(":")
+    kind = parts[0].strip().lower()
+    path = f"{RELIGHT_LIGHTS_SCOPE}/Light{index}"
+    if kind == "point" and len(parts) == 3:
+        m = np.eye(4)
+        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        return LightRecord(path, "sphere", m, _colour(parts[2], spec), treat_as_point=True)
+    if kind == "spot" and len(parts) in (5, 6):
+        m = frame_pointing_along(_direction(parts[2], spec))
+        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        soft = _angle(parts[5], spec, "the softness", 0.0, 1.0) if len(parts) == 6 else 0.0
+        return LightRecord(path, "sphere", m, _colour(parts[3], spec), treat_as_point=True,
+                           cone_angle_deg=_angle(parts[4], spec, "the cone angle", 0.0, 180.0), cone_softness=soft)
+    if kind == "sun" and len(parts) in (3, 4):
+        angle = _angle(parts[3], spec, "the angle", 0.0, 180.0) if len(parts) == 4 else 0.0
+        return LightRecord(path, "distant", frame_pointing_along(_direction(parts[1], spec)), _colour(parts[2], spec),
+                           angle_deg=angle)
+    if kind == "dome" and len(parts) == 2:
+        return LightRecord(path, "dome", np.eye(4), _colour(parts[1], spec))
+    raise UsdRelightError(f"bad --light {spec!r}: use {SYNTAX}")
+
+
+def parse_lights(specs, first_index: int = 0) -> list[LightRecord]:
+    """Several ``--light`` strings (LightRecords are passed through)."""
+    return [s if isinstance(s, LightRecord) else parse_light(s, first_index + i) for i, s in enumerate(specs)]
