@@ -4,7 +4,7 @@ each light set in a fraction of a second.
 Prepared once per (geometry, camera, albedo, settings), keyed by a content hash (:func:`scene_key`) and kept in
 ``STAGE_DIR/cache/relight-<key>.npz``: primary hits through every pixel centre (points, shading and geometric
 normals facing the camera, albedo), the environment visibility basis (fraction of cosine-weighted directions
-leaving through each latlong cell) and the one-bounce gather on the visible 2.5D surface
+leaving through each latlong cell, averaged over like neighbours by :func:`bounce_filter`) and the one-bounce gather on the visible 2.5D surface
 (:mod:`usdrelight.fit.transport`). A changed mesh, camera or albedo texture changes the key, so a stale
 cache is never used; other cache files of the stage are removed when a new one is written.
 
@@ -37,7 +37,7 @@ from .lights import distant_light, dome_light, planar_light, point_light, sphere
 
 log = logging.getLogger(__name__)
 
-ENGINE_VERSION = 1
+ENGINE_VERSION = 2
 CACHE_DIR = "cache"
 
 
@@ -163,8 +163,10 @@ class FastRenderer:
             prob = problem_from_scene(rec, settings.max_side)
             tr = build_transport(prob, settings.env_shape, settings.env_samples, settings.indirect_samples,
                                  settings.seed)
-            # H holds multiples of 1/env_samples: float32 is exact and halves the memory of every product with it
-            self.transport = Transport(prob, tr.env_shape, tr.H.astype(np.float32), tr.P, tr.r_min, tr.eps)
+            # the environment basis is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
+            # noise is the largest error of an environment-lit frame), and kept in half precision, as cached
+            H = (bounce_filter(prob) @ tr.H).astype(np.float16).astype(np.float32)
+            self.transport = Transport(prob, tr.env_shape, H, tr.P, tr.r_min, tr.eps)
             mi = load_mitsuba()
             self.pixel_albedo = footprint_albedo(mi, prob.mi_scene, prob.width, prob.height)[
                 prob.idx[:, 0] * prob.width + prob.idx[:, 1]]
@@ -181,7 +183,7 @@ class FastRenderer:
         buf = io.BytesIO()
         np.savez(buf, width=prob.width, height=prob.height, idx=prob.idx.astype(np.int32),
                  p=prob.p, n=prob.n, ng=prob.ng, albedo=prob.albedo, center=prob.center, extent=prob.extent,
-                 pixel_albedo=self.pixel_albedo, H_counts=np.round(tr.H * self.settings.env_samples).astype(np.uint16),
+                 pixel_albedo=self.pixel_albedo, H=tr.H.astype(np.float16),
                  P_counts=np.round(tr.P.data * self.settings.indirect_samples).astype(np.uint16),
                  P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
                  env_shape=np.asarray(tr.env_shape))
@@ -202,11 +204,11 @@ class FastRenderer:
         n = len(d["idx"])
         prob = FitProblem(Path(), rec, W, H, np.zeros((n, 3)), d["idx"].astype(np.int64), d["p"], d["n"], d["ng"],
                           d["albedo"], d["center"], float(d["extent"]), geometry_scene(rec))
-        # gather weights and environment visibility are ray counts over the samples per pixel
+        # gather weights are ray counts over the bounce samples per pixel
         P = sp.csr_matrix((d["P_counts"] / self.settings.indirect_samples, d["P_indices"], d["P_indptr"]),
                           shape=(n, n))
         self.pixel_albedo = d["pixel_albedo"]
-        H = d["H_counts"].astype(np.float32) / np.float32(self.settings.env_samples)
+        H = d["H"].astype(np.float32)
         return Transport(prob, tuple(int(x) for x in d["env_shape"]), H, P, R_MIN_REL * prob.extent,
                          EPS_REL * prob.extent)
 
