@@ -12,6 +12,8 @@ demo: setup
 	$(VENV)/usdrelight fit out/motorcycle/scene.usda --report out/motorcycle/fit_report
 	$(VENV)/usdrelight relight out/motorcycle/scene.usda --light point:0.6,0.4,-1.2:4,3.6,3 --with-fitted \
 		-o out/motorcycle/relit
+	$(VENV)/usdrelight relight out/motorcycle/scene.usda --mode ratio -o out/motorcycle/relit_night \
+		--light spot:-1.2,0.5,-1.0:0.8,-0.2,-0.6:20,12,6:40:0.4 --light dome:0.01,0.012,0.02
 
 test: setup
 	$(VENV)/python -m pytest -q

@@ -156,14 +156,15 @@ def cmd_relight(args) -> int:
     from .neural.relight import relight
 
     res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
-                  max_side=args.max_side, renderer=args.renderer, sequence=args.sequence)
+                  max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode)
 
     def secs(d):
         return {k: round(v, 4) for k, v in d.items()}
     frames = [{"exr": str(f.exr), "png": str(f.png), "diffuse": str(f.diffuse), "lights": f.lights,
                "seconds": secs(f.seconds)} for f in res.frames]
     first = res.frames[0]
-    summary = {"renderer": res.renderer, "cache": None if res.cache_hit is None else ("hit" if res.cache_hit else "built"),
+    cache = None if res.cache_hit is None else ("hit" if res.cache_hit else "built")
+    summary = {"renderer": res.renderer, "mode": args.mode, "cache": cache,
                "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
                "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,
                "seconds": secs({**res.seconds, **(first.seconds if args.sequence is None else {}),
@@ -282,6 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
     rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
                     help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
     rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
+    rl.add_argument("--mode", choices=["neural", "ratio", "add"], default="neural",
+                    help="neural: the network on the render; ratio: photo x new render / fitted render; "
+                         "add: photo + render of the added lights")
     rl.add_argument("--model", type=Path)
     rl.add_argument("-o", "--output", type=Path)
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")

@@ -7,6 +7,9 @@ disk. New lights use the ``--light`` syntax (:mod:`usdrelight.stage.light_specs`
 the stage. The stage's user lights always apply; its fitted lights (the photo's own lighting) with
 ``with_fitted``.
 
+Modes (:mod:`usdrelight.neural.composite`): ``neural`` (the network on D~, albedo and mask), ``ratio`` (the photo
+times the new render over the fitted render) and ``add`` (the photo plus the render of the added lights).
+
 Renderers: ``fast`` (default; :mod:`usdrelight.engine`, light-independent work cached in ``STAGE_DIR/cache``)
 or ``mitsuba`` (path tracing, the reference). The fast renderer handles Lambertian scenes; for others the
 session falls back to Mitsuba with one warning. Emitters are never visible to camera rays in either.
@@ -23,12 +26,13 @@ import numpy as np
 
 from ..engine.renderer import CACHE_DIR, EngineSettings, FastRenderer
 from ..errors import UsdRelightError
-from ..imageio import write_image
+from ..imageio import read_photo, resize_image, write_image
 from ..mitsuba.render import render_record
 from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
 from ..stage.read import read_scene
 from ..stage.validate import open_stage
+from .composite import MODES, add_composite, ratio_composite
 from .model import RelightModel, build_input, write_relit
 
 log = logging.getLogger(__name__)
@@ -50,28 +54,36 @@ class RelitFrame:
     lights: int
     """Lights rendered (user, fitted when asked, and the frame's own)."""
     seconds: dict = field(default_factory=dict)
-    """Wall time: render, hole_fill, network, total."""
+    """Wall time: render, then hole_fill + network (neural) or composite (ratio, add), total."""
 
 
 class RelightSession:
     """A stage opened for relighting: prepared once, then rendered for any light set."""
 
     def __init__(self, stage_path, *, max_side: int | None = 512, renderer: str = "fast", with_fitted: bool = False,
-                 model_path=None, spp: int = 32, max_depth: int = 3, settings: EngineSettings | None = None):
+                 model_path=None, spp: int = 32, max_depth: int = 3, settings: EngineSettings | None = None,
+                 mode: str = "neural"):
         if renderer not in RENDERERS:
             raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
+        if mode not in MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if spp < 1 or max_depth < 2:
             raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
         t0 = time.perf_counter()
         self.stage_path = Path(stage_path)
-        rec = read_scene(open_stage(stage_path))
+        stage = open_stage(stage_path)
+        rec = read_scene(stage)
         if rec.camera is None:
             raise UsdRelightError(f"{stage_path} has no camera")
-        self.base_lights = tuple(l for l in rec.lights
-                                 if with_fitted or not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        fitted = tuple(l for l in rec.lights if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        self.fitted_lights = fitted
+        self.user_lights = tuple(l for l in rec.lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        self.base_lights = self.user_lights + (fitted if with_fitted else ())
         self.scene = rec.with_camera(rec.camera.limited(max_side))
-        self.spp, self.max_depth = spp, max_depth
-        self.model = RelightModel(model_path)
+        self.spp, self.max_depth, self.mode = spp, max_depth, mode
+        self.model = RelightModel(model_path) if mode == "neural" else None
+        self.photo = self._photo(stage) if mode != "neural" else None
+        self._fitted_render = None
         self.seconds = {"read": time.perf_counter() - t0}
         self.engine = None
         if renderer == "fast":
@@ -88,27 +100,56 @@ class RelightSession:
         """Whether the fast renderer found its prepared data on disk (None with Mitsuba)."""
         return None if self.engine is None else self.engine.cache_hit
 
+    def _photo(self, stage) -> np.ndarray:
+        """The source photo (RelightProvenanceAPI usdrelight:sourcePhoto) at the render resolution."""
+        root = stage.GetDefaultPrim()
+        attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
+        asset = attr.Get() if attr else None
+        path = asset.resolvedPath if asset is not None else ""
+        if not path:
+            raise UsdRelightError(f"modes ratio and add need the stage's source photo (usdrelight:sourcePhoto), "
+                                  f"which {self.stage_path} does not name or which was moved")
+        k = self.scene.camera.intrinsics
+        return resize_image(read_photo(path), k.width, k.height)
+
+    def _diffuse(self, lights):
+        """(D~, albedo, valid) under ``lights``."""
+        if self.engine is not None:
+            aovs = self.engine.render(lights)
+            return aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5
+        out = render_record(self.scene.with_lights(lights), {"beauty", "albedo", "valid"}, spp=self.spp,
+                            max_depth=self.max_depth, hide_emitters=True)
+        return out["beauty"], out["albedo"], out["valid"][..., 0] > 0.5
+
     def render(self, lights=()) -> RelitFrame:
         """Relight with the stage's lights plus ``lights`` (``--light`` strings or LightRecords)."""
         t0 = time.perf_counter()
-        all_lights = list(self.base_lights) + parse_lights(lights)
-        if not all_lights:
+        added = parse_lights(lights)
+        all_lights = list(self.base_lights) + added
+        if self.mode == "add":
+            all_lights = list(self.user_lights) + added  # rendered on top of the photo's own light
+        if not all_lights and self.mode != "add":
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
-        if self.engine is not None:
-            aovs = self.engine.render(all_lights)
-            beauty, albedo, valid = aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5
-        else:
-            out = render_record(self.scene.with_lights(all_lights), {"beauty", "albedo", "valid"}, spp=self.spp,
-                                max_depth=self.max_depth, hide_emitters=True)
-            beauty, albedo, valid = out["beauty"], out["albedo"], out["valid"][..., 0] > 0.5
+        beauty, albedo, valid = self._diffuse(all_lights)
         sec = {"render": time.perf_counter() - t0}
         t = time.perf_counter()
-        x = build_input(beauty, albedo, valid)
-        sec["hole_fill"] = time.perf_counter() - t
-        t = time.perf_counter()
-        image = self.model(x)
-        sec["network"] = time.perf_counter() - t
+        if self.mode == "neural":
+            x = build_input(beauty, albedo, valid)
+            sec["hole_fill"] = time.perf_counter() - t
+            t = time.perf_counter()
+            image = self.model(x)
+            sec["network"] = time.perf_counter() - t
+        elif self.mode == "ratio":
+            if self._fitted_render is None:
+                if not self.fitted_lights:
+                    raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first")
+                self._fitted_render = self._diffuse(list(self.fitted_lights))[0]
+            image = ratio_composite(self.photo, beauty, self._fitted_render, valid)
+            sec["composite"] = time.perf_counter() - t
+        else:
+            image = add_composite(self.photo, beauty)
+            sec["composite"] = time.perf_counter() - t
         sec["total"] = time.perf_counter() - t0
         return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec)
 
@@ -168,7 +209,8 @@ def read_sequence(path) -> list[list[str]]:
 
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
-            max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None) -> RelightResult:
+            max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
+            mode: str = "neural") -> RelightResult:
     """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or with ``sequence`` (a LIGHTS.json
     path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame."""
     t0 = time.perf_counter()
@@ -177,7 +219,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     for f in frames or []:
         parse_lights(f)
     session = RelightSession(stage_path, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
-                             model_path=model_path, spp=spp, max_depth=max_depth)
+                             model_path=model_path, spp=spp, max_depth=max_depth, mode=mode)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
     for i, extra in enumerate(frames if frames is not None else [[]]):

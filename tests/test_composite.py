@@ -1,0 +1,72 @@
+"""Compositing modes: closed-form definitions and the relight session end to end."""
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from usdrelight.imageio import read_photo, resize_image
+from usdrelight.neural.composite import add_composite, ratio_composite
+from usdrelight.neural.relight import RelightSession
+from usdrelight.stage.lights_layer import write_fitted_lights
+from usdrelight.stage.records import FitProvenance, PointLightValue
+
+from conftest import EXAMPLES
+
+RNG = np.random.default_rng(3)
+PHOTO = RNG.random((12, 16, 3)).astype(np.float32)
+VALID = np.ones((12, 16), bool)
+VALID[:3, :4] = False
+
+
+def test_ratio_of_identical_renders_gives_the_photo_back():
+    f = RNG.random((12, 16, 3)).astype(np.float32)
+    f[5, 5] = 0.0  # a black pixel of the fitted render stays finite and exact
+    np.testing.assert_allclose(ratio_composite(PHOTO, f, f, VALID), PHOTO, rtol=1e-6, atol=1e-7)
+
+
+def test_ratio_scales_by_the_light_change_and_never_darkens_when_light_is_added():
+    f = RNG.random((12, 16, 3)).astype(np.float32) + 0.5
+    np.testing.assert_allclose(ratio_composite(PHOTO, 2 * f, f, VALID)[VALID], 2 * PHOTO[VALID], rtol=0.02)
+    added = f + RNG.random(f.shape).astype(np.float32)
+    assert np.all(ratio_composite(PHOTO, added, f, VALID) >= PHOTO - 1e-6)
+    assert np.all(np.isfinite(ratio_composite(PHOTO, f * 0, f * 0, VALID)))
+
+
+def test_add_with_no_added_light_gives_the_photo_and_never_darkens():
+    np.testing.assert_array_equal(add_composite(PHOTO, np.zeros_like(PHOTO)), PHOTO)
+    assert np.all(add_composite(PHOTO, RNG.random(PHOTO.shape)) >= PHOTO)
+
+
+@pytest.fixture(scope="module")
+def fitted_stage(tmp_path_factory):
+    from usdrelight.stage.build import BuildOptions, build
+
+    ex = EXAMPLES / "procedural"
+    out = tmp_path_factory.mktemp("comp") / "st"
+    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
+                                              albedo=ex / "albedo.exr"))
+    write_fitted_lights(out, [PointLightValue(np.array([-0.5, 1.0, -2.0]), np.array([4.0, 4.0, 4.0]))], None,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 1))
+    return out / "scene.usda"
+
+
+@pytest.mark.parametrize("mode", ["ratio", "add"])
+def test_session_modes_on_a_stage(fitted_stage, mode):
+    session = RelightSession(fitted_stage, max_side=96, with_fitted=True, mode=mode)
+    photo = resize_image(read_photo(EXAMPLES / "procedural" / "photo.exr"), *session.photo.shape[1::-1])
+    same = session.render([])
+    np.testing.assert_allclose(same.image, photo, rtol=1e-5, atol=1e-6)  # nothing changed: the photo itself
+    lit = session.render(["point:0.5,1.0,-2.5:3,3,3"])
+    assert np.all(lit.image >= photo - 1e-6) and lit.image.mean() > photo.mean() * 1.02
+    assert np.all(np.isfinite(lit.image))
+
+
+def test_ratio_without_fitted_lights_or_photo_is_a_clear_error(cli, fitted_stage, tmp_path):
+    stage = tmp_path / "st"
+    shutil.copytree(fitted_stage.parent, stage)
+    (stage / "lights_fitted.usda").write_text("#usda 1.0\n")
+    rc, _, err = cli("relight", stage / "scene.usda", "--mode", "ratio", "--light", "point:0,1,-2:1,1,1",
+                     "--max-side", "64", "-o", tmp_path / "o")
+    assert rc == 2 and "fitted lights" in err
