@@ -213,3 +213,27 @@ def test_single_relight_keeps_its_file_names_and_second_call_hits_the_cache(cli,
         assert (tmp_path / "one" / name).is_file()
     rc, _, err = cli("relight", procedural, "--light", "point:0,1,-2:1,-100,1")
     assert rc == 2 and "must be >= 0" in err
+
+
+def test_non_lambertian_stage_falls_back_to_mitsuba_with_one_warning(tmp_path, caplog):
+    from pxr import Sdf, UsdShade
+
+    from usdrelight.neural.relight import RelightSession
+
+    stage = looking_down_at_floor(tmp_path / "s.usda", width=16, height=12)
+    shader = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Grey/Surface"))
+    shader.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(0)  # metallic workflow: glossy
+    stage.GetRootLayer().Save()
+    import logging
+
+    logger = logging.getLogger("usdrelight")  # the CLI tests turn its propagation off: listen on it directly
+    logger.addHandler(caplog.handler)
+    try:
+        with caplog.at_level("WARNING", logger="usdrelight"):
+            session = RelightSession(tmp_path / "s.usda", max_side=None, spp=4)
+    finally:
+        logger.removeHandler(caplog.handler)
+    assert session.renderer == "mitsuba" and session.cache_hit is None
+    assert sum("rendering with Mitsuba" in r.getMessage() for r in caplog.records) == 1
+    frame = session.render(["point:0,1,0:20,20,20"])
+    assert np.all(np.isfinite(frame.diffuse)) and frame.diffuse.mean() > 0
