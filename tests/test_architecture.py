@@ -18,7 +18,8 @@ SOURCES = {ROOT / "usdrelight": "usdrelight", ROOT / "converters": "usdrelight.c
 #: The data flow, upstream first: a module may import its own layer and the layers before it, never later ones.
 LAYERS = [
     ("leaf", ["usdrelight", "usdrelight._llvm", "usdrelight.errors", "usdrelight.atomic", "usdrelight.imageio",
-              "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.schemas"]),
+              "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.safe_paths",
+              "usdrelight.schemas"]),
     ("estimate", ["usdrelight.estimate"]),
     ("stage", ["usdrelight.stage"]),
     ("mitsuba", ["usdrelight.mitsuba"]),

@@ -20,6 +20,16 @@ from .atomic import atomic_path
 from .errors import UsdRelightError
 
 LINEAR_FORMATS = {"float", "half", "double"}
+#: Largest image decoded, in megapixels (checked from the file header, before any pixel is decoded);
+#: the environment variable USDRELIGHT_MAX_MEGAPIXELS overrides it.
+DEFAULT_MAX_MEGAPIXELS = 120.0
+
+
+def max_megapixels() -> float:
+    try:
+        return float(os.environ.get("USDRELIGHT_MAX_MEGAPIXELS", DEFAULT_MAX_MEGAPIXELS))
+    except ValueError:
+        raise UsdRelightError("USDRELIGHT_MAX_MEGAPIXELS must be a number") from None
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -54,7 +64,12 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     buf = oiio.ImageBuf(str(path))
     if buf.has_error or not buf.initialized:
         raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'unknown format'}")
-    is_float = str(buf.spec().format) in LINEAR_FORMATS
+    spec = buf.spec()
+    megapixels = spec.width * spec.height / 1e6
+    if megapixels > max_megapixels():
+        raise UsdRelightError(f"image {path} is {spec.width}x{spec.height} ({megapixels:.0f} megapixels), over the "
+                              f"limit of {max_megapixels():g} (set USDRELIGHT_MAX_MEGAPIXELS to allow more)")
+    is_float = str(spec.format) in LINEAR_FORMATS
     if buf.orientation != 1:
         buf = oiio.ImageBufAlgo.reorient(buf)
     pixels = buf.get_pixels(oiio.FLOAT)

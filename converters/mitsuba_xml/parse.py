@@ -19,6 +19,10 @@ from usdrelight.mitsuba.runtime import load_mitsuba
 
 from .common import Plugin
 
+#: <include> elements followed in one document, nested ones counted (files that include each other twice
+#: would otherwise grow exponentially).
+MAX_INCLUDES = 256
+
 
 class XmlReader:
     """Mitsuba XML -> Plugin trees: <default>/$name substitution, <include>, <path>, id/<ref>, values, transforms."""
@@ -29,6 +33,7 @@ class XmlReader:
         self.ids: dict = {}
         self.warnings = warnings
         self.include_depth = 0
+        self.include_count = 0
 
     # ---- text and files -------------------------------------------------------------------
     def parse_text(self, text: str, source: str) -> ET.Element:
@@ -77,6 +82,9 @@ class XmlReader:
             elif el.tag == "include":
                 fname = self.resolve(self.sub(el.get("filename")), here)
                 self.include_depth += 1
+                self.include_count += 1
+                if self.include_count > MAX_INCLUDES:
+                    raise UsdRelightError(f"{fname}: more than {MAX_INCLUDES} <include>s in one scene")
                 if self.include_depth > 32:
                     raise UsdRelightError(f"{fname}: includes nested too deeply (a cycle?)")
                 sub_root = self.parse_text(fname.read_text(), str(fname))

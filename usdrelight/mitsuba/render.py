@@ -23,6 +23,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import write_image
+from ..safe_paths import confined_path
 from ..stage.read import read_scene
 from ..stage.records import RenderVarRecord, SceneRecord
 from ..stage.validate import open_stage
@@ -157,17 +158,18 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
         raise UsdRelightError("--spp and --max-depth must be >= 1")
     products = [declared[n] for n in names]
     wanted = {aov_kind(v) for p in products for v in p.vars}
+    base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
+    paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
     t1 = time.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed)
     t2 = time.perf_counter()
-    base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     files = {}
     for p in products:
         chans = [images[aov_kind(v)] for v in p.vars]
         if not chans:
             continue
         pix = np.concatenate(chans, axis=2)
-        path = base / p.product_name
+        path = paths[p.name]
         try:
             write_image(path, pix, "float")
         except OSError as exc:

@@ -24,6 +24,7 @@ from ..errors import UsdRelightError
 from ..imageio import read_map, write_image
 from ..mitsuba.render import aov_kind, render_stage
 from ..onnx_runtime import first_line, open_session
+from ..safe_paths import confined_path
 from ..stage.read import read_scene
 from ..stage.validate import open_stage
 
@@ -152,7 +153,7 @@ def find_aovs(stage_path) -> dict:
         kinds = [aov_kind(v) for v in p.vars]
         if len(kinds) == 1:
             key = {"beauty": "diffuse"}.get(kinds[0], kinds[0])
-            found[key] = (p.name, base / p.product_name)
+            found[key] = (p.name, confined_path(base, p.product_name, f"RenderProduct {p.name} productName"))
     missing = [k for k in ("diffuse", "albedo", "valid") if k not in found]
     if missing:
         raise UsdRelightError(f"{stage_path} declares no RenderProduct for {missing}")

@@ -127,7 +127,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
     if len(pts) == 0 or len(counts) == 0:
         warnings["empty mesh (skipped)"] += 1
         return []
-    if counts.sum() != len(idx) or idx.max(initial=0) >= len(pts) or idx.min(initial=0) < 0:
+    if np.any(counts < 0) or counts.sum() != len(idx) or idx.max(initial=0) >= len(pts) or idx.min(initial=0) < 0:
         raise UsdRelightError(f"mesh {prim.GetPath()} has inconsistent faceVertexCounts/Indices")
     if np.any(counts < 3):
         warnings["faces with fewer than 3 vertices (skipped)"] += 1
