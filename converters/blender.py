@@ -11,7 +11,6 @@ relight loop closes. Units and frames: :mod:`usdrelight.converters.blender_units
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import subprocess

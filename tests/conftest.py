@@ -71,3 +71,13 @@ def small_photo(tmp_path):
 def write_plane_depth(path: Path, h: int, w: int, z: float = 2.0) -> Path:
     np.save(path, np.full((h, w), z, np.float32))
     return path
+
+
+def build_procedural(out: Path, stride: int = 1) -> Path:
+    """Build the procedural example (exact depth, intrinsics and albedo) into ``out``; returns its scene.usda."""
+    from usdrelight.stage.build import BuildOptions, build
+
+    ex = EXAMPLES / "procedural"
+    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
+                                              albedo=ex / "albedo.exr", stride=stride))
+    return out / "scene.usda"

@@ -12,7 +12,7 @@ from usdrelight.neural.relight import RelightSession
 from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.records import FitProvenance, PointLightValue
 
-from conftest import EXAMPLES
+from conftest import EXAMPLES, build_procedural
 
 RNG = np.random.default_rng(3)
 PHOTO = RNG.random((12, 16, 3)).astype(np.float32)
@@ -41,15 +41,11 @@ def test_add_with_no_added_light_gives_the_photo_and_never_darkens():
 
 @pytest.fixture(scope="module")
 def fitted_stage(tmp_path_factory):
-    from usdrelight.stage.build import BuildOptions, build
-
-    ex = EXAMPLES / "procedural"
     out = tmp_path_factory.mktemp("comp") / "st"
-    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
-                                              albedo=ex / "albedo.exr"))
+    scene = build_procedural(out)
     write_fitted_lights(out, [PointLightValue(np.array([-0.5, 1.0, -2.0]), np.array([4.0, 4.0, 4.0]))], None,
                         FitProvenance("fast", 0.0, 0.0, 0.0, 1))
-    return out / "scene.usda"
+    return scene
 
 
 @pytest.mark.parametrize("mode", ["ratio", "add"])

@@ -9,18 +9,14 @@ from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
 from usdrelight.stage.validate import open_stage
 
-from conftest import EXAMPLES
+from conftest import build_procedural
 
 
 @pytest.fixture(scope="module")
 def small_stage(tmp_path_factory):
-    from usdrelight.stage.build import BuildOptions, build
-
-    ex = EXAMPLES / "procedural"
     out = tmp_path_factory.mktemp("mesh") / "st"
-    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
-                                              albedo=ex / "albedo.exr", stride=4))
-    return out / "scene.usda"
+    scene = build_procedural(out, stride=4)
+    return scene
 
 
 def test_glb_round_trip_keeps_geometry_uvs_and_albedo(cli, small_stage, tmp_path):

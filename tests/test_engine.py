@@ -17,7 +17,7 @@ from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import LightRecord
 from usdrelight.stage.validate import open_stage
 
-from conftest import EXAMPLES
+from conftest import build_procedural
 
 ALBEDO = 0.5
 
@@ -89,13 +89,9 @@ def test_the_usdlux_closed_form_scenes_agree(tmp_path):
 
 @pytest.fixture(scope="module")
 def procedural(tmp_path_factory):
-    from usdrelight.stage.build import BuildOptions, build
-
-    ex = EXAMPLES / "procedural"
     out = tmp_path_factory.mktemp("proc") / "st"
-    build(ex / "photo.exr", out, BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
-                                              albedo=ex / "albedo.exr"))
-    return out / "scene.usda"
+    scene = build_procedural(out)
+    return scene
 
 
 SCENE_LIGHTS = {

@@ -6,7 +6,6 @@ import struct
 import time
 import zlib
 
-import numpy as np
 
 from usd_scenes import looking_down_at_floor
 

@@ -25,7 +25,7 @@ from usdrelight.stage.camera import author_usd_camera
 from usdrelight.stage.create import author_render_settings, create_stage
 from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
 
-from .common import PrimNamer, rel_path
+from .common import Plugin, PrimNamer, rel_path
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
 

@@ -16,8 +16,6 @@ from .records import MaterialRecord, MeshRecord, TextureRecord
 
 # ---- materials --------------------------------------------------------------------------------
 def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | None:
-    from pxr import UsdShade
-
     sid = shader.GetIdAttr().Get()
     if sid != "UsdUVTexture":
         warnings[f"shader '{sid}' feeding a UsdPreviewSurface input (constant used)"] += 1
