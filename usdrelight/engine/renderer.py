@@ -151,6 +151,7 @@ class FastRenderer:
         self.key = scene_key(rec, settings)
         self.seconds: dict = {}
         self.cache_hit = False
+        self.smooth = None  # the bounce filter; built once, from the prepared hits
         t = time.perf_counter()
         cache = Path(cache_dir) / f"relight-{self.key}.npz" if cache_dir is not None else None
         if cache is not None and cache.is_file():
@@ -165,7 +166,8 @@ class FastRenderer:
                                  settings.seed)
             # the environment basis is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
             # noise is the largest error of an environment-lit frame), and kept in half precision, as cached
-            H = (bounce_filter(prob) @ tr.H).astype(np.float16).astype(np.float32)
+            self.smooth = bounce_filter(prob)
+            H = (self.smooth @ tr.H).astype(np.float16).astype(np.float32)
             self.transport = Transport(prob, tr.env_shape, H, tr.P, tr.r_min, tr.eps)
             mi = load_mitsuba()
             self.pixel_albedo = footprint_albedo(mi, prob.mi_scene, prob.width, prob.height)[
@@ -173,7 +175,8 @@ class FastRenderer:
             if cache is not None:
                 self._save(cache)
         self.problem: FitProblem = self.transport.problem
-        self.smooth = bounce_filter(self.problem)
+        if self.smooth is None:
+            self.smooth = bounce_filter(self.problem)
         self.textures: dict = {}
         self.seconds["prepare"] = time.perf_counter() - t
 

@@ -215,15 +215,15 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame."""
     t0 = time.perf_counter()
     frames = read_sequence(sequence) if sequence is not None else None
-    parse_lights(lights)  # bad specs fail before any work
-    for f in frames or []:
-        parse_lights(f)
+    # parsed once, before any work: a bad spec fails fast, and each frame reuses the records
+    common = parse_lights(lights)
+    per_frame = [parse_lights(f, len(common)) for f in frames] if frames is not None else [[]]
     session = RelightSession(stage_path, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
                              model_path=model_path, spp=spp, max_depth=max_depth, mode=mode)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
-    for i, extra in enumerate(frames if frames is not None else [[]]):
-        frame = session.render(list(lights) + list(extra))
+    for i, extra in enumerate(per_frame):
+        frame = session.render(common + extra)
         written.append(_write_frame(out_dir, f"_{i:04d}" if frames is not None else "", frame))
     h, w = frame.image.shape[:2]
     return RelightResult(tuple(written), (w, h), session.renderer, session.cache_hit,
