@@ -11,6 +11,7 @@ from usd_scenes import camera, diffuse_material, new_stage
 from usdrelight.intrinsics import Intrinsics
 from usdrelight.stage.lux import emitted_radiance, light_direction
 from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.safe_paths import allow_paths
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.validate import errors_only, open_stage, validate_stage
 
@@ -25,7 +26,7 @@ def _render_xml(path, spp=64):
 
 
 def test_real_spot_scene_round_trips_through_usd(cli, tmp_path):
-    rc, _, err = cli("convert", SPOT, tmp_path / "spot.usda")
+    rc, _, err = cli("convert", SPOT, tmp_path / "spot.usda", "--allow-path", MITSUBA_DATA)  # <path> ../../../common
     assert rc == 0, err
     assert "spot emitter texture" in err  # named, not dropped silently
     stage = open_stage(tmp_path / "spot.usda")
@@ -42,7 +43,7 @@ def test_real_spot_scene_round_trips_through_usd(cli, tmp_path):
 
 
 def test_missing_referenced_file_is_a_clear_error(cli, tmp_path):
-    rc, out, err = cli("convert", SPHERES, tmp_path / "s.usda")
+    rc, out, err = cli("convert", SPHERES, tmp_path / "s.usda", "--allow-path", MITSUBA_DATA)
     assert rc == 2 and "museum.exr" in err and "not found" in err and "Traceback" not in err
     assert not (tmp_path / "s.usda").exists()
 
@@ -129,16 +130,18 @@ def test_xml_features_round_trip_renders_alike(cli, tmp_path):
     src.mkdir()
     (src / "scene.xml").write_text(FEATURE_XML.format(common=MITSUBA_DATA / "common"))
     (src / "fragment.xml").write_text(FRAGMENT_XML)
-    rc, _, err = cli("convert", src / "scene.xml", tmp_path / "usd" / "scene.usda")
+    allow = ("--allow-path", MITSUBA_DATA / "common")  # the scene's <path> and its meshes/textures
+    rc, _, err = cli("convert", src / "scene.xml", tmp_path / "usd" / "scene.usda", *allow)
     assert rc == 0, err
     stage = open_stage(tmp_path / "usd" / "scene.usda")
     assert errors_only(validate_stage(stage)) == []
-    rec = read_scene(stage)
+    with allow_paths([MITSUBA_DATA / "common"]):
+        rec = read_scene(stage)
     kinds = sorted(l.kind for l in rec.lights)
     assert kinds == ["distant", "dome", "rect", "sphere"]
     assert len(rec.meshes) == 3 and sorted(s.kind for s in rec.shapes) == ["cube", "sphere"]
     assert rec.camera.intrinsics.fy == pytest.approx(30 / (2 * math.tan(math.radians(22.5))), rel=1e-5)
-    assert cli("convert", tmp_path / "usd" / "scene.usda", tmp_path / "out" / "scene.xml")[0] == 0
+    assert cli("convert", tmp_path / "usd" / "scene.usda", tmp_path / "out" / "scene.xml", *allow)[0] == 0
     a, b = _render_xml(src / "scene.xml", 128), _render_xml(tmp_path / "out" / "scene.xml", 128)
     assert b.mean() == pytest.approx(a.mean(), rel=0.05)
     assert np.abs(a - b).mean() < 0.1 * a.mean()
@@ -219,9 +222,11 @@ def test_usd_xml_usd_keeps_values(cli, tmp_path):
 
     write_image(tex, np.random.default_rng(0).random((8, 8, 3)), "half")
     _rich_stage(tmp_path / "a.usda", tex)
-    assert cli("convert", tmp_path / "a.usda", tmp_path / "x" / "scene.xml")[0] == 0
-    assert cli("convert", tmp_path / "x" / "scene.xml", tmp_path / "b.usda")[0] == 0
-    a, b = read_scene(open_stage(tmp_path / "a.usda")), read_scene(open_stage(tmp_path / "b.usda"))
+    hdri = ("--allow-path", SHARED / "hdri")  # the dome's texture lies outside the stage's folder
+    assert cli("convert", tmp_path / "a.usda", tmp_path / "x" / "scene.xml", *hdri)[0] == 0
+    assert cli("convert", tmp_path / "x" / "scene.xml", tmp_path / "b.usda")[0] == 0  # textures copied beside it
+    with allow_paths([SHARED / "hdri"]):
+        a, b = read_scene(open_stage(tmp_path / "a.usda")), read_scene(open_stage(tmp_path / "b.usda"))
     # camera: intrinsics and pose
     for k in ("fx", "fy", "cx", "cy", "width", "height"):
         assert getattr(b.camera.intrinsics, k) == pytest.approx(getattr(a.camera.intrinsics, k), rel=1e-5)

@@ -15,6 +15,7 @@ import numpy as np
 
 from . import __version__
 from .errors import UsdRelightError
+from .safe_paths import allow_paths
 
 log = logging.getLogger("usdrelight")
 EXIT_USER_ERROR = 2
@@ -206,6 +207,10 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    reads = argparse.ArgumentParser(add_help=False)  # commands that read scene files
+    reads.add_argument("--allow-path", action="append", type=Path, default=[], metavar="DIR",
+                       help="also let the scene read files under DIR (repeatable; by default a scene reads only "
+                            "inside its own folder tree)")
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--json", action="store_true", help="print a machine-readable JSON summary on stdout")
     common.add_argument("-v", "--verbose", action="count", default=0, help="more logging on stderr (-vv for debug)")
@@ -236,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cut triangles whose normal is more than this many degrees from the view ray")
     b.set_defaults(func=cmd_build)
 
-    r = sub.add_parser("render", parents=[common], help="render the AOVs the stage's RenderSettings declare",
+    r = sub.add_parser("render", parents=[common, reads], help="render the AOVs the stage's RenderSettings declare",
                        description="Render the stage's RenderProducts with Mitsuba (llvm_ad_rgb) to linear EXR.")
     r.add_argument("stage", type=Path)
     r.add_argument("-o", "--output", type=Path, help="output folder (default: the stage's folder)")
@@ -247,7 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0)
     r.set_defaults(func=cmd_render)
 
-    f = sub.add_parser("fit", parents=[common], help="fit lights to the photo's diffuse image",
+    f = sub.add_parser("fit", parents=[common, reads], help="fit lights to the photo's diffuse image",
                        description="Fit an environment map and point lights so the render reproduces D; write "
                                    "them into the fitted-lights layer.")
     f.add_argument("stage", type=Path)
@@ -261,7 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int, default=0)
     f.set_defaults(func=cmd_fit)
 
-    n = sub.add_parser("neural", parents=[common], help="run the neural renderer on the stage's AOVs",
+    n = sub.add_parser("neural", parents=[common, reads], help="run the neural renderer on the stage's AOVs",
                        description="Read D~, albedo and valid mask through the stage's RenderProducts, fill "
                                    "holes, run the ONNX network; write linear EXR and sRGB PNG.")
     n.add_argument("stage", type=Path)
@@ -271,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--spp", type=_positive_int, default=64)
     n.set_defaults(func=cmd_neural)
 
-    rl = sub.add_parser("relight", parents=[common], help="apply lights, render, run the network",
+    rl = sub.add_parser("relight", parents=[common, reads], help="apply lights, render, run the network",
                         description="Relight the photo: user lights (layer and --light), render AOVs, network.")
     rl.add_argument("stage", type=Path)
     rl.add_argument("--light", action="append", metavar="SPEC",
@@ -302,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=_positive_int, default=1500)
     tr.set_defaults(func=cmd_train)
 
-    c = sub.add_parser("convert", parents=[common], help="convert between USD and Mitsuba XML, Blender, glTF/PLY/OBJ",
+    c = sub.add_parser("convert", parents=[common, reads], help="convert between USD and Mitsuba XML, Blender, glTF/PLY/OBJ",
                        description="Convert SRC to DST, each format chosen by its suffix.")
     c.add_argument("src", type=Path)
     c.add_argument("dst", type=Path)
@@ -324,7 +329,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     try:
-        return int(args.func(args) or 0)
+        with allow_paths(getattr(args, "allow_path", [])):
+            return int(args.func(args) or 0)
     except UsdRelightError as exc:
         sys.stderr.write(f"usdrelight: error: {_one_line(exc)}\n")
         return EXIT_USER_ERROR

@@ -4,11 +4,19 @@ A RenderProduct's ``productName`` (and any other file a stage asks usdrelight to
 output folder) must be a relative path that stays inside that folder once normalised and once symbolic links
 are resolved; absolute names and names that climb out with ``..`` are refused, so a stage can never make a
 command touch a file elsewhere.
+
+Files a scene file makes usdrelight read (Mitsuba XML includes, meshes, bitmaps, ``<path>`` folders; USD
+textures and the diffuse target) must lie inside the scene file's folder tree or under a folder the user
+allowed with ``--allow-path DIR`` (:func:`allow_paths`); :func:`check_read` refuses the others by name, before
+anything is read.
 """
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path, PurePosixPath
+from typing import Iterable
 
 from .errors import UsdRelightError
 
@@ -26,3 +34,47 @@ def confined_path(base: str | os.PathLike, name: str, what: str = "file") -> Pat
     if real != real_base and real_base not in real.parents:
         raise UsdRelightError(f"{what} {name!r} leads outside {base} (through a symbolic link)")
     return path
+
+
+# ---- read confinement ----------------------------------------------------------------------------
+#: Extra folders the user allowed scene files to read from (``--allow-path DIR``), for the running command.
+_ALLOWED: ContextVar[tuple[Path, ...]] = ContextVar("usdrelight_allowed_paths", default=())
+
+
+@contextmanager
+def allow_paths(dirs: Iterable[str | os.PathLike]):
+    """Within the block, scene files may also read files under each of ``dirs`` (``--allow-path``)."""
+    token = _ALLOWED.set(_ALLOWED.get() + tuple(Path(d).resolve() for d in dirs))
+    try:
+        yield
+    finally:
+        _ALLOWED.reset(token)
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def _package_file(path: str) -> str:
+    """``/a/x.usdz`` for a USD package-relative path ``/a/x.usdz[textures/albedo.exr]``."""
+    return path[:path.index("[")] if path.endswith("]") and "[" in path else path
+
+
+def check_read(path: str | os.PathLike, root: str | os.PathLike | None, what: str = "file") -> Path:
+    """``path`` (resolved) when it lies inside the scene folder ``root`` or a folder allowed with
+    ``--allow-path``; UsdRelightError naming it otherwise. ``root`` None (a scene held only in memory):
+    every path is accepted. Never reads the file."""
+    if root is None:
+        return Path(path)
+    real = Path(_package_file(os.fspath(path))).resolve()
+    for folder in (Path(root).resolve(),) + _ALLOWED.get():
+        if _inside(real, folder):
+            return Path(path)
+    raise UsdRelightError(f"{what} {os.fspath(path)} is outside the scene's folder {root}; "
+                          f"pass --allow-path DIR to allow reading from DIR")
+
+
+def stage_folder(stage) -> Path | None:
+    """The folder of a Usd.Stage's root layer (None for a stage held only in memory)."""
+    real = stage.GetRootLayer().realPath if stage is not None else ""
+    return Path(_package_file(real)).parent if real else None

@@ -16,6 +16,7 @@ import numpy as np
 
 from usdrelight.errors import UsdRelightError
 from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.safe_paths import check_read
 
 from .common import Plugin
 
@@ -27,7 +28,9 @@ MAX_INCLUDES = 256
 class XmlReader:
     """Mitsuba XML -> Plugin trees: <default>/$name substitution, <include>, <path>, id/<ref>, values, transforms."""
 
-    def __init__(self, warnings: Counter):
+    def __init__(self, warnings: Counter, root: Path | None = None):
+        self.root = root
+        """The scene file's folder: every file it makes us read must lie in its tree (or under --allow-path)."""
         self.defaults: dict = {}
         self.search: list[Path] = []
         self.ids: dict = {}
@@ -49,12 +52,13 @@ class XmlReader:
 
     def resolve(self, name: str, here: Path) -> Path:
         p = Path(name)
+        what = "file referenced by the scene"
         if p.is_absolute():
-            if p.is_file():
+            if check_read(p, self.root, what).is_file():
                 return p
         else:
             for d in [here] + self.search:
-                if (d / p).is_file():
+                if check_read(d / p, self.root, what).is_file():
                     return (d / p).resolve()
         raise UsdRelightError(f"file referenced by the scene not found: {name} (searched {here}"
                               f"{''.join(', ' + str(s) for s in self.search)})")
@@ -78,7 +82,8 @@ class XmlReader:
             if el.tag == "default":
                 self.defaults.setdefault(el.get("name"), el.get("value"))
             elif el.tag == "path":
-                self.search.append((here / self.sub(el.get("value"))).resolve())
+                folder = here / (self.sub(el.get("value")) or "")
+                self.search.append(check_read(folder, self.root, "<path> folder").resolve())
             elif el.tag == "include":
                 fname = self.resolve(self.sub(el.get("filename")), here)
                 self.include_depth += 1
@@ -87,7 +92,11 @@ class XmlReader:
                     raise UsdRelightError(f"{fname}: more than {MAX_INCLUDES} <include>s in one scene")
                 if self.include_depth > 32:
                     raise UsdRelightError(f"{fname}: includes nested too deeply (a cycle?)")
-                sub_root = self.parse_text(fname.read_text(), str(fname))
+                try:
+                    text = fname.read_text()
+                except (OSError, UnicodeDecodeError) as exc:  # the message names the file, not its bytes
+                    raise UsdRelightError(f"cannot read included file {fname} ({type(exc).__name__})") from None
+                sub_root = self.parse_text(text, str(fname))
                 self.scene_children(sub_root, fname.parent, out)
                 self.include_depth -= 1
             else:
@@ -229,7 +238,7 @@ def integrator_json(p: Plugin) -> dict:
 
 def parse_scene(text: str, source: str, here: Path, warnings: Counter) -> list[Plugin]:
     """The top-level objects of a scene document, includes expanded and file names resolved."""
-    reader = XmlReader(warnings)
+    reader = XmlReader(warnings, here)
     root = reader.parse_text(text, source)
     objs: list = []
     reader.scene_children(root, here, objs)

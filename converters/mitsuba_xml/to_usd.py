@@ -141,7 +141,9 @@ class UsdBuilder:
         try:
             shape = mi.load_dict(props)
         except Exception as exc:
-            raise UsdRelightError(f"Mitsuba cannot load {p.resolved}: {str(exc).strip().splitlines()[-1]}") from None
+            # Mitsuba's message may quote the file's bytes (a bad header line): name the file, never its content.
+            raise UsdRelightError(f"Mitsuba cannot load {p.resolved}: not a valid {p.type} mesh file "
+                                  f"({type(exc).__name__})") from None
         params = mi.traverse(shape)
         pts = np.array(params["vertex_positions"], dtype=np.float64).reshape(-1, 3)
         faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)

@@ -1,11 +1,14 @@
 """USD stage -> Mitsuba 3 XML.
 
-Meshes are written as binary PLY into ``meshes/`` next to the XML, textures are referenced relatively; units
+Meshes are written as binary PLY into ``meshes/`` next to the XML; textures inside the XML's folder are
+referenced relatively, the others (and those inside a ``.usdz`` package) are copied into ``textures/`` first,
+so the XML reads only inside its own folder tree (see :mod:`usdrelight.safe_paths`); units
 and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
 XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator) are put back.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import xml.etree.ElementTree as ET
@@ -14,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from usdrelight.atomic import write_text_atomic
+from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
 from usdrelight.mitsuba.scene_dict import Matrix, safe_name, scene_dict
@@ -25,6 +28,27 @@ from .common import TAG_OF, VECTOR_KEYS, rel_path
 
 def _fmt(x: float) -> str:
     return repr(float(x)) if math.isfinite(x) else "0"
+
+
+def _local_file(path: str, base: Path, files: list) -> str:
+    """``path`` relative to ``base`` when it lies inside; else a copy in ``base/textures`` (read through USD's
+    asset resolver, so ``x.usdz[textures/albedo.exr]`` works) and the copy's relative path."""
+    from pxr import Ar
+
+    packaged = path.endswith("]") and "[" in path
+    if not packaged and base.resolve() in Path(path).resolve().parents:
+        return rel_path(path, base)
+    inner = Path(path[path.index("[") + 1:-1] if packaged else path)
+    asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(path))
+    if asset is None:
+        raise UsdRelightError(f"cannot read texture {path}")
+    data = bytes(asset.GetBuffer())
+    dst = base / "textures" / inner.name
+    if dst.exists() and dst.read_bytes() != data:  # another texture of the same name
+        dst = dst.with_name(f"{inner.stem}-{hashlib.sha1(path.encode()).hexdigest()[:8]}{inner.suffix}")
+    write_bytes_atomic(dst, data)
+    files.append(str(dst))
+    return rel_path(str(dst), base)
 
 
 def _to_xml(parent: ET.Element, name: str, value, base: Path, files: list) -> None:
@@ -43,7 +67,7 @@ def _to_xml(parent: ET.Element, name: str, value, base: Path, files: list) -> No
         ET.SubElement(parent, "float", name=name, value=_fmt(value))
     elif isinstance(value, str):
         if name == "filename":
-            value = rel_path(value, base)
+            value = _local_file(value, base, files)
         ET.SubElement(parent, "string", name=name, value=value)
     elif isinstance(value, (list, tuple, np.ndarray)) and len(value) == 3:
         tag = "vector" if name in VECTOR_KEYS else "point"
@@ -65,6 +89,8 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
     el = ET.SubElement(parent, tag, **attrs)
     if ptype == "envmap" and "tint" in d:
         src = d["filename"]
+        if src.endswith("]"):  # inside a .usdz package: extract it first
+            src = str(base / _local_file(src, base, files))
         dst = base / "textures" / f"{Path(src).stem}_{key}_tinted.exr"
         write_image(dst, read_photo(src) * np.asarray(d["tint"], np.float32), "float")
         files.append(str(dst))

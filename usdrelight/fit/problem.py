@@ -16,6 +16,7 @@ from ..imageio import read_photo, resize_image
 from ..mitsuba.render import trace_pixel_centres
 from ..mitsuba.runtime import load_mitsuba
 from ..mitsuba.scene_dict import scene_dict, to_mitsuba
+from ..safe_paths import check_read, stage_folder
 from ..stage.read import read_scene
 from ..stage.records import SceneRecord
 from ..stage.validate import open_stage
@@ -80,7 +81,7 @@ def diffuse_target_path(stage) -> Path:
     if asset is None or not asset.resolvedPath:
         raise UsdRelightError("the stage records no diffuse target (usdrelight:diffuseTarget); build it with "
                               "`usdrelight build`")
-    return Path(asset.resolvedPath)
+    return check_read(asset.resolvedPath, stage_folder(stage), "diffuse target")
 
 
 def geometry_scene(rec: SceneRecord):

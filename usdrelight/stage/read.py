@@ -17,6 +17,7 @@ from collections import Counter
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..safe_paths import check_read, stage_folder
 from .camera import intrinsics_from_usd_camera
 from .read_geometry import read_material, read_mesh
 from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
@@ -88,6 +89,7 @@ def read_light(prim, xf: np.ndarray, warnings) -> LightRecord | None:
             fmt = d.GetTextureFormatAttr().Get()
             if fmt not in ("automatic", "latlong"):
                 warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
+            check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
             tex = TextureRecord(asset.resolvedPath, "auto")
         if t == "DomeLight_1" and d.GetPoleAxisAttr().Get() == "Z":
             common["to_world"] = xf @ _rot_x(90.0)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, MeshRecord, TextureRecord
 
 
@@ -28,6 +29,7 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     resolved = asset.resolvedPath or ""
     if not resolved:
         raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()})")
+    check_read(resolved, stage_folder(shader.GetPrim().GetStage()), f"texture (used by {shader.GetPath()})")
     cs = shader.GetInput("sourceColorSpace")
     scale = shader.GetInput("scale")
     bias = shader.GetInput("bias")
