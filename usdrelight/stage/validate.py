@@ -1,11 +1,14 @@
 """Open a stage, and validate it with every validator that ``pxr.UsdValidation`` knows (usdchecker's engine)."""
 from __future__ import annotations
 
+import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from .. import schemas
 from ..errors import UsdRelightError
+from ..native_io import captured_stderr
 
 
 @dataclass(frozen=True)
@@ -23,21 +26,42 @@ class Finding:
 
 
 def open_stage(path: str | Path):
-    """Open a stage (with usdrelight's schema registered); one-line error when it cannot be opened."""
+    """Open a stage (with usdrelight's schema registered); one-line error when it cannot be opened or does not
+    compose cleanly: a sublayer, reference or payload that is missing, unreadable, malformed or cyclic is an
+    error (USD itself would skip it with a warning and go on without, e.g., the user's lights)."""
     from pxr import Tf, Usd
 
     schemas.register()
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"stage not found: {path}")
-    try:
-        stage = Usd.Stage.Open(str(path))
-    except Tf.ErrorException as exc:
-        first = str(exc).strip().splitlines()
-        raise UsdRelightError(f"cannot open stage {path}: {first[-1] if first else 'unknown error'}") from None
+    with captured_stderr() as native:  # USD's warnings become the one error line below (or are replayed)
+        try:
+            stage = Usd.Stage.Open(str(path))
+        except Tf.ErrorException as exc:
+            stage, failure = None, str(exc).strip().splitlines()
+        else:
+            failure = None
     if stage is None:
-        raise UsdRelightError(f"cannot open stage {path}")
+        msgs = [m.group(1) for m in (re.search(r" : '(.*)'?$", line.strip()) for line in failure or []) if m]
+        reason = _layer_error(msgs[0].rstrip("'")) if msgs else "unknown error"
+        raise UsdRelightError(f"cannot open stage {path}: {reason}")
+    errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
+    if errors:
+        more = f" (and {len(errors) - 1} more composition error(s))" if len(errors) > 1 else ""
+        raise UsdRelightError(f"stage {path} does not compose: {_layer_error(str(errors[0]))}{more}")
+    if native.text.strip():
+        sys.stderr.write(native.text)
     return stage
+
+
+def _layer_error(text: str) -> str:
+    """One line from a USD composition/parse message; a parser's quote of the file's text is reduced to the
+    position (file:line:column), so a foreign file's content never reaches the message."""
+    text = " ".join(text.split())
+    text = re.sub(r"(\S+?:\d+:\d+):.*?(; skipping\.|$)", r"\1: syntax error\2", text)
+    text = re.sub(r"^Error[^:]*: ", "", text)
+    return text.removesuffix("; skipping.").removesuffix(".")
 
 
 def validate_stage(stage) -> list[Finding]:
