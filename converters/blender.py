@@ -182,6 +182,18 @@ def blender_lights(path) -> list[dict]:
         return json.loads(out.read_text())
 
 
+def _check_light(u: dict, name: str) -> None:
+    """Finite numbers everywhere (matrix, power, sizes), non-negative power, colour and sizes."""
+    for key, v in u.items():
+        if isinstance(v, (bool, str)) or v is None:
+            continue
+        arr = np.asarray(v, np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise UsdRelightError(f"Blender light {name!r}: non-finite {key}")
+        if key != "matrix" and np.any(arr < 0):
+            raise UsdRelightError(f"Blender light {name!r}: negative {key}")
+
+
 def read_from_file(path, usd_path=None):
     """The .blend's lights as a UsdLux layer: ``over "Scene" { Lights { User { ... } } }``."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
@@ -197,9 +209,14 @@ def read_from_file(path, usd_path=None):
     used = set()
     for b in lights:
         try:
-            u = blender_light_to_usd(b)
+            with np.errstate(all="ignore"):  # a zero size gives Inf: refused by _check_light below
+                u = blender_light_to_usd(b)
         except ValueError as exc:
             raise UsdRelightError(str(exc)) from None
+        except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
+            raise UsdRelightError(f"Blender light {b.get('name', '?')!r}: unusable values "
+                                  f"({type(exc).__name__})") from None
+        _check_light(u, b.get("name", "?"))
         name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
         if name[0].isdigit():
             name = "_" + name

@@ -170,6 +170,11 @@ def read_from_file(path, usd_path=None):
         name = base if used[base] == 1 else f"{base}_{used[base]}"
         m = UsdGeom.Mesh.Define(stage, f"{ROOT}/{name}")
         pts = pts.astype(np.float32)
+        faces = np.asarray(mesh.faces, np.int64)
+        if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(nrm))):
+            raise UsdRelightError(f"{path.name}: mesh {node} has non-finite (NaN/Inf) vertices or transform")
+        if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
+            raise UsdRelightError(f"{path.name}: mesh {node} has face indices outside its vertex list")
         m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
         m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, np.int32)))
         m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(mesh.faces, np.int32).reshape(-1)))
@@ -178,7 +183,7 @@ def read_from_file(path, usd_path=None):
         m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(nrm.astype(np.float32)))
         m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
         uv = getattr(mesh.visual, "uv", None)
-        if uv is not None and len(uv) == len(pts):
+        if uv is not None and len(uv) == len(pts) and np.all(np.isfinite(uv)):
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
         _author_material(stage, m.GetPrim(), name, getattr(mesh.visual, "material", None), usd_dir, warnings)

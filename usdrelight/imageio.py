@@ -25,6 +25,21 @@ LINEAR_FORMATS = {"float", "half", "double"}
 DEFAULT_MAX_MEGAPIXELS = 120.0
 
 
+def check_resolution(width, height, what: str) -> tuple[int, int]:
+    """``(width, height)`` as ints when both are >= 1 and the image stays under :func:`max_megapixels`
+    (checked before any renderer allocates a film); UsdRelightError otherwise."""
+    try:
+        w, h = int(width), int(height)
+    except (TypeError, ValueError, OverflowError):
+        raise UsdRelightError(f"{what}: resolution {width}x{height} is not a pair of integers") from None
+    if w < 1 or h < 1:
+        raise UsdRelightError(f"{what}: resolution {w}x{h} must be at least 1x1")
+    if w * h / 1e6 > max_megapixels():
+        raise UsdRelightError(f"{what}: resolution {w}x{h} ({w * h / 1e6:.0f} megapixels) is over the limit of "
+                              f"{max_megapixels():g} (set USDRELIGHT_MAX_MEGAPIXELS to allow more)")
+    return w, h
+
+
 def max_megapixels() -> float:
     try:
         return float(os.environ.get("USDRELIGHT_MAX_MEGAPIXELS", DEFAULT_MAX_MEGAPIXELS))

@@ -133,6 +133,12 @@ class XmlReader:
         return self.value(el, here)
 
     def value(self, el: ET.Element, here: Path):
+        v = self._value(el, here)
+        if isinstance(v, (float, tuple, np.ndarray)) and not np.all(np.isfinite(np.asarray(v, np.float64))):
+            raise UsdRelightError(f"<{el.tag} name='{el.get('name')}'> has a non-finite value (NaN/Inf)")
+        return v
+
+    def _value(self, el: ET.Element, here: Path):
         tag = el.tag
         val = self.sub(el.get("value"))
         try:

@@ -17,6 +17,7 @@ import numpy as np
 
 from usdrelight import schemas
 from usdrelight.errors import UsdRelightError
+from usdrelight.imageio import check_resolution
 from usdrelight.intrinsics import Intrinsics
 from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.mitsuba.scene_dict import CAMERA_FLIP, FLIP_Z
@@ -147,6 +148,8 @@ class UsdBuilder:
         params = mi.traverse(shape)
         pts = np.array(params["vertex_positions"], dtype=np.float64).reshape(-1, 3)
         faces = np.array(params["faces"], dtype=np.int64).reshape(-1, 3)
+        if not np.all(np.isfinite(pts)):
+            raise UsdRelightError(f"{p.resolved}: the mesh has non-finite (NaN/Inf) vertex positions")
         normals = uv = None
         if "vertex_normals" in params and len(params["vertex_normals"]) == pts.size and not p.props.get("face_normals"):
             normals = np.array(params["vertex_normals"], dtype=np.float64).reshape(-1, 3)
@@ -156,6 +159,8 @@ class UsdBuilder:
 
     # ---- lights ---------------------------------------------------------------------------
     def _light_common(self, light, rgb, extra: dict | None = None):
+        if np.any(np.asarray(rgb, np.float64) < 0):
+            raise UsdRelightError(f"emitter {light.GetPath().name}: negative radiance/intensity {tuple(rgb)}")
         set_light_rgb(light, rgb)
         if extra:
             light.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
@@ -233,6 +238,8 @@ class UsdBuilder:
             if p.type == "envmap":
                 light.CreateTextureFileAttr(Sdf.AssetPath(self.asset(p.resolved)))
                 light.CreateTextureFormatAttr("latlong")
+                if float(p.props.get("scale", 1.0)) < 0:
+                    raise UsdRelightError(f"envmap emitter {path}: negative scale")
                 light.CreateIntensityAttr(float(p.props.get("scale", 1.0)))
                 R, _ = self._decompose(M)
                 self.set_xform(light.GetPrim(), R)
@@ -248,16 +255,23 @@ class UsdBuilder:
         if p.type != "perspective":
             self.warnings[f"sensor type '{p.type}' (converted as perspective)"] += 1
         film = next((c for c in p.children if c.tag == "film"), None)
-        W = int(film.props.get("width", 768)) if film else 768
-        H = int(film.props.get("height", 576)) if film else 576
+        W, H = check_resolution(film.props.get("width", 768) if film else 768,
+                                film.props.get("height", 576) if film else 576, "<film>")
         if "fov" in p.props:
             fov = float(p.props["fov"])
         elif "focal_length" in p.props:
-            fl = float(str(p.props["focal_length"]).rstrip("m"))
+            try:
+                fl = float(str(p.props["focal_length"]).rstrip("m"))
+            except ValueError:
+                raise UsdRelightError(f"<sensor> focal_length {p.props['focal_length']!r} is not a number") from None
+            if not (fl > 0 and math.isfinite(fl)):
+                raise UsdRelightError(f"<sensor> focal_length must be positive, got {fl:g}")
             fov = math.degrees(2 * math.atan(36.0 / (2 * fl)))
             p.props.setdefault("fov_axis", "x")
         else:
             fov = 39.3077
+        if not 0 < fov < 180:
+            raise UsdRelightError(f"<sensor> fov must be between 0 and 180 degrees (exclusive), got {fov:g}")
         axis = p.props.get("fov_axis", "x")
         ref = {"x": W, "y": H, "diagonal": math.hypot(W, H), "smaller": min(W, H), "larger": max(W, H)}.get(axis)
         if ref is None:

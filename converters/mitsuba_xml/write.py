@@ -27,7 +27,9 @@ from .common import TAG_OF, VECTOR_KEYS, rel_path
 
 
 def _fmt(x: float) -> str:
-    return repr(float(x)) if math.isfinite(x) else "0"
+    if not math.isfinite(x):  # records are checked when read; never write NaN/Inf (nor a silent 0)
+        raise UsdRelightError(f"non-finite value {x} in the Mitsuba export")
+    return repr(float(x))
 
 
 def _local_file(path: str, base: Path, files: list) -> str:

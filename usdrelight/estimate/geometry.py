@@ -37,11 +37,16 @@ def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
                               f"{photo.width}x{photo.height}")
 
 
+#: Depth (scene units) above which a pixel is invalid, like Inf: placeholder "sky" values such as 3e38 would
+#: otherwise overflow the camera's clipping range (2 x the farthest depth) and float32 points.
+MAX_DEPTH = 1e15
+
+
 def from_depth(depth: np.ndarray, intrinsics: Intrinsics, valid: np.ndarray | None = None,
                source: str = "depth") -> GeometryEstimate:
-    """Unproject a z-depth map (H, W); non-finite or non-positive depth is invalid."""
+    """Unproject a z-depth map (H, W); non-finite, non-positive or huge (> MAX_DEPTH) depth is invalid."""
     depth = np.asarray(depth, dtype=np.float64)
-    ok = np.isfinite(depth) & (depth > 0)
+    ok = np.isfinite(depth) & (depth > 0) & (depth <= MAX_DEPTH)
     if valid is not None:
         ok &= valid
     z = np.where(ok, depth, 0.0)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import UsdRelightError
 from ..intrinsics import Intrinsics
 
 SENSOR_WIDTH_MM = 36.0
@@ -46,11 +47,22 @@ def usd_camera_params(intr: Intrinsics) -> dict:
     }
 
 
+def check_clipping(near: float, far: float, where: str) -> None:
+    """A usable clipping range: finite and 0 < near < far (in float32, how USD stores it)."""
+    n, f = np.float32(near), np.float32(far)
+    if not (np.isfinite(n) and np.isfinite(f) and 0 < n < f):
+        raise UsdRelightError(f"camera {where}: clipping range ({near:g}, {far:g}) must be finite with "
+                              f"0 < near < far")
+
+
 def author_usd_camera(camera, intr: Intrinsics, near: float, far: float) -> dict:
     """Author a perspective ``UsdGeom.Camera`` that reproduces ``intr``; returns the parameters."""
     from pxr import Gf, UsdGeom
 
+    check_clipping(near, far, str(camera.GetPath()))
     params = usd_camera_params(intr)
+    if not all(np.isfinite(v) for v in params.values()):
+        raise UsdRelightError(f"camera {camera.GetPath()}: intrinsics {intr} give non-finite USD camera values")
     camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
     camera.CreateFocalLengthAttr(float(params["focalLength"]))
     camera.CreateHorizontalApertureAttr(float(params["horizontalAperture"]))

@@ -12,13 +12,15 @@ Anything else is counted in ``warnings`` (one line per kind), never dropped sile
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..imageio import check_resolution
 from ..safe_paths import check_read, stage_folder
-from .camera import intrinsics_from_usd_camera
+from .camera import check_clipping, intrinsics_from_usd_camera
 from .read_geometry import read_material, read_mesh
 from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
 
@@ -38,15 +40,39 @@ def light_radiance(prim) -> np.ndarray:
     intensity = float(api.GetIntensityAttr().Get())
     exposure = float(api.GetExposureAttr().Get())
     color = np.asarray(api.GetColorAttr().Get(), dtype=np.float64)
-    L = intensity * 2.0 ** exposure * color
+    try:
+        L = intensity * 2.0 ** exposure * color
+    except OverflowError:  # 2^exposure beyond a double
+        L = np.full(3, np.inf)
     if api.GetEnableColorTemperatureAttr().Get():
         L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get())), np.float64)
     if not np.all(np.isfinite(L)):
         raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
+    if np.any(L < 0):
+        raise UsdRelightError(f"light {prim.GetPath()} has a negative intensity or color (radiance {L.tolist()})")
     return L
 
 
+def _finite_xform(m, prim) -> np.ndarray:
+    """A prim's local-to-world matrix (numpy, column vectors); NaN/Inf entries are an error."""
+    xf = gf_to_np(m)
+    if not np.all(np.isfinite(xf)):
+        raise UsdRelightError(f"{prim.GetPath()} has a non-finite transform")
+    return xf
+
+
 def read_light(prim, xf: np.ndarray, warnings) -> LightRecord | None:
+    """The light record of a UsdLux prim (None for kinds not converted); non-finite or negative sizes and
+    radiance are errors."""
+    rec = _light_record(prim, xf, warnings)
+    if rec is not None:
+        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg) if v is not None]
+        if not all(np.isfinite(sizes)) or any(v < 0 for v in sizes):
+            raise UsdRelightError(f"light {prim.GetPath()} has a negative or non-finite size or angle")
+    return rec
+
+
+def _light_record(prim, xf: np.ndarray, warnings) -> LightRecord | None:
     from pxr import UsdLux
 
     L = light_radiance(prim)
@@ -142,14 +168,22 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings) -> tuple[CameraRecor
     cam = UsdGeom.Camera(cam_prim)
     if cam.GetProjectionAttr().Get(t) != UsdGeom.Tokens.perspective:
         warnings["orthographic camera (rendered as perspective)"] += 1
+    ha, va = float(cam.GetHorizontalApertureAttr().Get(t)), float(cam.GetVerticalApertureAttr().Get(t))
+    f = float(cam.GetFocalLengthAttr().Get(t))
+    if not all(math.isfinite(v) and v > 0 for v in (ha, va, f)):
+        raise UsdRelightError(f"camera {cam_prim.GetPath()}: focalLength and apertures must be finite and positive "
+                              f"(got {f:g}, {ha:g} x {va:g})")
     if resolution is None:
-        ha, va = float(cam.GetHorizontalApertureAttr().Get(t)), float(cam.GetVerticalApertureAttr().Get(t))
-        resolution = (640, max(1, int(round(640 * va / ha))))
+        resolution = check_resolution(640, max(1, round(640 * va / ha)), f"camera {cam_prim.GetPath()}")
     W, H = resolution
     intr = intrinsics_from_usd_camera(cam, W, H, t)
     near, far = cam.GetClippingRangeAttr().Get(t)
-    return CameraRecord(str(cam_prim.GetPath()), intr, gf_to_np(xcache.GetLocalToWorldTransform(cam_prim)),
-                        float(near), float(far)), resolution
+    check_clipping(float(near), float(far), str(cam_prim.GetPath()))
+    if not all(np.isfinite([intr.fx, intr.fy, intr.cx, intr.cy])) or intr.fx <= 0 or intr.fy <= 0:
+        raise UsdRelightError(f"camera {cam_prim.GetPath()}: focal length and apertures must give a finite, "
+                              f"positive focal length in pixels")
+    xf = _finite_xform(xcache.GetLocalToWorldTransform(cam_prim), cam_prim)
+    return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far)), resolution
 
 
 def _shape(prim, xf, mat, t) -> ShapeRecord | None:
@@ -188,7 +222,7 @@ def read_scene(stage, time=None) -> SceneRecord:
                     img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
                 continue
         if prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or prim.IsA(UsdLux.NonboundableLightBase):
-            light = read_light(prim, gf_to_np(xcache.GetLocalToWorldTransform(prim)), warnings)
+            light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim), warnings)
             if light is not None:
                 lights.append(light)
             continue
@@ -196,12 +230,15 @@ def read_scene(stage, time=None) -> SceneRecord:
             if prim.IsA(UsdGeom.PointInstancer):
                 warnings["PointInstancer (not converted)"] += 1
             continue
-        xf = gf_to_np(xcache.GetLocalToWorldTransform(prim))
+        xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim)
         mat = read_material(prim, warnings)
         if prim.IsA(UsdGeom.Mesh):
             meshes.extend(read_mesh(prim, xf, mat, warnings))
             continue
-        shape = _shape(prim, xf, mat, t)
+        with np.errstate(all="ignore"):  # an Inf size: refused just below
+            shape = _shape(prim, xf, mat, t)
+        if shape is not None and not np.all(np.isfinite(shape.to_world)):
+            raise UsdRelightError(f"{prim.GetPath()} has a non-finite size")
         if shape is None:
             warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
         else:
@@ -210,7 +247,7 @@ def read_scene(stage, time=None) -> SceneRecord:
     cam_prim, resolution, products = None, None, ()
     if settings is not None:
         res = settings.GetResolutionAttr().Get()
-        resolution = (int(res[0]), int(res[1])) if res is not None else None
+        resolution = check_resolution(res[0], res[1], f"{settings.GetPath()}") if res is not None else None
         targets = settings.GetCameraRel().GetTargets()
         cam_prim = stage.GetPrimAtPath(targets[0]) if targets else None
         products = _read_products(stage, settings)

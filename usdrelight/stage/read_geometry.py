@@ -129,6 +129,8 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         return []
     if np.any(counts < 0) or counts.sum() != len(idx) or idx.max(initial=0) >= len(pts) or idx.min(initial=0) < 0:
         raise UsdRelightError(f"mesh {prim.GetPath()} has inconsistent faceVertexCounts/Indices")
+    if not np.all(np.isfinite(pts)):
+        raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) points")
     if np.any(counts < 3):
         warnings["faces with fewer than 3 vertices (skipped)"] += 1
     if mesh.GetHoleIndicesAttr().Get():
@@ -161,6 +163,9 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
                 break
     if pv and pv.HasValue():
         uv, ukind = _primvar(pv, len(pts), n_corners, len(counts))
+    for name, arr in (("normals", normals), (st_name, uv)):
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) {name}")
     # Build the vertex layout: welded (per point) unless some attribute varies per corner/face.
     per_corner = any(k in ("corner", "face") for k in (nkind, ukind))
     tri_corner_ids = corners.reshape(-1)
