@@ -66,3 +66,30 @@ def test_ratio_without_fitted_lights_or_photo_is_a_clear_error(cli, fitted_stage
     rc, _, err = cli("relight", stage / "scene.usda", "--mode", "ratio", "--light", "point:0,1,-2:1,1,1",
                      "--max-side", "64", "-o", tmp_path / "o")
     assert rc == 2 and "fitted lights" in err
+
+
+def test_fitted_scale_dims_the_photo_by_the_closed_form(fitted_stage):
+    # no added light, fitted lights at scale s: I' = I (s F + k) / (F + k), F the fitted render, k = 1% of mean F
+    full = RelightSession(fitted_stage, max_side=96, with_fitted=True, mode="ratio")
+    dim = RelightSession(fitted_stage, max_side=96, with_fitted=True, mode="ratio", fitted_scale=0.25)
+    f = full.render([]).diffuse.astype(np.float64)
+    out = dim.render([]).image
+    k = 0.01 * f[full.render([]).valid].mean(0)
+    valid = full.render([]).valid
+    expected = full.photo * (0.25 * f + k) / (f + k)
+    np.testing.assert_allclose(out[valid], expected[valid], rtol=2e-3, atol=1e-6)
+    assert out[valid].mean() < 0.35 * full.photo[valid].mean()
+
+
+def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_stage, tmp_path):
+    from usdrelight.imageio import read_map
+
+    rep = cli.json("relight", fitted_stage, "--fitted-scale", "0.2", "--light", "point:0.5,1.0,-2.5:3,2,1",
+                   "--max-side", "64", "--contact-sheet", "-o", tmp_path / "night")
+    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")
+    sheet = read_photo(rep["contact_sheet"])
+    assert sheet.shape[1] > 4 * sheet.shape[0] / 2  # photo, D~ and three modes side by side
+    img = read_map(rep["exr"], 3)
+    assert np.all(np.isfinite(img)) and img.min() >= 0
+    rc, _, err = cli("relight", fitted_stage, "--fitted-scale", "nan", "--light", "point:0,1,-2:1,1,1")
+    assert rc == 2 and "scale" in err and len(err.strip().splitlines()) == 1

@@ -183,7 +183,7 @@ def test_sequence_writes_numbered_frames_and_reports_times(cli, procedural, tmp_
     seq = tmp_path / "lights.json"
     seq.write_text(json.dumps([["point:0.5,1,-2.5:3,3,3"], ["point:-0.5,1,-2.5:3,3,3"], ["sun:0,-1,-1:1,1,1"]]))
     rep = cli.json("relight", procedural, "--sequence", seq, "--light", "dome:0.05,0.05,0.05", "--max-side", "96",
-                   "-o", tmp_path / "out")
+                   "--mode", "neural", "-o", tmp_path / "out")
     assert rep["renderer"] == "fast" and len(rep["frames"]) == 3 and "prepare" in rep["seconds"]
     for i, f in enumerate(rep["frames"]):
         for key in ("render", "network", "total"):
@@ -196,12 +196,13 @@ def test_sequence_writes_numbered_frames_and_reports_times(cli, procedural, tmp_
     assert d0[:, w // 2:].mean() > d0[:, :w // 2].mean() and d1[:, :w // 2].mean() > d1[:, w // 2:].mean()
     bad = tmp_path / "bad.json"
     bad.write_text('[["point:1,2"]]')
-    rc, _, err = cli("relight", procedural, "--sequence", bad)
+    rc, _, err = cli("relight", procedural, "--sequence", bad, "--mode", "neural")
     assert rc == 2 and "bad --light" in err
 
 
 def test_single_relight_keeps_its_file_names_and_second_call_hits_the_cache(cli, procedural, tmp_path):
-    args = ("relight", procedural, "--light", "point:0.5,1,-2.5:3,3,3", "--max-side", "80", "-o", tmp_path / "one")
+    args = ("relight", procedural, "--light", "point:0.5,1,-2.5:3,3,3", "--max-side", "80", "--mode", "neural",
+            "-o", tmp_path / "one")
     first = cli.json(*args)
     second = cli.json(*args)
     assert second["cache"] == "hit" and first["frames"][0]["exr"].endswith("relit.exr")
@@ -226,7 +227,7 @@ def test_non_lambertian_stage_falls_back_to_mitsuba_with_one_warning(tmp_path, c
     logger.addHandler(caplog.handler)
     try:
         with caplog.at_level("WARNING", logger="usdrelight"):
-            session = RelightSession(tmp_path / "s.usda", max_side=None, spp=4)
+            session = RelightSession(tmp_path / "s.usda", max_side=None, spp=4, mode="neural")
     finally:
         logger.removeHandler(caplog.handler)
     assert session.renderer == "mitsuba" and session.cache_hit is None

@@ -115,12 +115,14 @@ def test_neural_cli_on_a_built_stage(cli, moto_stage, tmp_path):
 
 def test_relight_end_to_end(cli, moto_stage, tmp_path):
     rep = cli.json("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--light", "dome:0.05,0.05,0.06",
-                   "--max-side", "128", "--spp", "4", "-o", tmp_path / "r")
+                   "--max-side", "128", "--spp", "4", "--mode", "neural", "-o", tmp_path / "r")
     img = read_map(rep["exr"], 3)
     assert img.shape[1] == 128 and np.all(np.isfinite(img)) and img.mean() > 0
     for step in ("read", "render", "hole_fill", "network", "write", "total"):
         assert step in rep["seconds"]
     rc, _, err = cli("relight", moto_stage, "--light", "spot:1,2")
     assert rc == 2 and "bad --light" in err
-    rc, _, err = cli("relight", moto_stage)
+    rc, _, err = cli("relight", moto_stage, "--mode", "neural")
     assert rc == 2 and "no light" in err
+    rc, _, err = cli("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3")  # the default mode needs a fit
+    assert rc == 2 and "needs the fitted lights" in err and len(err.strip().splitlines()) == 1

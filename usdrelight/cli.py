@@ -157,7 +157,8 @@ def cmd_relight(args) -> int:
     from .neural.relight import relight
 
     res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
-                  max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode)
+                  max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode,
+                  fitted_scale=args.fitted_scale, contact_sheet=args.contact_sheet)
 
     def secs(d):
         return {k: round(v, 4) for k, v in d.items()}
@@ -167,6 +168,7 @@ def cmd_relight(args) -> int:
     cache = None if res.cache_hit is None else ("hit" if res.cache_hit else "built")
     summary = {"renderer": res.renderer, "mode": args.mode, "cache": cache,
                "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
+               "contact_sheet": str(res.contact_sheet) if res.contact_sheet else None,
                "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,
                "seconds": secs({**res.seconds, **(first.seconds if args.sequence is None else {}),
                                 "total": res.seconds["total"]})}
@@ -288,9 +290,13 @@ def build_parser() -> argparse.ArgumentParser:
     rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
                     help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
     rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
-    rl.add_argument("--mode", choices=["neural", "ratio", "add"], default="neural",
-                    help="neural: the network on the render; ratio: photo x new render / fitted render; "
-                         "add: photo + render of the added lights")
+    rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
+                    help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
+    rl.add_argument("--mode", choices=["neural", "ratio", "add"], default="ratio",
+                    help="ratio (default): photo x new render / fitted render (needs `usdrelight fit`); "
+                         "neural: the network on the render; add: photo + render of the added lights")
+    rl.add_argument("--contact-sheet", action="store_true",
+                    help="also write contact_sheet.png: photo, diffuse render and every mode's result")
     rl.add_argument("--model", type=Path)
     rl.add_argument("-o", "--output", type=Path)
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")

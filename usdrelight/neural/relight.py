@@ -33,10 +33,13 @@ from ..stage.light_specs import parse_lights
 from ..stage.read import read_scene
 from ..stage.validate import open_stage
 from .composite import MODES, add_composite, ratio_composite
+from .contact_sheet import write_contact_sheet
 from .model import RelightModel, build_input, write_relit
 
 log = logging.getLogger(__name__)
 RENDERERS = ("fast", "mitsuba")
+DEFAULT_MODE = "ratio"
+"""The mode ``relight`` uses unless told otherwise (README, "Modes": chosen by benchmarks/bench_relit_quality.py)."""
 
 
 @dataclass(frozen=True)
@@ -62,13 +65,15 @@ class RelightSession:
 
     def __init__(self, stage_path, *, max_side: int | None = 512, renderer: str = "fast", with_fitted: bool = False,
                  model_path=None, spp: int = 32, max_depth: int = 3, settings: EngineSettings | None = None,
-                 mode: str = "neural"):
+                 mode: str = DEFAULT_MODE, fitted_scale: float = 1.0):
         if renderer not in RENDERERS:
             raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
         if mode not in MODES:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if spp < 1 or max_depth < 2:
             raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+        if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
+            raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
         t0 = time.perf_counter()
         self.stage_path = Path(stage_path)
         stage = open_stage(stage_path)
@@ -78,10 +83,15 @@ class RelightSession:
         fitted = tuple(l for l in rec.lights if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
         self.fitted_lights = fitted
         self.user_lights = tuple(l for l in rec.lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
-        self.base_lights = self.user_lights + (fitted if with_fitted else ())
+        # the photo's own lighting, dimmed (day to night) or brightened by ``fitted_scale``
+        scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
+        self.base_lights = self.user_lights + (scaled if with_fitted else ())
         self.scene = rec.with_camera(rec.camera.limited(max_side))
         self.spp, self.max_depth, self.mode = spp, max_depth, mode
         self.model = RelightModel(model_path) if mode == "neural" else None
+        if mode == "ratio" and not fitted:
+            raise UsdRelightError("mode ratio (the default) needs the fitted lights: run `usdrelight fit` first, "
+                                  "or choose --mode neural or --mode add")
         self.photo = self._photo(stage) if mode != "neural" else None
         self._fitted_render = None
         self.seconds = {"read": time.perf_counter() - t0}
@@ -142,8 +152,6 @@ class RelightSession:
             sec["network"] = time.perf_counter() - t
         elif self.mode == "ratio":
             if self._fitted_render is None:
-                if not self.fitted_lights:
-                    raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first")
                 self._fitted_render = self._diffuse(list(self.fitted_lights))[0]
             image = ratio_composite(self.photo, beauty, self._fitted_render, valid)
             sec["composite"] = time.perf_counter() - t
@@ -184,6 +192,8 @@ class RelightResult:
     """Fast renderer: prepared data found on disk; None with Mitsuba."""
     seconds: dict
     """read, prepare (includes read), total."""
+    contact_sheet: Path | None = None
+    """contact_sheet.png (photo, D~, every mode) when asked for."""
 
 
 def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame) -> FrameFiles:
@@ -210,21 +220,49 @@ def read_sequence(path) -> list[list[str]]:
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
             max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
-            mode: str = "neural") -> RelightResult:
+            mode: str = DEFAULT_MODE, fitted_scale: float = 1.0, contact_sheet: bool = False) -> RelightResult:
     """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or with ``sequence`` (a LIGHTS.json
-    path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame."""
+    path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame.
+    ``fitted_scale`` scales the fitted lights (and implies ``with_fitted``); ``contact_sheet`` also writes
+    contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights."""
     t0 = time.perf_counter()
     frames = read_sequence(sequence) if sequence is not None else None
     # parsed once, before any work: a bad spec fails fast, and each frame reuses the records
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in frames] if frames is not None else [[]]
-    session = RelightSession(stage_path, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
-                             model_path=model_path, spp=spp, max_depth=max_depth, mode=mode)
+    with_fitted = with_fitted or fitted_scale != 1.0
+    opts = dict(max_side=max_side, renderer=renderer, with_fitted=with_fitted, model_path=model_path, spp=spp,
+                max_depth=max_depth, fitted_scale=fitted_scale)
+    session = RelightSession(stage_path, mode=mode, **opts)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
     for i, extra in enumerate(per_frame):
         frame = session.render(common + extra)
         written.append(_write_frame(out_dir, f"_{i:04d}" if frames is not None else "", frame))
     h, w = frame.image.shape[:2]
+    sheet = None
+    if contact_sheet:
+        sheet = _contact_sheet(stage_path, out_dir, common + per_frame[0], session, opts)
     return RelightResult(tuple(written), (w, h), session.renderer, session.cache_hit,
-                         {**session.seconds, "total": time.perf_counter() - t0})
+                         {**session.seconds, "total": time.perf_counter() - t0}, sheet)
+
+
+def _contact_sheet(stage_path, out_dir: Path, lights, first: RelightSession, opts: dict) -> Path:
+    """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out)."""
+    panels, photo = [], None
+    for mode in MODES:
+        try:
+            session = first if mode == first.mode else RelightSession(stage_path, mode=mode, **opts)
+            frame = session.render(lights)
+        except UsdRelightError as exc:
+            log.warning("contact sheet: mode %s left out (%s)", mode, exc)
+            continue
+        if photo is None and session.photo is not None:
+            photo = session.photo
+        if not panels:
+            panels.append(("D~ (diffuse render)", frame.diffuse))
+        panels.append((f"{mode}{' (default)' if mode == DEFAULT_MODE else ''}", frame.image))
+    if photo is not None:
+        panels.insert(0, ("photo", photo))
+    ref = photo if photo is not None else panels[-1][1]
+    return write_contact_sheet(out_dir / "contact_sheet.png", panels, ref)

@@ -1,11 +1,16 @@
 """``usdrelight train``: learn (D~, A, invalid mask) -> I from self-supervised pairs and export ONNX.
 
 Needs the ``train`` extra (torch). Uses a GPU when torch sees one, the CPU otherwise.
-Network: a small U-Net (3 levels, ``width`` channels at the top) that predicts a correction to the
-brightness-normalised D~: out = s * relu(D~ / s + f(D~ / s, A, mask)), s = mean of D~ over valid pixels, so
-the exported graph takes and returns linear RGB (the model contract of :mod:`usdrelight.neural`).
-Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on images
-normalised by s; whole images (s is an image-level statistic, so crops would shift it) and horizontal flips.
+Network (do no harm): a small U-Net (3 levels, ``width`` channels at the top) sees log(D~ / s + 0.01), A and the
+mask (s = mean of D~ over valid pixels, so it is exposure invariant) and predicts a bounded per-pixel gain and a
+small bounded fill: out = D~ * 4^tanh(g) + s * 0.25 * sigmoid(f). The gain lies in [1/4, 4], so a pixel the
+render lights is never blacked out; with the head initialised to zero the untrained network returns D~ (plus
+s * 0.25 * sigmoid(-6), 6e-4 s). The exported graph takes and returns linear RGB (the model contract of
+:mod:`usdrelight.neural.model`).
+Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on images normalised
+by s, plus a monotonicity penalty: the same input with a random diffuse light added (albedo x a smooth positive
+field) must not come out darker anywhere (hinge on the relative decrease). Whole images (s is an image-level
+statistic, so crops would shift it) and horizontal flips.
 """
 from __future__ import annotations
 
@@ -33,6 +38,29 @@ def _torch():
     return torch
 
 
+GAIN_LOG_RANGE = float(np.log(4.0))
+"""The gain is 4^tanh(g): within [1/4, 4]."""
+FILL_RANGE = 0.25
+"""The fill is at most 0.25 s (s: the image's mean D~ over valid pixels)."""
+
+
+def image_scale(x):
+    """s: the mean of D~ (channels 0-2) over valid pixels, per image (shape [N, 1, 1, 1]); > 0."""
+    d, valid = x[:, 0:3], 1.0 - x[:, 6:7]
+    return (d * valid).sum(dim=(1, 2, 3), keepdim=True) / (3.0 * valid.sum(dim=(1, 2, 3), keepdim=True) + 1e-6) + 1e-6
+
+
+def added_light(x, rng, torch):
+    """x with a random diffuse light added to D~: albedo x a smooth positive field x (0.05 .. 1.5) s."""
+    n, _, h, w = x.shape
+    field = torch.from_numpy(rng.random((n, 1, 4, 6)).astype(np.float32)).to(x.device)
+    field = torch.nn.functional.interpolate(field, size=(h, w), mode="bilinear", align_corners=False)
+    amp = torch.from_numpy(rng.uniform(0.05, 1.5, (n, 1, 1, 1)).astype(np.float32)).to(x.device)
+    x2 = x.clone()
+    x2[:, 0:3] = x[:, 0:3] + x[:, 3:6] * field * amp * image_scale(x)
+    return x2
+
+
 def make_model(width: int = 16):
     torch = _torch()
     nn = torch.nn
@@ -48,18 +76,17 @@ def make_model(width: int = 16):
             self.e1, self.e2, self.e3 = block(7, c), block(c, 2 * c), block(2 * c, 4 * c)
             self.mid = block(4 * c, 4 * c)
             self.d3, self.d2, self.d1 = block(8 * c, 2 * c), block(4 * c, c), block(2 * c, c)
-            self.head = nn.Conv2d(c, 3, 1)
+            self.head = nn.Conv2d(c, 6, 1)
             self.pool = nn.AvgPool2d(2)
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
+            with torch.no_grad():
+                self.head.bias[3:6] = -6.0  # the fill starts near 0
 
         def forward(self, x):
             d, a, inv = x[:, 0:3], x[:, 3:6], x[:, 6:7]
-            valid = 1.0 - inv
-            s = (d * valid).sum(dim=(1, 2, 3), keepdim=True) / (3.0 * valid.sum(dim=(1, 2, 3), keepdim=True) + 1e-6)
-            s = s + 1e-6
-            dn = d / s
-            h = torch.cat([dn, a, inv], 1)
+            s = image_scale(x)
+            h = torch.cat([torch.log(d / s + 0.01), a, inv], 1)
             e1 = self.e1(h)
             e2 = self.e2(self.pool(e1))
             e3 = self.e3(self.pool(e2))
@@ -68,7 +95,9 @@ def make_model(width: int = 16):
             u3 = self.d3(torch.cat([up(m, scale_factor=2.0, mode="nearest"), e3], 1))
             u2 = self.d2(torch.cat([up(u3, scale_factor=2.0, mode="nearest"), e2], 1))
             u1 = self.d1(torch.cat([up(u2, scale_factor=2.0, mode="nearest"), e1], 1))
-            return torch.relu(dn + self.head(u1)) * s
+            out = self.head(u1)
+            gain = torch.exp(GAIN_LOG_RANGE * torch.tanh(out[:, 0:3]))
+            return d * gain + s * FILL_RANGE * torch.sigmoid(out[:, 3:6])
 
     return RelightNet()
 
@@ -86,13 +115,15 @@ def gradient_loss(pred, target, scales: int = 4):
 
 
 def pairs_to_arrays(pairs):
+    """Network inputs (7, H, W) and targets (3, H, W): a self-supervised Pair's target is its photo, a
+    synthetic RelitPair's the full 3D render under its light set."""
     xs = [build_input(p.dtilde, p.albedo, p.valid) for p in pairs]
-    ys = [p.photo.transpose(2, 0, 1).astype(np.float32) for p in pairs]
+    ys = [getattr(p, "target", p.photo).transpose(2, 0, 1).astype(np.float32) for p in pairs]
     return xs, ys
 
 
-def train_model(pairs, steps: int = 1500, batch: int = 4, crop: int = 0, lr: float = 2e-3, width: int = 16,
-                seed: int = 0, progress=None):
+def train_model(pairs, steps: int = 1500, batch: int = 2, crop: int = 0, lr: float = 2e-3, width: int = 16,
+                seed: int = 0, progress=None, monotone: float = 1.0):
     """Returns (model, log dict)."""
     torch = _torch()
     torch.manual_seed(seed)
@@ -122,10 +153,13 @@ def train_model(pairs, steps: int = 1500, batch: int = 4, crop: int = 0, lr: flo
             yb.append(np.ascontiguousarray(yc))
         X = torch.from_numpy(np.stack(xb)).to(device)
         Y = torch.from_numpy(np.stack(yb)).to(device)
-        valid = 1.0 - X[:, 6:7]
-        s = (X[:, :3] * valid).sum(dim=(1, 2, 3), keepdim=True) / (3 * valid.sum(dim=(1, 2, 3), keepdim=True) + 1e-6) + 1e-6
+        s = image_scale(X)
         P = model(X)
         loss = torch.mean((P / s - Y / s) ** 2) + 0.5 * gradient_loss(P / s, Y / s)
+        if monotone:
+            # adding light must not darken: hinge on the relative decrease of each pixel
+            P2 = model(added_light(X, rng, torch))
+            loss = loss + monotone * torch.mean(torch.relu(P - P2) / (P + 0.05 * s))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -135,6 +169,7 @@ def train_model(pairs, steps: int = 1500, batch: int = 4, crop: int = 0, lr: flo
             if progress:
                 progress(step + 1, steps, float(loss.detach()))
     return model.cpu().eval(), {"steps": steps, "batch": batch, "crop": crop, "lr": lr, "width": width,
+                                "monotone": monotone,
                                 "seconds": time.perf_counter() - t0, "device": device, "loss_curve": curve,
                                 "parameters": int(sum(p.numel() for p in model.parameters()))}
 

@@ -1,0 +1,182 @@
+"""Does a relit photo ever look worse than the photo? Every output mode on real photos and held-out relights.
+
+Real photos (true depth, Middlebury 2014 *Motorcycle* as scikit-image ships it): the left view
+(examples/motorcycle) and the right view (depth forward-warped from the left disparity,
+examples/motorcycle/make_example.py). Each is built, its lighting fitted (`--method fast`), then relit at 512 px
+through RelightSession (the fast renderer) in each mode:
+  (a) identity: relit under the fitted lights only vs the photo: PSNR (peak = the photo's max) and SSIM
+      (sRGB, the photo's tone), over the whole image;
+  (b) monotonicity: % of pixels whose luminance drops by more than 2% when a light is added
+      (the identity output vs the output with the fitted lights plus a point light);
+  (c) blacked out: % of pixels with output luminance < 5% of the photo's where the photo is not dark
+      (luminance >= 0.01), in the output with the added light.
+Held-out synthetic relights (usdrelight.neural.synthetic, seeds 5000+, never trained on): the photo (256 spp),
+its 2.5D stage, the fitted lights, then two relights: ``add`` (the scene's lights plus a new point light;
+modes get the fitted lights + that light) and ``replace`` (a new point light and sky instead; modes get those
+only); each output against the full 3D path-traced ground truth (256 spp): PSNR / SSIM of D~ and of each mode.
+Writes benchmarks/results/relit_quality.json and docs/relit_contact_sheet.png (per row: photo, D~, neural,
+ratio, add). Run after `make setup`: python benchmarks/bench_relit_quality.py [--scenes 8]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "examples" / "motorcycle"))
+
+from make_example import write_right_view  # noqa: E402
+from usdrelight.fit.run import fit_stage  # noqa: E402
+from usdrelight.imageio import linear_to_srgb, read_photo, resize_image, write_image  # noqa: E402
+from usdrelight.neural.composite import MODES  # noqa: E402
+from usdrelight.neural.relight import RelightSession  # noqa: E402
+from usdrelight.neural.synthetic import light_sets, make_scene  # noqa: E402
+from usdrelight.stage.build import BuildOptions, build  # noqa: E402
+
+log = logging.getLogger("bench_relit_quality")
+ADDED_LIGHT = "point:0.6,0.4,-1.2:4,3.6,3"  # the demo's added light (stage frame, W/sr)
+LUM = np.array([0.2126, 0.7152, 0.0722])
+
+
+def tonemap(img, ref):
+    return np.clip(linear_to_srgb(np.maximum(img, 0) / max(float(np.percentile(ref, 99.5)), 1e-6)), 0, 1)
+
+
+def psnr(a, ref):
+    mse = float(np.mean((a - ref) ** 2))
+    return float(10 * np.log10(float(ref.max()) ** 2 / max(mse, 1e-20)))
+
+
+def ssim(a, ref):
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(tonemap(a, ref), tonemap(ref, ref), channel_axis=2, data_range=1.0))
+
+
+def darkened_pct(before, after, tol=0.02):
+    lb, la = before @ LUM, after @ LUM
+    return float(100 * np.mean(la < lb * (1 - tol) - 1e-6))
+
+
+def blacked_pct(out, photo):
+    lp, lo = photo @ LUM, out @ LUM
+    bright = lp >= 0.01
+    return float(100 * np.mean(bright & (lo < 0.05 * lp)))
+
+
+def real_photo(name, files, work, sheet):
+    stage_dir = work / name
+    build(files["photo"], stage_dir, BuildOptions(depth=files["depth"], intrinsics=files["intrinsics"]))
+    stage = stage_dir / "scene.usda"
+    t = time.perf_counter()
+    rep = fit_stage(stage, "fast", verify_spp=64)
+    row = {"photo": name, "fit_seconds": time.perf_counter() - t, "fit_psnr_db": rep.psnr_db,
+           "fit_lights": rep.lights_kept, "modes": {}}
+    images = {}
+    for mode in MODES:
+        s = RelightSession(stage, max_side=512, with_fitted=mode != "add", mode=mode)
+        k = s.scene.camera.intrinsics
+        photo = resize_image(read_photo(files["photo"]), k.width, k.height)
+        ident = s.render([]).image if mode != "add" else s.render([]).image
+        lit = s.render([ADDED_LIGHT])
+        row["modes"][mode] = {"identity_psnr_db": psnr(ident, photo), "identity_ssim": ssim(ident, photo),
+                              "darkened_pct": darkened_pct(ident, lit.image),
+                              "blacked_pct": blacked_pct(lit.image, photo),
+                              "blacked_identity_pct": blacked_pct(ident, photo),
+                              "frame_seconds": lit.seconds["total"]}
+        images[mode] = lit.image
+        images["photo"], images["dtilde"] = photo, lit.diffuse
+        log.info("%s %s %s", name, mode, row["modes"][mode])
+    ref = images["photo"]
+    sheet.append(np.concatenate([tonemap(images[k], ref) for k in ("photo", "dtilde", *MODES)], 1))
+    return row
+
+
+def held_out(seed, work, model_sheet):
+    scene = make_scene(work, seed, spp=256)
+    fit_stage(scene.stage, "fast", lights=8, max_side=256, verify_spp=16)
+    sessions = {(m, f): RelightSession(scene.stage, max_side=None, mode=m, with_fitted=f)
+                for m in MODES for f in (True, False) if not (m == "add" and f)}
+    rows = []
+    for ls in light_sets(scene.spec, seed, kinds=("add", "replace")):
+        from dataclasses import replace as dc_replace
+
+        from usdrelight.mitsuba.procedural import render_ground_truth
+
+        gt = render_ground_truth(dc_replace(scene.spec, point_lights=list(ls.point_lights),
+                                            env_radiance=ls.env_radiance), spp=256).image
+        fitted = ls.kind == "add"
+        new = ls.records(ls.added) if fitted else ls.records()
+        row = {"seed": seed, "kind": ls.kind}
+        outs = {}
+        for mode in MODES:
+            if mode == "add" and not fitted:
+                continue  # "add" keeps the photo's light: no answer for a replaced lighting
+            frame = sessions[(mode, fitted and mode != "add")].render(new)
+            outs[mode] = frame.image
+            outs["dtilde"] = frame.diffuse if mode == "neural" else outs.get("dtilde")
+        for k, img in outs.items():
+            row[f"{k}_psnr_db"], row[f"{k}_ssim"] = psnr(img, gt), ssim(img, gt)
+        rows.append(row)
+        log.info("%s", row)
+        if len(model_sheet) < 4 and ls.kind == "replace":
+            model_sheet.append(np.concatenate([tonemap(x, gt) for x in (scene.photo, outs["dtilde"], outs["neural"],
+                                                                      outs["ratio"], gt)], 1))
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", type=int, default=8)
+    ap.add_argument("--first-seed", type=int, default=5000)
+    ap.add_argument("--skip-real", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    t0 = time.perf_counter()
+    sheet, model_sheet, real, synth = [], [], [], []
+    with tempfile.TemporaryDirectory() as td:
+        work = Path(td)
+        if not args.skip_real:
+            ex = ROOT / "examples" / "motorcycle"
+            real.append(real_photo("motorcycle_left", {"photo": ex / "photo.png", "depth": ex / "depth.exr",
+                                                       "intrinsics": ex / "intrinsics.json"}, work, sheet))
+            real.append(real_photo("motorcycle_right", write_right_view(work / "right_src"), work, sheet))
+        for i in range(args.scenes):
+            synth += held_out(args.first_seed + i, work / "synthetic", model_sheet)
+    summary = {"real": real, "synthetic": synth, "seconds": time.perf_counter() - t0, "means": {}}
+    for kind in ("add", "replace"):
+        rows = [r for r in synth if r["kind"] == kind]
+        for key in ("dtilde", *MODES):
+            vals = [r[f"{key}_psnr_db"] for r in rows if f"{key}_psnr_db" in r]
+            if vals:
+                summary["means"][f"{kind}/{key}"] = {
+                    "psnr_db": float(np.mean(vals)), "ssim": float(np.mean([r[f"{key}_ssim"] for r in rows if f"{key}_ssim" in r])),
+                    "gain_over_dtilde_db": float(np.mean([r[f"{key}_psnr_db"] - r["dtilde_psnr_db"] for r in rows
+                                                          if f"{key}_psnr_db" in r]))}
+    (HERE / "results").mkdir(exist_ok=True)
+    (HERE / "results" / "relit_quality.json").write_text(json.dumps(summary, indent=2) + "\n")
+    if sheet:
+        write_image(ROOT / "docs" / "relit_contact_sheet.png", np.concatenate(sheet, 0), "uint8")
+    if model_sheet:
+        write_image(ROOT / "docs" / "neural_contact_sheet.png", np.concatenate(model_sheet, 0), "uint8")
+    print("real photos: mode | identity PSNR dB / SSIM | darkened % | blacked out %")
+    for r in real:
+        for m, v in r["modes"].items():
+            print(f"{r['photo']:17s} {m:7s} | {v['identity_psnr_db']:6.2f} / {v['identity_ssim']:.3f} | "
+                  f"{v['darkened_pct']:6.3f} | {v['blacked_pct']:6.3f}")
+    print("held-out relights: kind/output | PSNR dB | SSIM | gain over D~ dB")
+    for k, v in summary["means"].items():
+        print(f"{k:16s} | {v['psnr_db']:6.2f} | {v['ssim']:.3f} | {v['gain_over_dtilde_db']:+.2f}")
+
+
+if __name__ == "__main__":
+    main()
