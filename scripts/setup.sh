@@ -29,6 +29,20 @@ if ! have_llvm; then
   fi
 fi
 
+# The web app's browser test (tests/test_serve.py) drives Debian's Chromium with Playwright (Playwright's own
+# browser download is not used). Optional: when it cannot be installed, that test is skipped with the reason.
+if [ ! -x /usr/bin/chromium ] && [ "${USDRELIGHT_SKIP_CHROMIUM:-0}" != "1" ]; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
+  if command -v apt-get >/dev/null; then
+    log "installing chromium (browser test of usdrelight serve)"
+    $SUDO apt-get install -y -qq chromium >/dev/null 2>&1 || { $SUDO apt-get update -qq >/dev/null 2>&1 && \
+      $SUDO apt-get install -y -qq chromium >/dev/null 2>&1; } || \
+      log "WARNING: chromium not installed: the browser test of usdrelight serve will be skipped"
+  else
+    log "WARNING: no apt-get; without /usr/bin/chromium the browser test of usdrelight serve is skipped"
+  fi
+fi
+
 if [ ! -x .venv/bin/python ]; then
   log "creating .venv"
   "$PY" -m venv .venv

@@ -200,7 +200,34 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def cmd_serve(args) -> int:
+    from .serve.app import ServeApp
+
+    app = ServeApp(args.stage, host=args.host, port=args.port, hdris=args.hdri or (), max_side=args.max_side,
+                   mode=args.mode)
+    try:
+        summary = {"url": app.url, "host": app.host, "port": app.port, "mode": app.mode,
+                   "resolution": list(app.live.resolution), "lights": len(app.states),
+                   "seconds": {k: round(v, 4) for k, v in app.seconds.items()}}
+        _emit(args, summary, f"usdrelight serve: open {app.url} ({app.seconds['start']:.1f} s to start; "
+                             f"Ctrl-C stops)")
+        sys.stdout.flush()
+        app.wait_forever()
+    except KeyboardInterrupt:
+        log.info("serve: stopping")
+    finally:
+        app.stop()
+    return 0
+
+
 # ---- parser ---------------------------------------------------------------------------------
+def _port(text: str) -> int:
+    v = int(text)
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be in 0..65535, got {v}")
+    return v
+
+
 def _positive_int(text: str) -> int:
     v = int(text)
     if v < 1:
@@ -318,6 +345,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("src", type=Path)
     c.add_argument("dst", type=Path)
     c.set_defaults(func=cmd_convert)
+
+    sv = sub.add_parser("serve", parents=[common, reads], help="interactive relighting web app (the serve extra)",
+                        description="A local web app: the photo mesh, camera and lights in 3D, light editing, "
+                                    "the relit photo live; saves lights_user.usda. Ctrl-C stops it.")
+    sv.add_argument("stage", type=Path)
+    sv.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (default 127.0.0.1: this machine only)")
+    sv.add_argument("--port", type=_port, default=8080, help="port (the next free one when taken; 0 = any)")
+    sv.add_argument("--hdri", type=Path, action="append", metavar="FILE",
+                    help="latlong HDRI (.exr/.hdr) offered to dome lights (repeatable)")
+    sv.add_argument("--mode", choices=["neural", "ratio", "add"], help="initial output mode (default: relight's)")
+    sv.add_argument("--max-side", type=_positive_int, default=512, help="longer side of the live frames, pixels")
+    sv.set_defaults(func=cmd_serve)
 
     v = sub.add_parser("validate", parents=[common], help="run every pxr.UsdValidation validator",
                        description="Exit 0 only when no validator reports an error.")

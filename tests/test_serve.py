@@ -1,0 +1,336 @@
+"""`usdrelight serve`: light <-> UI state <-> UsdLux mappings, the user-layer writer, safety rules, the
+command's start/stop, and the app driven by a real headless Chromium (Playwright, system browser).
+
+Stages are the procedural example built at stride 4 with one fitted point light written directly (no fit run),
+rendered at 96 px: every app starts in about a second.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, build_procedural
+from usdrelight.errors import UsdRelightError
+from usdrelight.stage.layout import USER_LIGHTS
+from usdrelight.stage.light_specs import parse_light
+from usdrelight.stage.lights_layer import write_fitted_lights
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.records import FitProvenance, PointLightValue
+from usdrelight.stage.validate import open_stage
+from usdrelight.serve.files import read_user_states, store_upload, write_user_layer
+from usdrelight.serve.state import (LightState, color_from_picker, from_record, picker_from_color,
+                                    quat_pointing_along, to_record)
+
+CHROMIUM = Path("/usr/bin/chromium")
+SIDE = 96
+
+
+def _stage(out: Path) -> Path:
+    stage = build_procedural(out, stride=4)
+    write_fitted_lights(out, [PointLightValue(np.array([0.5, 1.0, -1.5]), np.array([3.0, 3.0, 3.0]))], None,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 0))
+    return stage
+
+
+@pytest.fixture(scope="module")
+def base_stage(tmp_path_factory):
+    return _stage(tmp_path_factory.mktemp("serve") / "scene")
+
+
+@pytest.fixture
+def stage(base_stage, tmp_path):
+    """A private copy of the stage (with its relight cache, so apps start from it)."""
+    dst = tmp_path / "scene"
+    shutil.copytree(base_stage.parent, dst)
+    return dst / "scene.usda"
+
+
+def _hdri(path: Path) -> Path:
+    from usdrelight.imageio import write_image
+
+    img = np.ones((8, 16, 3), np.float32) * np.linspace(0.1, 1.0, 16, dtype=np.float32)[None, :, None]
+    return write_image(path, img, "float")
+
+
+def _all_kinds(hdri_label: str) -> list[LightState]:
+    return [
+        LightState("Key", "point", color=(1.0, 0.5, 0.25), intensity=12.5, exposure=1.5, position=(0.3, 0.8, -2.0)),
+        LightState("Spot1", "spot", color=color_from_picker((255, 128, 0)), intensity=40.0, position=(-1, 1, -1),
+                   rotation=quat_pointing_along([0.5, -1.0, -0.7]), cone_angle=35.0, softness=0.3),
+        LightState("Sun1", "sun", intensity=2.0, exposure=-1.0, rotation=quat_pointing_along([0.2, -1, -0.4]),
+                   angle=0.53),
+        LightState("Dome1", "dome", color=(0.2, 0.3, 0.5), intensity=0.7),
+        LightState("Sky", "dome", intensity=0.5, hdri=hdri_label, rotation=quat_pointing_along([1, 0, 0])),
+        LightState("Off", "point", intensity=3.0, position=(0, 2, -1), enabled=False),
+    ]
+
+
+# ---- mappings ---------------------------------------------------------------------------------------
+def test_state_usd_state_round_trip_keeps_other_layers(stage):
+    """state -> lights_user.usda -> state is exact for every kind; only lights_user.usda changes, and a light
+    the app cannot edit (a DiskLight a user put in the layer) stays as it was."""
+    from pxr import Sdf, Usd, UsdLux
+
+    folder = stage.parent
+    hdri = _hdri(folder / "sky.exr")
+    layer = Sdf.Layer.FindOrOpen(str(folder / USER_LIGHTS))
+    s = Usd.Stage.Open(layer)
+    s.OverridePrim("/Scene")
+    UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Panel").CreateRadiusAttr(0.25)
+    layer.Save()
+    before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file() and p.name != USER_LIGHTS}
+    states = _all_kinds("sky")
+    write_user_layer(folder, states, hdri_paths={"sky": hdri})
+    after = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file() and p.name != USER_LIGHTS}
+    assert after == before  # no other layer (or file) touched, no temp file left
+    names = {str(hdri.resolve()): "sky"}
+    back, others = read_user_states(open_stage(stage), names)
+    assert back == states
+    assert others == ["/Scene/Lights/User/Panel"]
+    # saving again after removing one light: it goes, the DiskLight stays
+    write_user_layer(folder, states[1:], managed={s.name for s in states}, hdri_paths={"sky": hdri})
+    back, others = read_user_states(open_stage(stage), names)
+    assert back == states[1:] and others == ["/Scene/Lights/User/Panel"]
+    # what the renderers read from the saved stage is exactly to_record of the states
+    rec = {l.path: l for l in read_scene(open_stage(stage)).lights}
+    for st in states[1:]:
+        want = to_record(st, {"sky": hdri})
+        if want is None:
+            assert st.path not in rec  # switched off: invisible in the stage
+            continue
+        got = rec[st.path]
+        np.testing.assert_allclose(got.radiance, want.radiance, rtol=1e-6)
+        np.testing.assert_allclose(got.to_world, want.to_world, atol=1e-12)
+        assert (got.kind, got.treat_as_point, got.cone_angle_deg, got.angle_deg) == \
+               (want.kind, want.treat_as_point, want.cone_angle_deg, want.angle_deg)
+        assert (got.texture.path if got.texture else None) == (str(hdri.resolve()) if st.hdri else None)
+
+
+def test_state_matches_light_specs_and_records():
+    """A state renders exactly as the equivalent --light spec, and record -> state -> record is the identity."""
+    cases = [
+        (LightState("A", "point", color=(1.0, 0.5, 0.25), intensity=8.0, position=(0.5, 1, -2)),
+         "point:0.5,1,-2:8,4,2"),
+        (LightState("B", "spot", intensity=10.0, position=(-0.8, 0.6, -1),
+                    rotation=quat_pointing_along([0.5, -0.3, -1]), cone_angle=35.0, softness=0.25),
+         "spot:-0.8,0.6,-1:0.5,-0.3,-1:10,10,10:35:0.25"),
+        (LightState("C", "sun", color=(0.5, 0.5, 1.0), intensity=4.0, rotation=quat_pointing_along([0.2, -1, 0.1]),
+                    angle=0.5), "sun:0.2,-1,0.1:2,2,4:0.5"),
+        (LightState("D", "dome", color=(0.25, 0.5, 1.0), intensity=0.5), "dome:0.125,0.25,0.5"),
+    ]
+    for state, spec in cases:
+        rec, ref = to_record(state), parse_light(spec)
+        np.testing.assert_allclose(rec.radiance, ref.radiance, rtol=1e-6)
+        if state.kind in ("point", "spot"):
+            np.testing.assert_allclose(rec.to_world[:3, 3], ref.to_world[:3, 3])
+        if state.kind in ("spot", "sun"):
+            np.testing.assert_allclose(rec.to_world[:3, :3] @ [0, 0, -1], ref.to_world[:3, :3] @ [0, 0, -1],
+                                       atol=1e-12)
+        assert (rec.kind, rec.treat_as_point, rec.cone_angle_deg, rec.cone_softness, rec.angle_deg) == \
+               (ref.kind, ref.treat_as_point, ref.cone_angle_deg, ref.cone_softness, ref.angle_deg)
+        again = to_record(from_record(rec, state.name))
+        np.testing.assert_allclose(again.radiance, rec.radiance, rtol=1e-6)
+        np.testing.assert_allclose(again.to_world, rec.to_world, atol=1e-12)
+    assert to_record(cases[0][0].with_(enabled=False)) is None
+
+
+def test_colour_picker_round_trip_and_validation():
+    for v in range(256):
+        assert picker_from_color(color_from_picker((v, 255 - v, v // 2))) == (v, 255 - v, v // 2)
+    assert color_from_picker((255, 255, 255)) == (1.0, 1.0, 1.0)
+    for bad in ({"name": "../x"}, {"kind": "laser"}, {"intensity": -1.0}, {"color": (1, np.nan, 0)},
+                {"cone_angle": 0.0}, {"softness": 2.0}, {"rotation": (0, 0, 0, 0)}):
+        with pytest.raises(UsdRelightError):
+            LightState(**{"name": "L", "kind": "spot", **bad})
+
+
+def test_direct_cache_renders_what_the_engine_renders(stage):
+    """The app's per-light cache of direct terms (scaled by radiance) gives the engine's own frame, also after
+    a light moved and another changed colour; cached terms are reused."""
+    from usdrelight.serve.live import LightSet, LiveRelight
+
+    live = LiveRelight(stage, max_side=SIDE, mode="add")
+    cached = live.session("add").engine
+    engine = cached._engine
+    states = [LightState("P", "point", color=(1.0, 0.5, 0.2), intensity=6.0, position=(0.3, 0.8, -2.0)),
+              LightState("S", "spot", intensity=9.0, position=(-0.5, 1.0, -1.5),
+                         rotation=quat_pointing_along([0.3, -1.0, -0.5]), cone_angle=30.0, softness=0.3),
+              LightState("Sun", "sun", intensity=1.5, rotation=quat_pointing_along([0.2, -1.0, -0.3])),
+              LightState("Dome", "dome", color=(0.2, 0.3, 0.5), intensity=0.4)]
+    for step in range(3):
+        lights = live.lights(LightSet(tuple(states), fitted_on=True, dimmer=0.5, mode="ratio"))
+        ref = engine.render(lights).beauty
+        got = cached.render(lights).beauty
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6 * float(ref.max()))
+        assert len(cached._terms) == 5 + step  # 4 lights + the fitted one, plus one term per move
+        states[0] = states[0].with_(position=(0.3 + 0.1 * (step + 1), 0.8, -2.0))
+        states[1] = states[1].with_(color=color_from_picker((255, 60 * step, 0)), intensity=9.0 + step)
+
+
+# ---- safety -------------------------------------------------------------------------------------------
+def test_uploads_go_to_fixed_places(stage, tmp_path):
+    folder = stage.parent
+    content = _hdri(tmp_path / "x.exr").read_bytes()
+    label, path = store_upload(folder, "../../../../etc/evil name.exr", content)
+    assert path.parent == folder.resolve() / "serve" / "uploads"
+    assert path.name.startswith("hdri-") and path.suffix == ".exr" and path.read_bytes() == content
+    assert "/" not in label and ".." not in label
+    assert not (tmp_path / "etc").exists()
+    for name, data in (("sky.png", content), ("sky.exr", b"not an image"), ("sky.exr", b"")):
+        with pytest.raises(UsdRelightError):
+            store_upload(folder, name, data)
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]  # the refused ones left nothing
+
+
+def test_app_binds_loopback_and_refuses_share_links(stage):
+    pytest.importorskip("viser")
+    from usdrelight.cli import build_parser
+    from usdrelight.serve.app import DEFAULT_HOST, ServeApp
+
+    assert DEFAULT_HOST == "127.0.0.1"
+    assert build_parser().parse_args(["serve", str(stage)]).host == "127.0.0.1"
+    with ServeApp(stage, port=0, max_side=SIDE) as app:
+        assert app.host == "127.0.0.1" and app.url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(app.url, timeout=10) as r:
+            assert r.status == 200
+        # not reachable through the machine's other addresses
+        for addr in {a[4][0] for a in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)}:
+            if not addr.startswith("127."):
+                with pytest.raises(OSError):
+                    socket.create_connection((addr, app.port), timeout=2).close()
+        assert app.server.request_share_url() is None  # a client's share request opens no tunnel
+        # the widgets: no free-text input anywhere (so no client-named path)
+        kinds = {type(h).__name__ for h in app.server.gui._gui_input_handle_from_uuid.values()}
+        assert not any("Text" in k for k in kinds), kinds
+        # an edit, a save and an export write only where they should
+        app.add_light("spot")
+        app.wait_shown(app.update())
+        app.save()
+        exr, png = app.export()
+        assert exr == stage.parent.resolve() / "serve" / "export" / "relit.exr" and png.exists()
+
+
+def test_hdri_named_outside_the_stage_is_copied_in(stage, tmp_path):
+    """--hdri files are copied under STAGE_DIR/serve/uploads, so a saved dome reads back (scene-folder
+    confinement) and renders."""
+    pytest.importorskip("viser")
+    from usdrelight.serve.app import ServeApp
+
+    outside = _hdri(tmp_path / "my sky.exr")
+    with ServeApp(stage, port=0, max_side=SIDE, hdris=[outside]) as app:
+        (label, path), = app.hdris.items()
+        assert label == "my_sky" and path.parent == stage.parent.resolve() / "serve" / "uploads"
+        name = app.add_light("dome")
+        app.set_light(name, hdri=label, intensity=0.5)
+        shown = app.wait_shown(app.update())
+        assert not shown.error and shown.seconds["total"] > 0
+        app.save()
+    dome = {l.path: l for l in read_scene(open_stage(stage)).lights}[f"/Scene/Lights/User/{name}"]
+    assert Path(dome.texture.path).resolve() == path
+
+
+def test_serve_command_prints_url_and_stops_on_ctrl_c(stage):
+    pytest.importorskip("viser")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "usdrelight", "serve", str(stage), "--port", "0", "--max-side",
+                             str(SIDE), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    try:
+        text, summary = "", None
+        while summary is None:  # the --json summary is printed once the app serves
+            line = proc.stdout.readline()
+            assert line, proc.stderr.read()
+            text += line
+            try:
+                summary = json.loads(text)
+            except ValueError:
+                pass
+        assert summary["url"].startswith("http://127.0.0.1:") and summary["host"] == "127.0.0.1"
+        with urllib.request.urlopen(summary["url"], timeout=10) as r:
+            assert r.status == 200
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30)
+    assert rc == 0, proc.stderr.read()
+
+
+def test_stage_without_camera_or_mesh_is_one_clear_error(tmp_path, cli):
+    pytest.importorskip("viser")
+    from pxr import Usd, UsdGeom
+
+    from usd_scenes import looking_down_at_floor
+
+    no_cam = Usd.Stage.CreateNew(str(tmp_path / "nocam.usda"))
+    UsdGeom.Mesh.Define(no_cam, "/World/Mesh")
+    no_cam.GetRootLayer().Save()
+    no_mesh = looking_down_at_floor(tmp_path / "nomesh.usda", width=16, height=12)
+    no_mesh.RemovePrim("/World/Floor")
+    no_mesh.GetRootLayer().Save()
+    for name, what in (("nocam", "no camera"), ("nomesh", "no mesh")):
+        rc, out, err = cli("serve", tmp_path / f"{name}.usda", "--port", "0")
+        assert rc == 2 and err.startswith("usdrelight: error: ") and what in err and err.count("\n") == 1, err
+
+
+# ---- the browser ------------------------------------------------------------------------------------
+def test_browser_adds_a_point_light_and_saves_it(stage):
+    """Headless Chromium (Debian's, driven by Playwright) adds a point light through the UI, picks its colour
+    and position, waits for the relit image to change, saves; lights_user.usda then holds that light."""
+    pytest.importorskip("viser")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (the test extra)")
+    if not CHROMIUM.exists():
+        pytest.skip(f"{CHROMIUM} not found: scripts/setup.sh installs Debian's chromium (apt-get install chromium)")
+    from pxr import Gf, UsdLux
+
+    from usdrelight.serve.app import ServeApp
+
+    picked, position = (255, 128, 0), (0.3, 0.8, -2.0)
+    with ServeApp(stage, port=0, max_side=SIDE) as app, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 850})
+            page.goto(app.url)
+            add = page.get_by_role("button", name="Add light")
+            add.wait_for(timeout=30000)
+            image = page.locator("img[src^='blob:']").first
+            image.wait_for(timeout=30000)
+            first_src = image.get_attribute("src")
+            add.click()  # the kind dropdown starts at "point"
+            page.get_by_text("point Point1").wait_for(timeout=15000)
+            colour = page.locator("input.mantine-ColorInput-input").first
+            colour.fill("rgb({}, {}, {})".format(*picked))
+            colour.press("Enter")
+            x = page.get_by_label("Position")
+            xyz = x.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]") \
+                .locator("input[inputmode='decimal']")
+            assert xyz.count() == 3
+            for i, v in enumerate(position):
+                xyz.nth(i).fill(str(v))
+                xyz.nth(i).press("Enter")
+            page.wait_for_function("s => { const i = document.querySelector(\"img[src^='blob:']\"); "
+                                   "return i && i.src !== s; }", arg=first_src, timeout=20000)
+            deadline = time.monotonic() + 20
+            while app.states["Point1"].position != position and time.monotonic() < deadline:
+                time.sleep(0.1)
+            page.get_by_role("button", name="Save lights").click()
+            page.get_by_text("Saved 1 light(s) to lights_user.usda").wait_for(timeout=20000)
+        finally:
+            browser.close()
+    saved = open_stage(stage)
+    prim = saved.GetPrimAtPath("/Scene/Lights/User/Point1")
+    assert prim and prim.GetTypeName() == "SphereLight"
+    light = UsdLux.SphereLight(prim)
+    assert light.GetTreatAsPointAttr().Get()
+    np.testing.assert_allclose(light.GetColorAttr().Get(), color_from_picker(picked), rtol=1e-6)
+    assert color_from_picker(picked)[1] == pytest.approx(0.2158605, abs=1e-6)  # sRGB 128 -> linear
+    world = prim.GetAttribute("xformOp:translate").Get()
+    assert Gf.IsClose(world, Gf.Vec3d(*position), 1e-9)

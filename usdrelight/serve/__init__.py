@@ -1,0 +1,7 @@
+"""``usdrelight serve``: the interactive relighting web app (built on viser).
+
+Modules: :mod:`.state` (an editable light and its UsdLux / record / widget mappings), :mod:`.files` (the
+user-lights layer, uploads and exports at fixed places), :mod:`.live` (the relight loop, no GUI),
+:mod:`.scene_view` (3D view), :mod:`.gui` (widgets), :mod:`.app` (the server). Only :mod:`.scene_view`,
+:mod:`.gui` and :mod:`.app` need viser (the ``serve`` extra); nothing else in usdrelight imports this package.
+"""

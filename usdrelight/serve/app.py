@@ -1,0 +1,292 @@
+"""``usdrelight serve STAGE``: the interactive relighting web app (viser).
+
+One process serves one stage. The app holds the user's editable lights (:class:`LightState`, read from
+/Scene/Lights/User at start), renders them with the stage's other lights and the dimmable fitted lights through
+:class:`usdrelight.serve.live.LiveRelight` at ``max_side`` pixels, and shows the relit photo in a panel (with a
+split view against the original photo and the time of each frame). Every change (a widget, a gizmo drag) asks
+the :class:`FrameLoop` for a frame; only the newest request is rendered.
+
+Safety: the server binds 127.0.0.1 unless ``host`` says otherwise; no widget takes a file path: HDRIs are
+copies of those named on the command line (``--hdri``) or uploads, both stored under fixed names in the stage's
+folder (:mod:`.files`; so the saved layer stays readable under the scene-folder confinement of
+:mod:`usdrelight.safe_paths`); saving writes only ``lights_user.usda``, exporting only
+``STAGE_DIR/serve/export/relit.{exr,png}``; viser's public share links are refused.
+"""
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import logging
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..stage.validate import open_stage
+from .files import export_relit, read_user_states, store_upload, write_user_layer
+from .gui import Gui
+from .live import FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
+from .scene_view import SceneView, scene_size
+from .state import LightState, quat_pointing_along, unique_name
+
+log = logging.getLogger(__name__)
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8080
+
+
+def _import_viser():
+    try:
+        import viser
+    except ImportError:
+        raise UsdRelightError("usdrelight serve needs viser: pip install 'usdrelight[serve]'") from None
+    return viser
+
+
+def _no_share_links(*_args, **_kwargs) -> None:
+    """Replaces viser's share-link request: serving beyond ``--host`` is never done on a client's say."""
+    log.warning("a client asked for a public share link: refused (usdrelight serve stays on --host)")
+
+
+@dataclass
+class Shown:
+    """The last frame shown in the panel."""
+
+    request: int = 0
+    """Request number it answers."""
+    latency: float = 0.0
+    """Seconds from the light change (request) to the image handed to the GUI."""
+    seconds: dict | None = None
+    """Timing of the frame (RelightSession's plus ``update``)."""
+    error: str = ""
+    """Why the frame failed, '' when it did not."""
+
+
+class ServeApp:
+    """The running web app (see the module docstring). Use :meth:`stop` (or a ``with`` block) to end it."""
+
+    def __init__(self, stage_path, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, hdris=(),
+                 max_side: int | None = 512, mode: str | None = None):
+        viser = _import_viser()
+        t0 = time.perf_counter()
+        self.stage_path = Path(stage_path)
+        self.stage_dir = self.stage_path.resolve().parent
+        self._ctx = contextvars.copy_context()  # callbacks run on viser's threads: they get the caller's context
+        self.hdris = {}  # label -> path under STAGE_DIR/serve/uploads (copies of --hdri files, uploads)
+        for p in hdris:
+            p = Path(p)
+            try:
+                content = p.read_bytes()
+            except OSError as exc:
+                raise UsdRelightError(f"--hdri {p}: {exc.strerror or exc}") from None
+            label, path = store_upload(self.stage_dir, p.name, content)
+            if path not in self.hdris.values():
+                self.hdris[self._free_label(label)] = path
+        stage = open_stage(self.stage_path)
+        check_servable(stage, self.stage_path)
+        names = {str(p): n for n, p in self.hdris.items()}
+        states, others = read_user_states(stage, names)
+        for path, label in names.items():
+            if label not in self.hdris:
+                self.hdris[label] = Path(path)
+        self.live = LiveRelight(self.stage_path, max_side, mode, self.hdris)
+        self.live.keep_other(others)
+        self.states = {s.name: s for s in states}
+        self.managed = set(self.states)  # layer prims the app replaces when saving
+        self.fitted_on, self.dimmer, self.mode = True, 1.0, self.live.mode
+        self.split, self.exposure = 0.0, 0.0
+        self.shown = Shown()
+        self._lock = threading.RLock()
+        self._shown_cond = threading.Condition()
+        self._busy = threading.Lock()
+        photo = self.live.photo()
+        self.photo_display = to_display(photo) if photo is not None else None
+        with contextlib.redirect_stdout(sys.stderr):  # viser prints a banner; stdout is for summaries
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.host, self.port = host, self.server.get_port()
+        if port and self.port != port:
+            log.warning("port %d is in use: serving on %d", port, self.port)
+        self.server.request_share_url = _no_share_links  # a client must not open a public tunnel
+        self.server.gui.configure_theme(control_width="medium", show_share_button=False)
+        self.view = SceneView(self.server, self.live.scene, self._frustum_image(), self.live.fitted,
+                              self.move_light)
+        for s in self.states.values():
+            self.view.set_light(s)
+        self.gui = Gui(self)
+        self.loop = FrameLoop(self.live, self._show)
+        self.update()
+        self.seconds = {"start": time.perf_counter() - t0, **self.live.seconds}
+
+    # ---- lifecycle -----------------------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    def stop(self) -> None:
+        """Stop rendering and serving (idempotent)."""
+        loop, self.loop = getattr(self, "loop", None), None
+        if loop is not None:
+            loop.stop()
+            with contextlib.redirect_stdout(sys.stderr):
+                self.server.stop()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def wait_forever(self) -> None:
+        """Block until Ctrl-C (KeyboardInterrupt propagates to the caller, who stops the app)."""
+        while True:
+            time.sleep(3600)
+
+    # ---- the light set ---------------------------------------------------------------------------
+    def light_set(self) -> LightSet:
+        with self._lock:
+            return LightSet(tuple(self.states.values()), self.fitted_on, self.dimmer, self.mode)
+
+    def update(self) -> int:
+        """Ask for a new frame of the current lights; returns the request number."""
+        return self.loop.request(self.light_set()) if self.loop is not None else 0
+
+    def _free_label(self, label: str) -> str:
+        out, n = label, 2
+        while out in self.hdris:
+            out, n = f"{label}_{n}", n + 1
+        return out
+
+    def default_light(self, kind: str, name: str) -> LightState:
+        """A new light placed where it shows: in front of the camera, above and right of the scene."""
+        centre, d = scene_size(self.live.scene)
+        cam = self.live.scene.camera.to_world
+        pos = cam[:3, :3] @ np.array([0.25, 0.3, -0.55]) * d + cam[:3, 3]
+        to_centre = centre - pos
+        if kind == "point":
+            return LightState(name, "point", intensity=round(2.0 * float(to_centre @ to_centre), 3), position=pos)
+        if kind == "spot":
+            return LightState(name, "spot", intensity=round(4.0 * float(to_centre @ to_centre), 3), position=pos,
+                              rotation=quat_pointing_along(to_centre), cone_angle=30.0, softness=0.2)
+        if kind == "sun":
+            return LightState(name, "sun", intensity=2.0, position=pos,
+                              rotation=quat_pointing_along(cam[:3, :3] @ np.array([0.4, -1.0, -0.6])))
+        return LightState(name, "dome", intensity=0.2, position=tuple(centre))
+
+    def add_light(self, kind: str) -> str:
+        with self._lock:
+            name = unique_name(kind, set(self.states) | self.managed)
+            s = self.default_light(kind, name)
+            self.states[name] = s
+        self.view.set_light(s)
+        self.update()
+        self.gui.select(name)
+        return name
+
+    def remove_light(self, name: str) -> None:
+        with self._lock:
+            if self.states.pop(name, None) is None:
+                return
+            self.managed.add(name)
+        self.view.remove_light(name)
+        self.update()
+        self.gui.select(next(iter(self.states), ""))
+
+    def set_light(self, name: str, **changes) -> LightState:
+        """Change fields of a light (validated); refreshes its 3D marker and asks for a frame."""
+        with self._lock:
+            s = self.states[name].with_(**changes)
+            self.states[name] = s
+        self.view.set_light(s)
+        self.update()
+        return s
+
+    def move_light(self, name: str, position, wxyz) -> None:
+        """A gizmo moved: the light follows (the gizmo's own path of the update)."""
+        with self._lock:
+            if name not in self.states:
+                return
+            s = self.states[name].with_(position=tuple(position), rotation=tuple(wxyz))
+            self.states[name] = s
+        self.update()
+        self.gui.light_moved(s)
+
+    def set_fitted(self, on: bool | None = None, dimmer: float | None = None) -> None:
+        with self._lock:
+            if on is not None:
+                self.fitted_on = bool(on)
+            if dimmer is not None:
+                self.dimmer = max(0.0, float(dimmer))
+        self.update()
+
+    def set_mode(self, mode: str) -> None:
+        with self._lock:
+            self.mode = mode
+        self.update()
+
+    def set_display(self, split: float | None = None, exposure: float | None = None) -> None:
+        if split is not None:
+            self.split = float(split)
+        if exposure is not None:
+            self.exposure = float(exposure)
+        self.update()
+
+    # ---- files ---------------------------------------------------------------------------------
+    def save(self) -> Path:
+        """Write the editable lights to lights_user.usda (only that file, atomically)."""
+        with self._lock:
+            states, managed = list(self.states.values()), set(self.managed)
+        path = write_user_layer(self.stage_dir, states, managed, self.hdris)
+        with self._lock:
+            self.managed = managed | {s.name for s in states}
+        return path
+
+    def export(self) -> tuple[Path, Path]:
+        """The relit photo at full resolution -> STAGE_DIR/serve/export/relit.exr + relit.png."""
+        with self._busy:
+            image = self._ctx.copy().run(self.live.export, self.light_set())
+            return export_relit(self.stage_dir, image)
+
+    def upload_hdri(self, client_name: str, content: bytes) -> str:
+        """Store an uploaded HDRI under its fixed name; returns the label it gets in the HDRI lists."""
+        label, path = store_upload(self.stage_dir, client_name, content)
+        with self._lock:
+            for known, p in self.hdris.items():
+                if Path(p) == path:
+                    return known
+            label = self._free_label(label)
+            self.hdris[label] = path
+            self.live.hdris[label] = path
+        return label
+
+    # ---- frames --------------------------------------------------------------------------------
+    def _frustum_image(self):
+        if self.photo_display is None:
+            return None
+        h, w = self.photo_display.shape[:2]
+        step = max(1, int(np.ceil(max(h, w) / 256)))
+        return np.ascontiguousarray(self.photo_display[::step, ::step])
+
+    def _show(self, frame) -> None:
+        img = to_display(frame.image, self.exposure)
+        if self.photo_display is not None and self.split > 0:
+            img = split_view(self.photo_display, img, self.split)
+        self.gui.show_frame(img, frame)
+        latency = time.perf_counter() - frame.requested_at
+        with self._shown_cond:
+            self.shown = Shown(frame.request, latency, frame.seconds, frame.error)
+            self._shown_cond.notify_all()
+
+    def wait_shown(self, request: int, timeout: float = 60.0) -> Shown:
+        """Block until the frame of ``request`` (or a newer one) has been shown."""
+        end = time.monotonic() + timeout
+        with self._shown_cond:
+            while self.shown.request < request:
+                left = end - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"frame {request} not shown within {timeout} s")
+                self._shown_cond.wait(left)
+            return self.shown

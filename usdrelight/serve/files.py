@@ -1,0 +1,241 @@
+"""What the web app reads and writes on disk: the user-lights layer, uploaded HDRIs, exported images.
+
+Safety: every path here is fixed by the server or derived from the stage's own folder; nothing a browser
+sends is ever used as (part of) a path. Uploads are stored under ``STAGE_DIR/serve/uploads/`` with a name made
+from their content hash (the client's file name only chooses between the accepted suffixes ``.exr`` and
+``.hdr`` and gives a display label); exports go to ``STAGE_DIR/serve/export/relit.{exr,png}``.
+
+The user-lights layer (``lights_user.usda``) is rewritten atomically (:mod:`usdrelight.atomic`): the app
+replaces the lights it manages under /Scene/Lights/User and keeps every other opinion of that layer (lights it
+cannot edit, documentation, anything else a user authored). No other layer is touched.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .. import atomic
+from ..errors import UsdRelightError
+from ..imageio import read_photo
+from ..neural.model import write_relit
+from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
+from ..stage.read import gf_to_np
+from .state import LightState, matrix_to_quat
+
+log = logging.getLogger(__name__)
+SERVE_DIR = "serve"
+UPLOADS = "serve/uploads"
+EXPORTS = "serve/export"
+HDRI_SUFFIXES = (".exr", ".hdr")
+MAX_UPLOAD_BYTES = 256 * 1024 * 1024
+
+
+def hdri_label(text: str) -> str:
+    """A display label (never a path): letters, digits, '-', '_' and '.', at most 40 characters."""
+    label = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(str(text)).stem)[:40].strip("._")
+    return label or "hdri"
+
+
+def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path]:
+    """Keep an uploaded HDRI: (label, path). The path is ``STAGE_DIR/serve/uploads/hdri-<sha256[:16]>.<exr|hdr>``
+    whatever the client called the file; the file must decode as an image."""
+    suffix = Path(str(client_name)).suffix.lower()
+    if suffix not in HDRI_SUFFIXES:
+        raise UsdRelightError(f"an HDRI upload must be {' or '.join(HDRI_SUFFIXES)}")
+    if not content or len(content) > MAX_UPLOAD_BYTES:
+        raise UsdRelightError(f"an HDRI upload must hold 1 byte to {MAX_UPLOAD_BYTES >> 20} MiB")
+    digest = hashlib.sha256(content).hexdigest()[:16]
+    path = Path(stage_dir).resolve() / UPLOADS / f"hdri-{digest}{suffix}"
+    atomic.write_bytes_atomic(path, content)
+    try:
+        img = read_photo(path)
+        if img.ndim != 3 or not np.all(np.isfinite(img)):
+            raise UsdRelightError("not a finite RGB image")
+    except UsdRelightError as exc:
+        path.unlink(missing_ok=True)
+        raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
+    return hdri_label(client_name), path
+
+
+def export_relit(stage_dir, image: np.ndarray) -> tuple[Path, Path]:
+    """``STAGE_DIR/serve/export/relit.exr`` (linear float) and ``relit.png`` (sRGB), written atomically."""
+    return write_relit(Path(stage_dir).resolve() / EXPORTS, "relit", image)
+
+
+# ---- reading the user's lights ----------------------------------------------------------------
+def _transform(prim) -> tuple[tuple, tuple]:
+    """(position, rotation wxyz) of a light: its translate + orient ops when that is all it has, else the
+    decomposed local-to-world matrix."""
+    from pxr import Usd, UsdGeom
+
+    xf = UsdGeom.Xformable(prim)
+    ops = xf.GetOrderedXformOps()
+    kinds = [op.GetOpType() for op in ops]
+    if kinds == [UsdGeom.XformOp.TypeTranslate, UsdGeom.XformOp.TypeOrient] and not xf.GetResetXformStack():
+        parent = gf_to_np(UsdGeom.Xformable(prim.GetParent()).ComputeLocalToWorldTransform(Usd.TimeCode.Default())) \
+            if prim.GetParent().IsA(UsdGeom.Xformable) else np.eye(4)
+        if np.allclose(parent, np.eye(4), atol=0):
+            t, q = ops[0].Get(), ops[1].Get()
+            return tuple(float(v) for v in t), (float(q.GetReal()), *(float(v) for v in q.GetImaginary()))
+    m = gf_to_np(xf.ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    return tuple(m[:3, 3]), matrix_to_quat(m[:3, :3])
+
+
+def read_state(prim, hdri_names: dict) -> LightState | None:
+    """The editable state of a UsdLux prim, or None when the app cannot edit it without changing it (area
+    lights, colour temperature, IES/focus shaping, an unreadable HDRI). ``hdri_names`` ({resolved path: label})
+    gains the HDRIs the layer already uses."""
+    from pxr import UsdGeom, UsdLux
+
+    t = prim.GetTypeName()
+    api = UsdLux.LightAPI(prim)
+    if not api or api.GetEnableColorTemperatureAttr().Get():
+        return None
+    common = {"name": prim.GetName(), "color": tuple(api.GetColorAttr().Get()),
+              "intensity": float(api.GetIntensityAttr().Get()), "exposure": float(api.GetExposureAttr().Get()),
+              "enabled": UsdGeom.Imageable(prim).GetVisibilityAttr().Get() != UsdGeom.Tokens.invisible}
+    common["position"], common["rotation"] = _transform(prim)
+    try:
+        if t == "SphereLight":
+            s = UsdLux.SphereLight(prim)
+            if not (s.GetTreatAsPointAttr().Get() or float(s.GetRadiusAttr().Get()) == 0.0):
+                return None
+            if prim.HasAPI(UsdLux.ShapingAPI):
+                sh = UsdLux.ShapingAPI(prim)
+                ies = sh.GetShapingIesFileAttr().Get()
+                if float(sh.GetShapingFocusAttr().Get() or 0.0) != 0.0 or (ies is not None and ies.path):
+                    return None
+                angle = float(sh.GetShapingConeAngleAttr().Get())
+                if angle < 180.0:
+                    return LightState(kind="spot", cone_angle=angle,
+                                      softness=float(sh.GetShapingConeSoftnessAttr().Get()), **common)
+            return LightState(kind="point", **common)
+        if t == "DistantLight":
+            return LightState(kind="sun", angle=float(UsdLux.DistantLight(prim).GetAngleAttr().Get()), **common)
+        if t == "DomeLight":
+            asset = UsdLux.DomeLight(prim).GetTextureFileAttr().Get()
+            if asset is None or not asset.path:
+                return LightState(kind="dome", **common)
+            if not asset.resolvedPath:
+                return None
+            name = hdri_names.setdefault(asset.resolvedPath, hdri_label(asset.resolvedPath))
+            return LightState(kind="dome", hdri=name, **common)
+    except UsdRelightError as exc:
+        log.warning("light %s kept as it is (not editable here): %s", prim.GetPath(), exc)
+    return None
+
+
+def read_user_states(stage, hdri_names: dict) -> tuple[list[LightState], list[str]]:
+    """(editable states, paths of the other lights under /Scene/Lights/User) in the composed ``stage``."""
+    from pxr import Usd, UsdLux
+
+    scope = stage.GetPrimAtPath(USER_LIGHTS_SCOPE)
+    states, others = [], []
+    if not scope:
+        return states, others
+    for prim in Usd.PrimRange(scope):
+        if prim == scope or not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase)
+                                  or prim.IsA(UsdLux.NonboundableLightBase)):
+            continue
+        state = read_state(prim, hdri_names) if prim.GetParent() == scope else None
+        (states.append(state) if state is not None else others.append(str(prim.GetPath())))
+    return states, others
+
+
+# ---- writing the user's lights ----------------------------------------------------------------
+def _asset(path: Path, stage_dir: Path) -> str:
+    try:
+        return "./" + Path(path).resolve().relative_to(stage_dir).as_posix()
+    except ValueError:
+        return str(Path(path).resolve())
+
+
+def _author(stage, s: LightState, stage_dir: Path, hdri_paths: dict) -> None:
+    from pxr import Gf, Sdf, UsdGeom, UsdLux
+
+    if s.kind in ("point", "spot"):
+        light = UsdLux.SphereLight.Define(stage, s.path)
+        light.CreateTreatAsPointAttr(True)
+        light.CreateRadiusAttr(0.0)
+        light.CreateNormalizeAttr(False)
+        if s.kind == "spot":
+            shaping = UsdLux.ShapingAPI.Apply(light.GetPrim())
+            shaping.CreateShapingConeAngleAttr(s.cone_angle)
+            shaping.CreateShapingConeSoftnessAttr(s.softness)
+    elif s.kind == "sun":
+        light = UsdLux.DistantLight.Define(stage, s.path)
+        light.CreateAngleAttr(s.angle)
+    else:
+        light = UsdLux.DomeLight.Define(stage, s.path)
+        if s.hdri:
+            if s.hdri not in hdri_paths:
+                raise UsdRelightError(f"light {s.name}: unknown HDRI {s.hdri!r}")
+            light.CreateTextureFileAttr(Sdf.AssetPath(_asset(hdri_paths[s.hdri], stage_dir)))
+            light.CreateTextureFormatAttr("latlong")
+    light.CreateIntensityAttr(s.intensity)
+    light.CreateExposureAttr(s.exposure)
+    light.CreateColorAttr(Gf.Vec3f(*s.color))
+    xf = UsdGeom.Xformable(light.GetPrim())
+    xf.ClearXformOpOrder()
+    xf.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*s.position))
+    w, *v = s.rotation
+    xf.AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(w, Gf.Vec3d(*v)))
+    if not s.enabled:
+        UsdGeom.Imageable(light.GetPrim()).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+
+
+def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = None) -> str:
+    """The new text of ``STAGE_DIR/lights_user.usda``: the current layer with the prims named in ``managed``
+    and ``states`` under /Scene/Lights/User replaced by ``states``."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    stage_dir = Path(stage_dir).resolve()
+    path = stage_dir / USER_LIGHTS
+    layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.exists() else Sdf.Layer.CreateAnonymous(".usda")
+    if layer is None:
+        raise UsdRelightError(f"cannot read {path}")
+    if not layer.documentation:
+        layer.documentation = "Your own lights: put them under /Scene/Lights/User."
+    edit = Sdf.BatchNamespaceEdit()
+    for name in sorted(set(managed) | {s.name for s in states}):
+        spec_path = Sdf.Path(f"{USER_LIGHTS_SCOPE}/{name}")
+        if layer.GetPrimAtPath(spec_path):
+            edit.Add(spec_path, Sdf.Path.emptyPath)
+    if edit.edits and not layer.Apply(edit):
+        raise UsdRelightError(f"cannot edit {path}")
+    stage = Usd.Stage.Open(layer)
+    root_spec = layer.GetPrimAtPath(ROOT)
+    had_root_def = root_spec is not None and root_spec.specifier == Sdf.SpecifierDef
+    stage.OverridePrim(ROOT)
+    if states:
+        UsdGeom.Scope.Define(stage, LIGHTS)
+        UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
+    for s in states:
+        _author(stage, s, stage_dir, hdri_paths or {})
+    root = layer.GetPrimAtPath(ROOT)
+    if not had_root_def:
+        root.specifier = Sdf.SpecifierOver  # /Scene is defined by scene.usda; this layer only adds to it
+    return layer.ExportToString()
+
+
+def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None) -> Path:
+    """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file."""
+    target = Path(stage_dir).resolve() / USER_LIGHTS
+    text = user_layer_text(stage_dir, states, managed, hdri_paths)
+    lock = getattr(atomic, "stage_lock", None)
+    if lock is not None:  # the stage writers' lock, when usdrelight.atomic provides one
+        with lock(target.parent):
+            atomic.write_text_atomic(target, text)
+    else:
+        atomic.write_text_atomic(target, text)
+    from pxr import Sdf
+
+    cached = Sdf.Layer.Find(str(target))
+    if cached is not None:  # a stage open in this process sees the new file
+        cached.Reload(force=True)
+    log.info("saved %d light(s) to %s", len(states), target)
+    return target

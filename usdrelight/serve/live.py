@@ -1,0 +1,301 @@
+"""The web app's relight engine, free of any GUI: the light set, the relit frame, the update loop.
+
+:class:`LiveRelight` keeps one :class:`usdrelight.neural.relight.RelightSession` per output mode (made when the
+mode is first used; each loads the stage's relight cache) and owns the light list it renders: the user's
+editable lights, the stage's other non-fitted lights, and the fitted lights scaled by a dimmer (the photo's own
+lighting, 1 = as fitted, 0 = off: day to night). Mode ``ratio`` divides by the render under the full fitted
+lighting, so dimming it darkens the photo itself; mode ``add`` keeps the photo's light, so the fitted lights
+are never added again there (the dimmer does not apply).
+
+:class:`FrameLoop` is the update path: a GUI thread calls :meth:`FrameLoop.request` with the newest light set
+(e.g. on every gizmo move) and one worker thread renders the newest request only, so a drag never queues a
+backlog; each finished frame is handed to a callback with the time from the request to the frame.
+
+Display images are sRGB 8-bit: linear * 2^display exposure, clipped to [0, 1], sRGB-encoded.
+"""
+from __future__ import annotations
+
+import contextvars
+import hashlib
+import inspect
+import logging
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..imageio import linear_to_srgb, read_photo, resize_image
+from ..neural.composite import MODES
+from ..neural.relight import RelightSession
+from ..stage.layout import USER_LIGHTS_SCOPE
+from .state import LightState, to_record
+
+log = logging.getLogger(__name__)
+DEFAULT_MODE = inspect.signature(RelightSession).parameters["mode"].default
+
+
+def to_display(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """Linear RGB -> sRGB uint8 (clipped)."""
+    return np.round(linear_to_srgb(np.asarray(image, np.float32) * 2.0 ** exposure) * 255.0).astype(np.uint8)
+
+
+def split_view(original: np.ndarray, relit: np.ndarray, split: float) -> np.ndarray:
+    """The original left of column ``split * W``, the relit image right of it, a white line between."""
+    out = relit.copy()
+    w = relit.shape[1]
+    col = int(round(np.clip(split, 0.0, 1.0) * w))
+    if col > 0:
+        out[:, :col] = original[:, :col]
+        out[:, min(col, w - 1)] = 255
+    return out
+
+
+@dataclass(frozen=True)
+class LightSet:
+    """Everything that decides one relit frame."""
+
+    states: tuple = ()
+    """Editable user lights (:class:`LightState`)."""
+    fitted_on: bool = True
+    """Include the fitted (photo's own) lights."""
+    dimmer: float = 1.0
+    """Scale of the fitted lights' radiance, >= 0."""
+    mode: str = DEFAULT_MODE
+    """neural | ratio | add."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One relit frame, ready to show."""
+
+    image: np.ndarray
+    """(H, W, 3) linear RGB relit photo (zeros when no light is on)."""
+    seconds: dict
+    """RelightSession's timing (render, network or composite, total) plus ``update``: request -> frame."""
+    request: int
+    """Number of the request this frame answers."""
+    lights: int
+    """Lights rendered."""
+    error: str = ""
+    """Why the frame could not be rendered ('' = fine); the image is then the last good one or black."""
+    requested_at: float = 0.0
+    """time.perf_counter() when the request was made (for the request -> shown latency)."""
+
+
+def light_key(light) -> bytes:
+    """Everything but the radiance that decides a light's direct term, as bytes (a cache key)."""
+    tex = light.texture
+    fields = (light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
+              light.treat_as_point, light.cone_angle_deg, light.cone_softness,
+              None if tex is None else (tex.path, tex.color_space, tex.scale, tex.bias, tex.channel))
+    return repr(fields).encode() + np.asarray(light.to_world, np.float64).tobytes()
+
+
+class DirectCache:
+    """The fast renderer with every light's direct term kept between frames.
+
+    The fast renderer is linear in the lights: a frame is the sum of the lights' direct terms (E / pi at the
+    visible surface) followed by one bounce, and each direct term is linear in its light's radiance, channel by
+    channel. Rendering through this wrapper keeps each light's term for unit radiance, scales it by the
+    radiance, and computes only the terms of lights that moved or changed shape since they were last seen (a
+    gizmo drag: one light; a colour, intensity or dimmer change: none), then runs the engine's own
+    :meth:`FastRenderer.render` code for the sum and the bounce. Lights that sample (area lights, a sun with an
+    angular diameter) get a random stream of their own, seeded by their key, so a frame never depends on what
+    was cached. At most ``size`` terms are kept (each (N, 3) float64 over the valid pixels).
+    """
+
+    def __init__(self, engine, size: int = 24):
+        self._engine, self._size = engine, size
+        self._terms: dict = {}
+
+    def __getattr__(self, name):
+        return getattr(self._engine, name)
+
+    def direct(self, light, rng=None) -> np.ndarray:
+        key = light_key(light)
+        term = self._terms.pop(key, None)
+        if term is None:
+            seed = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") ^ self._engine.settings.seed
+            term = self._engine.direct(replace(light, radiance=np.ones(3)), np.random.default_rng(seed))
+        self._terms[key] = term  # most recently used last
+        while len(self._terms) > self._size:
+            self._terms.pop(next(iter(self._terms)))
+        return term * np.asarray(light.radiance, np.float64)[None, :]
+
+    def render(self, lights, max_depth: int | None = None):
+        return type(self._engine).render(self, lights, max_depth)
+
+
+def check_servable(stage, path) -> None:
+    """One clear error unless ``stage`` has a camera and a mesh (what the app shows and relights)."""
+    from pxr import UsdGeom
+
+    prims = list(stage.Traverse())
+    missing = [what for what, kind in (("camera", UsdGeom.Camera), ("mesh", UsdGeom.Mesh))
+               if not any(p.IsA(kind) for p in prims)]
+    if missing:
+        raise UsdRelightError(f"{path} has no {' and no '.join(missing)}: usdrelight serve needs a stage with a "
+                              f"camera and a mesh (as `usdrelight build` writes)")
+
+
+class LiveRelight:
+    """A stage opened for live relighting at ``max_side`` pixels (see the module docstring)."""
+
+    def __init__(self, stage_path, max_side: int | None = 512, mode: str | None = None, hdris: dict | None = None):
+        self.stage_path = Path(stage_path)
+        self.max_side = max_side
+        self.hdris = dict(hdris or {})  # label -> path
+        self._sessions: dict = {}
+        self._lock = threading.Lock()
+        mode = mode or DEFAULT_MODE
+        try:
+            first = self.session(mode)
+        except UsdRelightError as exc:
+            if "camera" in str(exc):
+                raise UsdRelightError(f"{stage_path} has no camera: usdrelight serve needs a stage with a camera "
+                                      f"and a mesh (as `usdrelight build` writes)") from None
+            if mode == "neural":
+                raise
+            log.warning("mode %s is not available (%s): using neural", mode, exc)
+            mode, first = "neural", self.session("neural")
+        if not first.scene.meshes:
+            raise UsdRelightError(f"{stage_path} has no mesh: usdrelight serve needs a stage with a camera and a "
+                                  f"mesh (as `usdrelight build` writes)")
+        self.mode = mode
+        self.scene = first.scene
+        self.fitted = first.fitted_lights
+        # non-fitted lights the app does not edit: the stage's lights outside /Scene/Lights/User, plus those
+        # under it that the caller marks read-only with keep_other()
+        self._outside = tuple(l for l in first.user_lights if not l.path.startswith(USER_LIGHTS_SCOPE + "/"))
+        self._user_records = {l.path: l for l in first.user_lights if l.path.startswith(USER_LIGHTS_SCOPE + "/")}
+        self.others = self._outside
+        self.seconds = dict(first.seconds)
+        self._photo = None
+
+    def keep_other(self, paths) -> None:
+        """Render these user-layer lights as they are (the ones the app cannot edit)."""
+        self.others = self._outside + tuple(self._user_records[p] for p in paths if p in self._user_records)
+
+    def session(self, mode: str) -> RelightSession:
+        """The session for ``mode`` (made on first use)."""
+        if mode not in MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
+        with self._lock:
+            if mode not in self._sessions:
+                s = RelightSession(self.stage_path, max_side=self.max_side, with_fitted=False, mode=mode)
+                s.base_lights = ()  # the app owns the whole light list (see lights())
+                s.user_lights = ()
+                if s.engine is not None:
+                    s.engine = DirectCache(s.engine)
+                self._sessions[mode] = s
+            return self._sessions[mode]
+
+    @property
+    def resolution(self) -> tuple:
+        """(width, height) of the live frames, pixels."""
+        k = self.scene.camera.intrinsics
+        return k.width, k.height
+
+    def photo(self) -> np.ndarray | None:
+        """The source photo at the live resolution (linear), or None when the stage does not name it."""
+        if self._photo is None:
+            from pxr import Usd
+
+            stage = Usd.Stage.Open(str(self.stage_path))
+            root = stage.GetDefaultPrim()
+            attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
+            asset = attr.Get() if attr else None
+            if asset is None or not asset.resolvedPath:
+                return None
+            w, h = self.resolution
+            self._photo = resize_image(read_photo(asset.resolvedPath), w, h)
+        return self._photo
+
+    def lights(self, ls: LightSet) -> list:
+        """The light records of ``ls`` in render order: other lights, fitted (dimmed), the user's."""
+        records = list(self.others)
+        if ls.fitted_on and ls.dimmer > 0 and ls.mode != "add":
+            records += [replace(l, radiance=l.radiance * float(ls.dimmer)) for l in self.fitted]
+        for s in ls.states:
+            rec = to_record(s, self.hdris)
+            if rec is not None:
+                records.append(rec)
+        return records
+
+    def render(self, ls: LightSet, session: RelightSession | None = None) -> tuple[np.ndarray, dict, int]:
+        """(linear relit image, seconds, lights) for ``ls``; black when nothing emits (neural/ratio)."""
+        session = session or self.session(ls.mode)
+        records = self.lights(ls)
+        if not records and ls.mode != "add":
+            w, h = (session.scene.camera.intrinsics.width, session.scene.camera.intrinsics.height)
+            return np.zeros((h, w, 3), np.float32), {"total": 0.0}, 0
+        frame = session.render(records)
+        return frame.image, dict(frame.seconds), frame.lights
+
+    def export(self, ls: LightSet) -> np.ndarray:
+        """The relit image of ``ls`` at the stage's full resolution (a full-size session, made once)."""
+        key = ("full", ls.mode)
+        with self._lock:
+            if key not in self._sessions:
+                s = RelightSession(self.stage_path, max_side=None, with_fitted=False, mode=ls.mode)
+                s.base_lights, s.user_lights = (), ()
+                self._sessions[key] = s
+            session = self._sessions[key]
+        return self.render(ls, session)[0]
+
+
+class FrameLoop:
+    """Renders the newest requested :class:`LightSet` on one worker thread; ``on_frame(Frame)`` per frame."""
+
+    def __init__(self, live: LiveRelight, on_frame):
+        self.live, self.on_frame = live, on_frame
+        self._cond = threading.Condition()
+        self._pending: tuple | None = None
+        self._requests = 0
+        self._stop = False
+        self._last = None
+        # the worker sees the caller's context (e.g. the --allow-path folders of usdrelight.safe_paths)
+        self._thread = threading.Thread(target=contextvars.copy_context().run, args=(self._run,),
+                                        name="usdrelight-serve-frames", daemon=True)
+        self._thread.start()
+
+    def request(self, ls: LightSet) -> int:
+        """Ask for a frame of ``ls`` (supersedes any request not started yet); returns its number."""
+        with self._cond:
+            self._requests += 1
+            self._pending = (self._requests, ls, time.perf_counter())
+            self._cond.notify()
+            return self._requests
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        self._thread.join(timeout=30)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._pending is None and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                number, ls, t0 = self._pending
+                self._pending = None
+            try:
+                image, sec, n = self.live.render(ls)
+                self._last = image
+                err = ""
+            except UsdRelightError as exc:
+                h, w = self.live.resolution[1], self.live.resolution[0]
+                image = self._last if self._last is not None else np.zeros((h, w, 3), np.float32)
+                sec, n, err = {}, 0, str(exc)
+                log.warning("frame %d: %s", number, exc)
+            sec["update"] = time.perf_counter() - t0
+            try:
+                self.on_frame(Frame(image, sec, number, n, err, t0))
+            except Exception:  # a failing display must not stop the loop
+                log.exception("showing frame %d failed", number)

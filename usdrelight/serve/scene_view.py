@@ -1,0 +1,142 @@
+"""The web app's 3D view (viser): the photo mesh with its albedo, the stage camera's frustum, the lights.
+
+The viser scene uses the stage's frame and units directly (``+y`` up, as a ``build`` stage). viser's camera
+frustums follow OpenCV (+Z forward, +Y down): the USD camera frame (looks down -Z, +Y up) turned by 180 degrees
+about X. Each editable light sits under a transform gizmo (``/user/<name>``); spots and suns show a line along
+the direction they shine (local -Z); fitted point lights are small spheres under ``/fitted`` (a toggle hides
+them). Light markers are coloured with the picker colour of the light.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..imageio import linear_to_srgb, read_map, resize_image
+from ..stage.records import SceneRecord, TextureRecord
+from .state import LightState, matrix_to_quat, picker_from_color
+
+log = logging.getLogger(__name__)
+MAX_TEXTURE = 1024
+OPENCV_FROM_USD_CAMERA = np.diag([1.0, -1.0, -1.0])
+
+
+def scene_size(scene: SceneRecord) -> tuple[np.ndarray, float]:
+    """(centre of the meshes' points, median camera distance), scene units."""
+    pts = np.concatenate([m.points for m in scene.meshes])
+    cam = scene.camera.to_world[:3, 3]
+    return np.median(pts, axis=0), float(np.median(np.linalg.norm(pts - cam, axis=1)))
+
+
+def _albedo_image(scene: SceneRecord):
+    """The first mesh's albedo texture as an sRGB PIL image (at most MAX_TEXTURE px), or None."""
+    from PIL import Image
+
+    tex = scene.meshes[0].material.diffuse
+    if not isinstance(tex, TextureRecord):
+        return None
+    img = read_map(tex.path, 3)  # texel values as stored (no colour conversion)
+    if tex.linear:
+        img = linear_to_srgb(img)  # linear albedo -> sRGB for display; sRGB texels are shown as they are
+    h, w = img.shape[:2]
+    if max(h, w) > MAX_TEXTURE:
+        s = MAX_TEXTURE / max(h, w)
+        img = resize_image(img, max(1, round(w * s)), max(1, round(h * s)))
+    return Image.fromarray(np.round(np.clip(img, 0, 1) * 255).astype(np.uint8))
+
+
+def mesh_for_view(scene: SceneRecord):
+    """The stage's meshes as one trimesh: textured with the albedo when it is a texture with UVs, else
+    vertex-coloured with the constant albedo."""
+    import trimesh
+
+    meshes = []
+    image = _albedo_image(scene)
+    for m in scene.meshes:
+        kw = {"vertices": m.points, "faces": m.faces, "process": False}
+        if m.normals is not None:
+            kw["vertex_normals"] = m.normals
+        if image is not None and m.uv is not None and m is scene.meshes[0]:
+            mat = trimesh.visual.material.PBRMaterial(baseColorTexture=image, metallicFactor=0.0,
+                                                      roughnessFactor=1.0, doubleSided=True)
+            kw["visual"] = trimesh.visual.TextureVisuals(uv=m.uv, material=mat)
+        else:
+            rgb = m.material.diffuse if not isinstance(m.material.diffuse, TextureRecord) else (0.5, 0.5, 0.5)
+            colour = np.array([*picker_from_color(rgb), 255], np.uint8)
+            kw["vertex_colors"] = np.tile(colour, (len(m.points), 1))
+        meshes.append(trimesh.Trimesh(**kw))
+    return meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
+
+
+class SceneView:
+    """Builds and updates the 3D scene of a viser server for one stage."""
+
+    def __init__(self, server, scene: SceneRecord, photo: np.ndarray | None, fitted, on_move):
+        """``photo``: sRGB uint8 shown on the frustum; ``fitted``: fitted light records;
+        ``on_move(name, position, wxyz)`` is called when a gizmo is dragged."""
+        self.server, self.on_move = server, on_move
+        self.centre, self.distance = scene_size(scene)
+        self.handles: dict = {}
+        server.scene.set_up_direction("+y")
+        mesh = mesh_for_view(scene)
+        server.scene.add_mesh_trimesh("/photo_mesh", mesh)
+        cam = scene.camera
+        k = cam.intrinsics
+        rot = cam.to_world[:3, :3] @ OPENCV_FROM_USD_CAMERA
+        server.scene.add_camera_frustum("/camera", fov=float(2 * np.arctan(k.height / (2 * k.fy))),
+                                        aspect=k.width / k.height, scale=0.15 * self.distance,
+                                        thickness=0.004 * self.distance, color=(255, 140, 0), image=photo,
+                                        wxyz=matrix_to_quat(rot), position=tuple(cam.to_world[:3, 3]))
+        eye = cam.to_world[:3, :3] @ np.array([0.35, 0.45, 0.9]) * self.distance + cam.to_world[:3, 3]
+        server.initial_camera.position = tuple(eye)
+        server.initial_camera.look_at = tuple(self.centre)
+        server.initial_camera.up = tuple(cam.to_world[:3, 1])
+        self.fitted_nodes = []
+        for i, l in enumerate(fitted):
+            if l.kind == "sphere":
+                rgb = l.radiance / max(float(np.max(l.radiance)), 1e-12)
+                self.fitted_nodes.append(server.scene.add_icosphere(
+                    f"/fitted/light{i}", radius=0.015 * self.distance, color=picker_from_color(rgb),
+                    position=tuple(l.to_world[:3, 3])))
+
+    def show_fitted(self, visible: bool) -> None:
+        for node in self.fitted_nodes:
+            node.visible = visible
+
+    def set_light(self, s: LightState) -> None:
+        """Add or update the gizmo and marker of ``s``."""
+        colour = picker_from_color(np.asarray(s.color) / max(max(s.color), 1e-12))
+        if s.name not in self.handles:
+            gizmo = self.server.scene.add_transform_controls(
+                f"/user/{s.name}", scale=0.12 * self.distance, position=s.position, wxyz=s.rotation,
+                disable_rotations=s.kind == "point", depth_test=False)
+
+            @gizmo.on_update
+            def _(_, name=s.name, gizmo=gizmo):
+                self.on_move(name, tuple(gizmo.position), tuple(gizmo.wxyz))
+
+            self.handles[s.name] = {"gizmo": gizmo}
+        h = self.handles[s.name]
+        gizmo = h["gizmo"]
+        if not (np.allclose(gizmo.position, s.position) and np.allclose(gizmo.wxyz, s.rotation)):
+            gizmo.position, gizmo.wxyz = s.position, s.rotation
+        r = 0.02 * self.distance
+        key = (s.kind, colour, s.enabled)
+        if h.get("key") != key:
+            for n in ("bulb", "ray"):
+                if n in h:
+                    h.pop(n).remove()
+            h["bulb"] = self.server.scene.add_icosphere(f"/user/{s.name}/bulb", radius=r, color=colour,
+                                                        opacity=1.0 if s.enabled else 0.3)
+            if s.kind in ("spot", "sun"):
+                seg = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -0.3 * self.distance]]])
+                h["ray"] = self.server.scene.add_line_segments(f"/user/{s.name}/ray", seg, colors=colour,
+                                                               thickness=3.0, thickness_units="screen")
+            h["key"] = key
+
+    def remove_light(self, name: str) -> None:
+        h = self.handles.pop(name, None)
+        if h:
+            for node in h.values():
+                if hasattr(node, "remove"):
+                    node.remove()
