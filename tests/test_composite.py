@@ -61,7 +61,7 @@ def test_session_modes_on_a_stage(fitted_stage, mode):
 
 def test_ratio_without_fitted_lights_or_photo_is_a_clear_error(cli, fitted_stage, tmp_path):
     stage = tmp_path / "st"
-    shutil.copytree(fitted_stage.parent, stage)
+    shutil.copytree(fitted_stage.parent, stage, symlinks=True)  # its links into versions/current stay links
     (stage / "lights_fitted.usda").write_text("#usda 1.0\n")
     rc, _, err = cli("relight", stage / "scene.usda", "--mode", "ratio", "--light", "point:0,1,-2:1,1,1",
                      "--max-side", "64", "-o", tmp_path / "o")

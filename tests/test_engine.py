@@ -156,7 +156,7 @@ def test_cache_is_reused_and_invalidated(procedural, tmp_path):
     import shutil
 
     stage = tmp_path / "st"
-    shutil.copytree(procedural.parent, stage)
+    shutil.copytree(procedural.parent, stage, symlinks=True)  # its links into versions/current stay links
     settings = EngineSettings(max_side=64)
     rec = read_scene(open_stage(stage / "scene.usda"))
     first = FastRenderer(rec, settings, stage / CACHE_DIR)

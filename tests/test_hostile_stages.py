@@ -12,6 +12,7 @@ import pytest
 from pxr import Sdf
 
 from conftest import make_photo, write_plane_depth
+from usdrelight.stage.versions import version_folder
 
 USDRELIGHT = Path(sys.executable).with_name("usdrelight")
 
@@ -46,7 +47,7 @@ def _break(folder: Path, how: str) -> str:
         root.GetPrimAtPath("/Scene").referenceList.Prepend(Sdf.Reference("./gone.usda"))
         root.Save()
         return "gone.usda"
-    (folder / "textures" / "albedo.exr").unlink()
+    (version_folder(folder) / "textures" / "albedo.exr").unlink()
     return "albedo.exr"
 
 

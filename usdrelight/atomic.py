@@ -5,13 +5,39 @@ no file under the target's name. The temporary file lives in the target's folder
 only within one file system), keeps the target's suffix (writers such as OpenImageIO and USD choose the
 format by suffix), starts with a dot (hidden from globbing tools), and gets the permissions a plain
 ``open()`` would give: ``0o666`` less the process umask.
+
+:func:`stage_lock` is the one lock of a stage folder (``O_CREAT | O_EXCL`` lock file holding the writer's
+PID; a lock whose PID is dead is stale and taken over): ``build``, ``fit`` and anything else that rewrites a
+stage's files (the web app saving ``lights_user.usda``) hold it, so a second writer fails with "stage ... is
+being written by PID N" instead of interleaving. Every rename goes through :func:`_rename` (tests can make the
+process die right before the k-th one: ``USDRELIGHT_TEST_EXIT_BEFORE_RENAME=k``).
 """
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
+
+from .errors import UsdRelightError
+
+LOCK_NAME = ".usdrelight.lock"
+_renames = 0
+_held: dict[str, int] = {}
+_held_guard = threading.Lock()
+
+
+def _rename(src, dst) -> None:
+    """os.replace, with the test-only crash hook: exit at once before the k-th rename of this process."""
+    global _renames
+    _renames += 1
+    k = os.environ.get("USDRELIGHT_TEST_EXIT_BEFORE_RENAME")
+    if k and _renames == int(k):
+        os._exit(70)
+    os.replace(src, dst)
 
 
 def current_umask() -> int:
@@ -51,7 +77,7 @@ def atomic_path(target: str | os.PathLike):
         os.chmod(tmp_path, 0o666 & ~current_umask())
         yield tmp_path
         _fsync_path(tmp_path)
-        os.replace(tmp_path, target)
+        _rename(tmp_path, target)
         _fsync_path(target.parent, directory=True)
     finally:
         if tmp_path.exists():
@@ -76,7 +102,7 @@ def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     src, dst = Path(src), Path(dst)
     if src.is_file():
         _fsync_path(src)
-    os.replace(src, dst)
+    _rename(src, dst)
     _fsync_path(dst.parent, directory=True)
 
 
@@ -87,3 +113,117 @@ def temp_dir_beside(target: str | os.PathLike) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700
     return tmp
+
+
+def fsync_tree(folder: str | os.PathLike) -> None:
+    """Flush every file and folder under ``folder`` to disk (before it is published by a rename)."""
+    folder = Path(folder)
+    for p in sorted(folder.rglob("*"), key=lambda q: len(q.parts), reverse=True):
+        _fsync_path(p, directory=p.is_dir())
+    _fsync_path(folder, directory=True)
+
+
+def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """``dst`` as a hard link to ``src`` (no data copied; neither is ever written in place afterwards),
+    or a copy where the file system has no hard links."""
+    Path(dst).parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def _age(path: Path) -> float:
+    try:
+        return time.time() - path.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def _lock_pid(lock: Path) -> int | None:
+    try:
+        return int(lock.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+@contextmanager
+def stage_lock(folder: str | os.PathLike):
+    """Hold the write lock of the stage folder ``folder`` (created if missing) for the block.
+
+    The lock is ``folder/.usdrelight.lock``, created with ``O_CREAT | O_EXCL`` and holding this process's PID.
+    Held by a live process: UsdRelightError "stage FOLDER is being written by PID N". Held by a dead process
+    (a killed writer): stale, taken over. Re-entrant within one process (``fit`` holds it while the
+    fitted-lights writer takes it again)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write to {folder}: {exc.strerror or exc}") from None
+    key = str(folder.resolve())
+    with _held_guard:
+        if key in _held:
+            _held[key] += 1
+            reentered = True
+        else:
+            reentered = False
+    if reentered:
+        try:
+            yield folder
+        finally:
+            with _held_guard:
+                _held[key] -= 1
+        return
+    lock = folder / LOCK_NAME
+    _acquire(lock, folder)
+    with _held_guard:
+        _held[key] = 1
+    try:
+        yield folder
+    finally:
+        with _held_guard:
+            del _held[key]
+        if _lock_pid(lock) == os.getpid():
+            lock.unlink(missing_ok=True)
+
+
+def _acquire(lock: Path, folder: Path) -> None:
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            pid = _lock_pid(lock)
+            if pid is not None and pid != os.getpid() and _pid_alive(pid):
+                raise UsdRelightError(f"stage {folder} is being written by PID {pid} (lock {lock})") from None
+            if pid is None and _age(lock) < 10.0:  # just created; its PID is being written
+                raise UsdRelightError(f"stage {folder} is being written by another process (lock {lock})") from None
+            # Stale (its writer is gone): move it aside under a unique name, so two processes that both
+            # found it stale cannot each delete the other's fresh lock.
+            aside = lock.with_name(f"{LOCK_NAME}.stale-{os.getpid()}")
+            try:
+                os.rename(lock, aside)
+            except FileNotFoundError:
+                continue
+            if _lock_pid(aside) != pid:  # not the stale lock we judged: someone's fresh one; give it back
+                os.rename(aside, lock)
+                raise UsdRelightError(f"stage {folder} is being written by PID {_lock_pid(lock)}") from None
+            aside.unlink(missing_ok=True)
+            continue
+        except OSError as exc:
+            raise UsdRelightError(f"cannot lock {folder}: {exc.strerror or exc}") from None
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()}\n")
+        return
+    raise UsdRelightError(f"cannot lock {folder}: the lock file {lock} keeps changing")

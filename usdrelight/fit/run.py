@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import render_record
@@ -109,7 +110,14 @@ def _parse_env_res(text) -> tuple:
     return h, w
 
 
-def fit_stage(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
+def fit_stage(stage_path, *args, **kwargs) -> FitReport:
+    """:func:`fit_unlocked` holding the stage folder's write lock from reading the stage to publishing the
+    fitted lights (a concurrent build or fit fails with "being written by PID N" instead of interleaving)."""
+    with stage_lock(Path(stage_path).absolute().parent):
+        return fit_unlocked(stage_path, *args, **kwargs)
+
+
+def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
               max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0) -> FitReport:
     """Fit, write the fitted-lights layer, verify by rendering with Mitsuba, and report."""
     if lights < 0 or lights > 256:

@@ -5,20 +5,24 @@
 * Environment -> DomeLight, intensity 1, latlong EXR (OpenEXR layout) holding the radiance, written to
   ``lights/fitted_env.exr``; omitted when the fit found it negligible.
 * Fit provenance goes on /Scene through RelightProvenanceAPI attributes (usdrelight:fit:*).
-The user-lights layer is never touched. The file is written to a temporary name and renamed.
+The user-lights layer is never touched. The layer (and its map) go into a new version of the stage that
+shares the other files with the current one (hard links) and is published atomically under the stage's
+lock (:mod:`.versions`): a reader sees the old fitted lights or the new ones, never a layer without its map.
 """
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
+from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
-from .layout import FITTED_ENV_TEXTURE, FITTED_LIGHTS, FITTED_LIGHTS_SCOPE, LIGHTS, ROOT
+from .layout import FITTED_ENV_TEXTURE, FITTED_LIGHTS, FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, SCENE
 from .lux import set_light_rgb
 from .records import FitProvenance, PointLightValue
+from .versions import VERSIONS, carry_over, prepare_version, publish_version, rebased_root
 
 ENV_TEXTURE = FITTED_ENV_TEXTURE
 
@@ -31,14 +35,20 @@ def write_fitted_lights(stage_dir, points: list[PointLightValue], env: np.ndarra
     for p in points:
         if not (np.all(np.isfinite(p.position)) and np.all(np.isfinite(p.rgb))):
             raise UsdRelightError("refusing to write a non-finite fitted light")
-    if env is not None:
-        write_image(stage_dir / ENV_TEXTURE, np.maximum(env, 0.0), "float")
-    elif (stage_dir / ENV_TEXTURE).exists():
-        (stage_dir / ENV_TEXTURE).unlink()  # a stale map of an earlier fit is no longer used
-    with atomic_path(stage_dir / FITTED_LIGHTS) as tmp:
-        tmp.unlink()  # Sdf.Layer.CreateNew wants a new file
-        _author_layer(Sdf.Layer.CreateNew(str(tmp)), points, env, fit)
-    return stage_dir / FITTED_LIGHTS
+    if not (stage_dir / SCENE).is_file():
+        raise UsdRelightError(f"no stage in {stage_dir} ({SCENE} missing)")
+    with stage_lock(stage_dir):
+        vid, tmp = prepare_version(stage_dir)
+        try:
+            carry_over(stage_dir, tmp, skip=(FITTED_LIGHTS, ENV_TEXTURE))
+            if env is not None:
+                write_image(tmp / ENV_TEXTURE, np.maximum(env, 0.0), "float")
+            _author_layer(Sdf.Layer.CreateNew(str(tmp / FITTED_LIGHTS)), points, env, fit)
+            publish_version(stage_dir, vid, tmp, rebased_root(stage_dir, vid))
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+    return stage_dir / VERSIONS / vid / FITTED_LIGHTS
 
 
 def _author_layer(layer, points: list[PointLightValue], env, fit: FitProvenance) -> None:

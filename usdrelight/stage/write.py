@@ -3,7 +3,9 @@
 Layout of ``OUTDIR``: :mod:`usdrelight.stage.layout` (file names and prim paths). The mesh layer holds
 /Scene/Photo/Mesh (points, triangles, normals, st, extent); the albedo texture is read "raw".
 
-Sublayer order (strongest first): user lights, fitted lights, geometry, so a user's opinion wins.
+Sublayer order (strongest first): user lights, fitted lights, geometry, so a user's opinion wins. Everything
+but ``scene.usda`` and ``lights_user.usda`` lives in ``versions/<id>/``; a re-run publishes a new version and
+switches ``scene.usda`` to it with one rename (:mod:`.versions`).
 Stage metadata: upAxis Y, metersPerUnit 1 (metres), defaultPrim /Scene, renderSettingsPrimPath.
 """
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, schemas
-from ..atomic import publish, temp_dir_beside
+from ..atomic import stage_lock, write_text_atomic
 from ..errors import UsdRelightError
 from ..estimate.records import PhotoEstimates
 from ..imageio import write_image
@@ -27,6 +29,7 @@ from .create import author_lambertian, author_render_settings, author_uv_texture
     define_preview_material
 from .layout import (ALBEDO_TEXTURE, CAMERA, DIFFUSE_TARGET, FITTED_LIGHTS, GEOMETRY, MATERIAL, MESH, PHOTO,
                      ROOT, SCENE, USER_LIGHTS, USER_LIGHTS_SCOPE)
+from .versions import prepare_version, publish_version, version_prefix
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +48,13 @@ class BuiltStage:
     """Relative file name -> size in bytes, for every file of the new version."""
 
 
-def _write_light_layer(path: Path, doc: str) -> None:
+def _light_layer_text(doc: str) -> str:
     """An empty light layer (no prims): lights are added under their scope when there are any."""
-    path.write_text(f'#usda 1.0\n(\n    doc = """{doc}"""\n)\n')
+    return f'#usda 1.0\n(\n    doc = """{doc}"""\n)\n'
+
+
+def _write_light_layer(path: Path, doc: str) -> None:
+    path.write_text(_light_layer_text(doc))
 
 
 def _write_geometry(path: Path, mesh: PixelMesh) -> None:
@@ -73,17 +80,19 @@ def _write_geometry(path: Path, mesh: PixelMesh) -> None:
     stage.GetRootLayer().Save()
 
 
-def _author_material(stage) -> None:
+def _author_material(stage, prefix: str) -> None:
     from pxr import UsdShade
 
     mat, surf = define_preview_material(stage, MATERIAL)
     author_lambertian(surf)
-    author_uv_texture(stage, surf, "diffuseColor", "./" + ALBEDO_TEXTURE, "raw", MATERIAL + "/AlbedoTexture",
+    author_uv_texture(stage, surf, "diffuseColor", "./" + prefix + ALBEDO_TEXTURE, "raw", MATERIAL + "/AlbedoTexture",
                       MATERIAL + "/StReader", wrap="clamp")
     UsdShade.MaterialBindingAPI.Apply(stage.OverridePrim(MESH)).Bind(mat)
 
 
-def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs) -> None:
+def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs, prefix: str) -> None:
+    """The root layer at ``path`` (in the stage folder); ``prefix``: where the version's files are
+    (``versions/<id>/``)."""
     from pxr import Kind, Sdf, Usd, UsdGeom
 
     stage = create_stage(path, ROOT, Kind.Tokens.assembly,
@@ -99,42 +108,23 @@ def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs) -> None
     z = mesh.points[:, 2]
     params = author_usd_camera(UsdGeom.Camera.Define(stage, CAMERA), intr, float(z.min()) * 0.5, float(z.max()) * 2.0)
 
-    _author_material(stage)
+    _author_material(stage, prefix)
     root.AddAppliedSchema(schemas.PROVENANCE_API)
     root.GetAttribute("usdrelight:version").Set(__version__)
     root.GetAttribute("usdrelight:sourcePhoto").Set(Sdf.AssetPath(str(est.photo.path.resolve())))
     root.GetAttribute("usdrelight:geometryEstimator").Set(est.geometry.source)
     root.GetAttribute("usdrelight:albedoEstimator").Set(est.decomposition.source)
-    root.GetAttribute("usdrelight:diffuseTarget").Set(Sdf.AssetPath("./" + DIFFUSE_TARGET))
+    root.GetAttribute("usdrelight:diffuseTarget").Set(Sdf.AssetPath("./" + prefix + DIFFUSE_TARGET))
     author_render_settings(stage, CAMERA, intr.width, intr.height, [AOVS[name] for name in aovs],
                            pixel_aspect=params["pixelAspectRatio"])
     # Sublayers last, so the prims above are authored as full definitions in this layer.
-    layer.subLayerPaths = ["./" + USER_LIGHTS, "./" + FITTED_LIGHTS, "./" + GEOMETRY]
+    layer.subLayerPaths = ["./" + USER_LIGHTS, "./" + prefix + FITTED_LIGHTS, "./" + prefix + GEOMETRY]
     layer.Save()
 
 
-def _install(tmp: Path, outdir: Path) -> None:
-    """Move a finished build from ``tmp`` into ``outdir``; scene.usda last; user layer kept."""
-    if not outdir.exists():
-        publish(tmp, outdir)
-        return
-    if not outdir.is_dir():
-        raise UsdRelightError(f"output {outdir} exists and is not a directory")
-    files = sorted(p for p in tmp.rglob("*") if p.is_file())
-    files.sort(key=lambda p: p.name == SCENE)
-    for src in files:
-        rel = src.relative_to(tmp)
-        dst = outdir / rel
-        if rel.as_posix() == USER_LIGHTS and dst.exists():
-            log.info("keeping the existing user-lights layer %s", dst)
-            continue
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        publish(src, dst)
-    shutil.rmtree(tmp, ignore_errors=True)
-
-
 def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=BUILD_AOVS) -> BuiltStage:
-    """Write the scene into ``outdir`` atomically (temporary sibling directory, then rename)."""
+    """Write the scene into ``outdir`` as a new version, published atomically (:mod:`.versions`) under the
+    folder's lock; the user's layer and files are kept."""
     schemas.register()  # before USD's schema registry is first used in this process
     outdir = Path(outdir).absolute()
     if outdir.exists() and not outdir.is_dir():
@@ -145,10 +135,22 @@ def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=B
         raise UsdRelightError(f"cannot write to {outdir}: a parent path is not a directory") from None
     except OSError as exc:
         raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    created = not outdir.exists()
     try:
-        tmp = temp_dir_beside(outdir)
+        with stage_lock(outdir):
+            try:
+                sizes = _write_version(est, mesh, outdir, aovs)
+            except BaseException:
+                if created:  # a failed first build leaves no folder behind
+                    shutil.rmtree(outdir, ignore_errors=True)
+                raise
     except OSError as exc:
         raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    return BuiltStage(outdir / SCENE, mesh.n_vertices, mesh.n_faces, sizes)
+
+
+def _write_version(est: PhotoEstimates, mesh: PixelMesh, outdir: Path, aovs) -> dict:
+    vid, tmp = prepare_version(outdir)
     try:
         (tmp / "textures").mkdir()
         (tmp / "estimates").mkdir()
@@ -156,14 +158,16 @@ def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=B
         write_image(tmp / DIFFUSE_TARGET, est.decomposition.diffuse, "float")
         _write_geometry(tmp / GEOMETRY, mesh)
         _write_light_layer(tmp / FITTED_LIGHTS, "Fitted lights (usdrelight fit); rewritten by build and fit.")
-        _write_light_layer(tmp / USER_LIGHTS, "Your own lights: put them under /Scene/Lights/User. "
-                                              "usdrelight never overwrites this layer.")
-        _author_root(tmp / SCENE, est, mesh, aovs)
         sizes = {p.relative_to(tmp).as_posix(): p.stat().st_size for p in tmp.rglob("*") if p.is_file()}
-        _install(tmp, outdir)
-    except OSError as exc:
-        raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+        if not (outdir / USER_LIGHTS).exists():
+            user = _light_layer_text("Your own lights: put them under /Scene/Lights/User. "
+                                     "usdrelight never overwrites this layer.")
+            write_text_atomic(outdir / USER_LIGHTS, user)
+        else:
+            log.info("keeping the existing user-lights layer %s", outdir / USER_LIGHTS)
+        publish_version(outdir, vid, tmp, lambda path: _author_root(path, est, mesh, aovs, version_prefix(vid)))
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    return BuiltStage(outdir / SCENE, mesh.n_vertices, mesh.n_faces, sizes)
+    sizes[SCENE] = (outdir / SCENE).stat().st_size
+    return sizes
