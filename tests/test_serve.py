@@ -217,8 +217,10 @@ def test_app_binds_loopback_and_refuses_share_links(stage):
         app.add_light("spot")
         app.wait_shown(app.update())
         app.save()
+        live_cache = sorted((stage.parent / "cache").glob("relight-*.npz"))
         exr, png = app.export()
         assert exr == stage.parent.resolve() / "serve" / "export" / "relit.exr" and png.exists()
+        assert set(live_cache) <= set((stage.parent / "cache").glob("relight-*.npz"))  # next start stays warm
 
 
 def test_hdri_named_outside_the_stage_is_copied_in(stage, tmp_path):

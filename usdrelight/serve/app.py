@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..neural.composite import MODES
 from ..stage.validate import open_stage
 from .files import export_relit, read_user_states, store_upload, write_user_layer
 from .gui import Gui
@@ -195,13 +196,16 @@ class ServeApp:
         self.update()
         self.gui.select(next(iter(self.states), ""))
 
-    def set_light(self, name: str, **changes) -> LightState:
-        """Change fields of a light (validated); refreshes its 3D marker and asks for a frame."""
+    def set_light(self, name: str, *, sync_gui: bool = True, **changes) -> LightState:
+        """Change fields of a light (validated); refreshes its 3D marker (and its editor unless the editor
+        made the change: ``sync_gui`` False) and asks for a frame."""
         with self._lock:
             s = self.states[name].with_(**changes)
             self.states[name] = s
         self.view.set_light(s)
         self.update()
+        if sync_gui and self.gui.selected.value == name:
+            self.gui.select(name)
         return s
 
     def move_light(self, name: str, position, wxyz) -> None:
@@ -220,18 +224,25 @@ class ServeApp:
                 self.fitted_on = bool(on)
             if dimmer is not None:
                 self.dimmer = max(0.0, float(dimmer))
-        self.update()
+        self._refresh()
 
     def set_mode(self, mode: str) -> None:
+        if mode not in MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         with self._lock:
             self.mode = mode
-        self.update()
+        self._refresh()
 
     def set_display(self, split: float | None = None, exposure: float | None = None) -> None:
         if split is not None:
             self.split = float(split)
         if exposure is not None:
             self.exposure = float(exposure)
+        self._refresh()
+
+    def _refresh(self) -> None:
+        if getattr(self, "gui", None) is not None:
+            self.gui.refresh()
         self.update()
 
     # ---- files ---------------------------------------------------------------------------------

@@ -33,17 +33,20 @@ class Gui:
         self._sync = threading.local()
         self._editor = None
         self._fields: dict = {}
+        self.widgets: dict = {}
         self.image_panel()
         with gui.add_folder("Output"):
             mode = gui.add_dropdown("Mode", MODES, initial_value=app.mode,
                                     hint="neural: the network on the render; ratio: photo x new / fitted render; "
                                          "add: photo + added lights")
             mode.on_update(self._guard(lambda e: app.set_mode(mode.value)))
+            self.widgets["mode"] = mode
         with gui.add_folder("Photo's lighting"):
             on = gui.add_checkbox("Fitted lights", True, hint="the lights `usdrelight fit` found (day)")
             dim = gui.add_slider("Fitted dimmer", 0.0, 1.0, 0.01, 1.0, hint="1 = as photographed, 0 = night")
             show = gui.add_checkbox("Show fitted in 3D", True)
             on.on_update(self._guard(lambda e: app.set_fitted(on=on.value)))
+            self.widgets.update(fitted_on=on, dimmer=dim)
             dim.on_update(self._guard(lambda e: app.set_fitted(dimmer=dim.value)))
             show.on_update(lambda e: app.view.show_fitted(show.value))
         with gui.add_folder("Lights"):
@@ -112,10 +115,19 @@ class Gui:
             split = gui.add_slider("Split", 0.0, 1.0, 0.01, 0.0, hint="original photo left of the line",
                                    disabled=app.photo_display is None)
             expo = gui.add_slider("Display exposure", -6.0, 6.0, 0.1, 0.0, hint="stops, view only")
-        split.on_update(lambda e: app.set_display(split=split.value))
-        expo.on_update(lambda e: app.set_display(exposure=expo.value))
+        split.on_update(self._guard(lambda e: app.set_display(split=split.value)))
+        expo.on_update(self._guard(lambda e: app.set_display(exposure=expo.value)))
+        self.widgets.update(split=split, exposure=expo)
         panel.dock_right()
         panel.set_width(max(420, min(720, w + 40)))
+
+    def refresh(self) -> None:
+        """Show the app's output settings in their widgets (after a change made from Python)."""
+        app = self.app
+        for key, value in (("mode", app.mode), ("fitted_on", app.fitted_on), ("dimmer", app.dimmer),
+                           ("split", app.split), ("exposure", app.exposure)):
+            if key in self.widgets:
+                self._set(self.widgets[key], value)
 
     def show_frame(self, img, frame) -> None:
         k = -(-MIN_VIEW_WIDTH // img.shape[1])  # small frames are shown enlarged (nearest neighbour)
@@ -193,18 +205,18 @@ class Gui:
         v = f[key].value
         try:
             if key == "enabled":
-                app.set_light(name, enabled=bool(v))
+                app.set_light(name, sync_gui=False, enabled=bool(v))
             elif key == "colour":
-                app.set_light(name, color=color_from_picker(v))
+                app.set_light(name, sync_gui=False, color=color_from_picker(v))
             elif key in ("intensity", "exposure", "softness", "angle"):
-                app.set_light(name, **{key: float(v)})
+                app.set_light(name, sync_gui=False, **{key: float(v)})
             elif key == "cone":
-                app.set_light(name, cone_angle=float(v))
+                app.set_light(name, sync_gui=False, cone_angle=float(v))
             elif key == "position":
-                app.set_light(name, position=tuple(float(x) for x in v))
+                app.set_light(name, sync_gui=False, position=tuple(float(x) for x in v))
             elif key == "direction":
-                app.set_light(name, rotation=quat_pointing_along(v))
+                app.set_light(name, sync_gui=False, rotation=quat_pointing_along(v))
             elif key == "hdri":
-                app.set_light(name, hdri="" if v == COLOUR_ONLY else v)
+                app.set_light(name, sync_gui=False, hdri="" if v == COLOUR_ONLY else v)
         except UsdRelightError as exc:
             self.status.content = f"**not applied:** {exc}"

@@ -15,10 +15,12 @@ Display images are sRGB 8-bit: linear * 2^display exposure, clipped to [0, 1], s
 """
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import hashlib
 import inspect
 import logging
+import os
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -26,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import publish
+from ..engine.renderer import CACHE_DIR
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb, read_photo, resize_image
 from ..neural.composite import MODES
@@ -240,7 +244,19 @@ class LiveRelight:
         key = ("full", ls.mode)
         with self._lock:
             if key not in self._sessions:
-                s = RelightSession(self.stage_path, max_side=None, with_fitted=False, mode=ls.mode)
+                # the engine keeps one cache file per stage folder: keep the live one beside the full-size one,
+                # so the next start still finds it
+                kept = []
+                for p in (self.stage_path.resolve().parent / CACHE_DIR).glob("relight-*.npz"):
+                    with contextlib.suppress(OSError):
+                        os.link(p, p.with_name(f".{p.name}.keep"))
+                        kept.append(p)
+                try:
+                    s = RelightSession(self.stage_path, max_side=None, with_fitted=False, mode=ls.mode)
+                finally:
+                    for p in kept:
+                        with contextlib.suppress(OSError):
+                            publish(p.with_name(f".{p.name}.keep"), p)
                 s.base_lights, s.user_lights = (), ()
                 self._sessions[key] = s
             session = self._sessions[key]

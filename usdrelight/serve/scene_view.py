@@ -78,8 +78,12 @@ class SceneView:
         self.centre, self.distance = scene_size(scene)
         self.handles: dict = {}
         server.scene.set_up_direction("+y")
+        # the mesh shows its albedo as it is: no viewer lights or environment shading it, no shadows
+        server.scene.configure_default_lights(enabled=False, cast_shadow=False)
+        server.scene.configure_environment_map(hdri=None)
+        server.scene.add_light_ambient("/ambient", intensity=1.0)
         mesh = mesh_for_view(scene)
-        server.scene.add_mesh_trimesh("/photo_mesh", mesh)
+        server.scene.add_mesh_trimesh("/photo_mesh", mesh, cast_shadow=False, receive_shadow=False)
         cam = scene.camera
         k = cam.intrinsics
         rot = cam.to_world[:3, :3] @ OPENCV_FROM_USD_CAMERA
@@ -87,7 +91,7 @@ class SceneView:
                                         aspect=k.width / k.height, scale=0.15 * self.distance,
                                         thickness=0.004 * self.distance, color=(255, 140, 0), image=photo,
                                         wxyz=matrix_to_quat(rot), position=tuple(cam.to_world[:3, 3]))
-        eye = cam.to_world[:3, :3] @ np.array([0.35, 0.45, 0.9]) * self.distance + cam.to_world[:3, 3]
+        eye = cam.to_world[:3, :3] @ np.array([0.2, 0.25, 0.55]) * self.distance + cam.to_world[:3, 3]
         server.initial_camera.position = tuple(eye)
         server.initial_camera.look_at = tuple(self.centre)
         server.initial_camera.up = tuple(cam.to_world[:3, 1])
