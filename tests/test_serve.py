@@ -117,6 +117,20 @@ def test_state_usd_state_round_trip_keeps_other_layers(stage):
         assert (got.texture.path if got.texture else None) == (str(hdri.resolve()) if st.hdri else None)
 
 
+def test_save_refused_while_another_process_writes_the_stage(stage):
+    from usdrelight.atomic import LOCK_NAME
+
+    folder = stage.parent
+    before = (folder / USER_LIGHTS).read_bytes()
+    (folder / LOCK_NAME).write_text(f"{os.getppid()}\n")  # a live writer (our parent process) holds the lock
+    with pytest.raises(UsdRelightError, match="being written by PID"):
+        write_user_layer(folder, [LightState("Key", "point")])
+    assert (folder / USER_LIGHTS).read_bytes() == before
+    (folder / LOCK_NAME).unlink()
+    write_user_layer(folder, [LightState("Key", "point")])
+    assert not (folder / LOCK_NAME).exists() and b"Key" in (folder / USER_LIGHTS).read_bytes()
+
+
 def test_state_matches_light_specs_and_records():
     """A state renders exactly as the equivalent --light spec, and record -> state -> record is the identity."""
     cases = [
@@ -281,6 +295,12 @@ def test_stage_without_camera_or_mesh_is_one_clear_error(tmp_path, cli):
     for name, what in (("nocam", "no camera"), ("nomesh", "no mesh")):
         rc, out, err = cli("serve", tmp_path / f"{name}.usda", "--port", "0")
         assert rc == 2 and err.startswith("usdrelight: error: ") and what in err and err.count("\n") == 1, err
+
+
+def test_without_viser_the_command_names_the_extra(stage, cli, monkeypatch):
+    monkeypatch.setitem(sys.modules, "viser", None)  # as if viser were not installed
+    rc, out, err = cli("serve", stage, "--port", "0")
+    assert rc == 2 and err == "usdrelight: error: usdrelight serve needs viser: pip install 'usdrelight[serve]'\n"
 
 
 # ---- the browser ------------------------------------------------------------------------------------

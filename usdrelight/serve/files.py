@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import atomic
+from ..atomic import stage_lock, write_bytes_atomic, write_text_atomic
 from ..errors import UsdRelightError
 from ..imageio import read_photo
 from ..neural.model import write_relit
@@ -50,7 +50,7 @@ def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path
         raise UsdRelightError(f"an HDRI upload must hold 1 byte to {MAX_UPLOAD_BYTES >> 20} MiB")
     digest = hashlib.sha256(content).hexdigest()[:16]
     path = Path(stage_dir).resolve() / UPLOADS / f"hdri-{digest}{suffix}"
-    atomic.write_bytes_atomic(path, content)
+    write_bytes_atomic(path, content)
     try:
         img = read_photo(path)
         if img.ndim != 3 or not np.all(np.isfinite(img)):
@@ -226,12 +226,8 @@ def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = No
     """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file."""
     target = Path(stage_dir).resolve() / USER_LIGHTS
     text = user_layer_text(stage_dir, states, managed, hdri_paths)
-    lock = getattr(atomic, "stage_lock", None)
-    if lock is not None:  # the stage writers' lock, when usdrelight.atomic provides one
-        with lock(target.parent):
-            atomic.write_text_atomic(target, text)
-    else:
-        atomic.write_text_atomic(target, text)
+    with stage_lock(target.parent):  # the lock every stage writer holds ("being written by PID N" otherwise)
+        write_text_atomic(target, text)
     from pxr import Sdf
 
     cached = Sdf.Layer.Find(str(target))
