@@ -15,7 +15,7 @@ import numpy as np
 
 from . import __version__
 from .errors import UsdRelightError
-from .safe_paths import allow_paths
+from .native_io import command_context
 
 log = logging.getLogger("usdrelight")
 EXIT_USER_ERROR = 2
@@ -375,7 +375,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     try:
-        with allow_paths(getattr(args, "allow_path", [])):
+        with command_context(getattr(args, "allow_path", [])):  # native logs off stdout, --allow-path
             return int(args.func(args) or 0)
     except UsdRelightError as exc:
         sys.stderr.write(f"usdrelight: error: {_one_line(exc)}\n")

@@ -65,6 +65,28 @@ def _oiio():
     return oiio
 
 
+def _checked_buf(path: Path):
+    """An ImageBuf of ``path`` whose header (only) has been read and whose size is within the limit."""
+    if not path.is_file():
+        raise UsdRelightError(f"file not found: {path}")
+    buf = _oiio().ImageBuf(str(path))
+    if buf.has_error or not buf.initialized:
+        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'unknown format'}")
+    spec = buf.spec()
+    megapixels = spec.width * spec.height / 1e6
+    if megapixels > max_megapixels():
+        raise UsdRelightError(f"image {path} is {spec.width}x{spec.height} ({megapixels:.0f} megapixels), over the "
+                              f"limit of {max_megapixels():g} (set USDRELIGHT_MAX_MEGAPIXELS to allow more)")
+    return buf
+
+
+def check_image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """``(width, height)`` from the file's header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS (for images
+    a renderer decodes by itself, such as Mitsuba's textures)."""
+    spec = _checked_buf(Path(path)).spec()
+    return spec.width, spec.height
+
+
 def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     """Read an image file as float32 (H, W, C) without colour conversion.
 
@@ -74,16 +96,8 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     """
     oiio = _oiio()
     path = Path(path)
-    if not path.is_file():
-        raise UsdRelightError(f"file not found: {path}")
-    buf = oiio.ImageBuf(str(path))
-    if buf.has_error or not buf.initialized:
-        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'unknown format'}")
+    buf = _checked_buf(path)
     spec = buf.spec()
-    megapixels = spec.width * spec.height / 1e6
-    if megapixels > max_megapixels():
-        raise UsdRelightError(f"image {path} is {spec.width}x{spec.height} ({megapixels:.0f} megapixels), over the "
-                              f"limit of {max_megapixels():g} (set USDRELIGHT_MAX_MEGAPIXELS to allow more)")
     is_float = str(spec.format) in LINEAR_FORMATS
     if buf.orientation != 1:
         buf = oiio.ImageBufAlgo.reorient(buf)

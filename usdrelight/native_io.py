@@ -20,6 +20,9 @@ import tempfile
 import threading
 from contextlib import contextmanager
 
+from .errors import UsdRelightError
+from .safe_paths import allow_paths
+
 _LOCK = threading.RLock()
 
 
@@ -74,16 +77,49 @@ def stdout_to_stderr():
         if real:
             sys.stdout = io.TextIOWrapper(io.FileIO(saved, "w", closefd=False), encoding=old.encoding,
                                           errors=old.errors, line_buffering=old.line_buffering)
+    broken = False
     try:
         yield
+    except BrokenPipeError:
+        broken = True
     finally:
         with _LOCK:
-            _flush()
             if real:
                 try:
+                    sys.stdout.flush()
+                except BrokenPipeError:  # the reader went away (`usdrelight ... --json | head -1`)
+                    broken = True
+                    _to_devnull(saved)
                     sys.stdout.flush()
                 except (OSError, ValueError):
                     pass
                 sys.stdout = old
+            _flush()
             os.dup2(saved, 1)
             os.close(saved)
+            if broken:
+                _to_devnull(1)
+    if broken:
+        raise BrokenPipeError("stdout was closed by its reader")
+
+
+def _to_devnull(fd: int) -> None:
+    """Point ``fd`` at /dev/null: what is still buffered for a closed pipe goes nowhere, without an error."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, fd)
+    os.close(null)
+
+
+@contextmanager
+def command_context(allowed_dirs=()):
+    """How the CLI runs a command: native output off stdout (:func:`stdout_to_stderr`), reads allowed under
+    ``allowed_dirs`` (``--allow-path``), a deeply nested or huge input as a one-line error instead of a
+    RecursionError or MemoryError, and a stdout closed by its reader as a quiet exit (status 141)."""
+    try:
+        with allow_paths(allowed_dirs), stdout_to_stderr():
+            yield
+    except BrokenPipeError:
+        raise SystemExit(141) from None
+    except (RecursionError, MemoryError) as exc:
+        what = "nested too deeply" if isinstance(exc, RecursionError) else "too large for the available memory"
+        raise UsdRelightError(f"the input is {what} ({type(exc).__name__})") from None

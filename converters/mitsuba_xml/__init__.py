@@ -16,6 +16,7 @@ from pathlib import Path
 
 from usdrelight.errors import UsdRelightError
 
+from .parse import read_scene_file
 from .to_usd import build_stage
 from .write import write_to_file, write_to_string
 
@@ -34,9 +35,6 @@ def read_from_file(path, usd_path=None):
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UsdRelightError(f"cannot read {path}: {exc}") from None
+    text = read_scene_file(path)
     stage, _ = build_stage(text, str(path), path.parent.absolute(), usd_path)
     return stage

@@ -23,6 +23,25 @@ from .common import Plugin
 #: <include> elements followed in one document, nested ones counted (files that include each other twice
 #: would otherwise grow exponentially).
 MAX_INCLUDES = 256
+#: XML elements in one scene, includes counted (a bigger document is refused while it is read).
+MAX_ELEMENTS = 1_000_000
+#: Element nesting (Mitsuba scenes nest a few levels; the reader recurses per level).
+MAX_DEPTH = 64
+#: Bytes of one scene file (an include counts on its own).
+MAX_FILE_BYTES = 64 << 20
+_CHUNK = 1 << 16
+
+
+def read_scene_file(path: Path, what: str = "scene file") -> str:
+    """The text of a scene file: bounded in size, and an error that names the file, never its bytes."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise UsdRelightError(f"{what} {path} is {size / 2**20:.0f} MB, over the limit of "
+                                  f"{MAX_FILE_BYTES >> 20} MB")
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsdRelightError(f"cannot read {what} {path} ({type(exc).__name__})") from None
 
 
 class XmlReader:
@@ -37,13 +56,35 @@ class XmlReader:
         self.warnings = warnings
         self.include_depth = 0
         self.include_count = 0
+        self.elements = 0
+        self.text_bytes = 0
 
     # ---- text and files -------------------------------------------------------------------
     def parse_text(self, text: str, source: str) -> ET.Element:
         if re.search(r"<!\s*(DOCTYPE|ENTITY)", text, re.IGNORECASE):
             raise UsdRelightError(f"{source}: DTD/entity declarations are not allowed in scene files")
+        self.text_bytes += len(text)
+        if self.text_bytes > 2 * MAX_FILE_BYTES:
+            raise UsdRelightError(f"{source}: the scene and its includes are over {2 * MAX_FILE_BYTES >> 20} MB")
+        parser = ET.XMLPullParser(events=("start", "end"))
+        depth, root = 0, None
         try:
-            root = ET.fromstring(text)
+            for i in range(0, len(text), _CHUNK):  # counted while read: a bomb stops early, in bounded memory
+                parser.feed(text[i:i + _CHUNK])
+                for event, el in parser.read_events():
+                    if event == "end":
+                        depth -= 1
+                        continue
+                    root = el if root is None else root
+                    depth += 1
+                    self.elements += 1
+                    if depth > MAX_DEPTH:
+                        raise UsdRelightError(f"{source}: XML elements nested more than {MAX_DEPTH} deep")
+                    if self.elements > MAX_ELEMENTS:
+                        raise UsdRelightError(f"{source}: more than {MAX_ELEMENTS} XML elements in one scene")
+            parser.close()
+            for _ in parser.read_events():
+                pass
         except ET.ParseError as exc:
             raise UsdRelightError(f"{source}: malformed XML ({exc})") from None
         if root.tag != "scene":
@@ -92,10 +133,7 @@ class XmlReader:
                     raise UsdRelightError(f"{fname}: more than {MAX_INCLUDES} <include>s in one scene")
                 if self.include_depth > 32:
                     raise UsdRelightError(f"{fname}: includes nested too deeply (a cycle?)")
-                try:
-                    text = fname.read_text()
-                except (OSError, UnicodeDecodeError) as exc:  # the message names the file, not its bytes
-                    raise UsdRelightError(f"cannot read included file {fname} ({type(exc).__name__})") from None
+                text = read_scene_file(fname, "included file")
                 sub_root = self.parse_text(text, str(fname))
                 self.scene_children(sub_root, fname.parent, out)
                 self.include_depth -= 1

@@ -98,7 +98,13 @@ def render_fitted(prob: FitProblem, lights, env: np.ndarray | None, spp: int = 6
                              hide_emitters=True)["beauty"]
 
 
-def _parse_env_res(text) -> tuple:
+#: Largest environment of the fast fit, in basis cells (its transport holds pixels x cells doubles), and of
+#: the adam fit, in texels.
+FAST_MAX_ENV_CELLS = 16 * 32
+MAX_ENV_TEXELS = 512 * 1024
+
+
+def _parse_env_res(text, max_cells: int = MAX_ENV_TEXELS) -> tuple:
     if isinstance(text, (tuple, list)):
         return tuple(int(x) for x in text)
     try:
@@ -107,6 +113,8 @@ def _parse_env_res(text) -> tuple:
         raise UsdRelightError(f"--env-res must look like HxW (e.g. 8x16), got {text!r}") from None
     if h < 0 or w < 0 or (h == 0) != (w == 0):
         raise UsdRelightError(f"--env-res must be positive (or 0x0 for no environment), got {text!r}")
+    if h * w > max_cells:
+        raise UsdRelightError(f"--env-res {text} is {h * w} cells, over this method's limit of {max_cells}")
     return h, w
 
 
@@ -125,7 +133,7 @@ def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=Non
     t_all = time.perf_counter()
     prob = load_problem(stage_path, max_side)
     if method == "fast":
-        env_shape = _parse_env_res(env_res or "8x16")
+        env_shape = _parse_env_res(env_res or "8x16", FAST_MAX_ENV_CELLS)
         res = fast_result(prob, lights, env_shape, iterations or 40, progress=progress, seed=seed)
     elif method == "adam":
         env_shape = _parse_env_res(env_res or "128x256")

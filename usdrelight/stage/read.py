@@ -18,7 +18,7 @@ from collections import Counter
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_resolution
+from ..imageio import check_image_size, check_resolution
 from ..safe_paths import check_read, stage_folder
 from .camera import check_clipping, intrinsics_from_usd_camera
 from .read_geometry import read_material, read_mesh
@@ -116,6 +116,8 @@ def _light_record(prim, xf: np.ndarray, warnings) -> LightRecord | None:
             if fmt not in ("automatic", "latlong"):
                 warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
             check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
+            if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
+                check_image_size(asset.resolvedPath)
             tex = TextureRecord(asset.resolvedPath, "auto")
         if t == "DomeLight_1" and d.GetPoleAxisAttr().Get() == "Z":
             common["to_world"] = xf @ _rot_x(90.0)

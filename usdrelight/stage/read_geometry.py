@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..imageio import check_image_size
 from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, MeshRecord, TextureRecord
 
@@ -30,6 +31,8 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     if not resolved:
         raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()})")
     check_read(resolved, stage_folder(shader.GetPrim().GetStage()), f"texture (used by {shader.GetPath()})")
+    if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
+        check_image_size(resolved)
     cs = shader.GetInput("sourceColorSpace")
     scale = shader.GetInput("scale")
     bias = shader.GetInput("bias")
