@@ -214,6 +214,13 @@ def test_app_binds_loopback_and_refuses_share_links(stage):
 
     assert DEFAULT_HOST == "127.0.0.1"
     assert build_parser().parse_args(["serve", str(stage)]).host == "127.0.0.1"
+    from pxr import Sdf, Usd, UsdLux
+
+    layer = Sdf.Layer.FindOrOpen(str(stage.parent / USER_LIGHTS))
+    area = Usd.Stage.Open(layer)
+    area.OverridePrim("/Scene")
+    UsdLux.SphereLight.Define(area, "/Scene/Lights/User/Point1").CreateRadiusAttr(0.1)  # an area light
+    layer.Save()
     with ServeApp(stage, port=0, max_side=SIDE) as app:
         assert app.host == "127.0.0.1" and app.url.startswith("http://127.0.0.1:")
         with urllib.request.urlopen(app.url, timeout=10) as r:
@@ -224,6 +231,7 @@ def test_app_binds_loopback_and_refuses_share_links(stage):
                 with pytest.raises(OSError):
                     socket.create_connection((addr, app.port), timeout=2).close()
         assert app.server.request_share_url() is None  # a client's share request opens no tunnel
+        assert app.add_light("point") == "Point2"  # Point1 is a light of the layer the app cannot edit
         # the widgets: no free-text input anywhere (so no client-named path)
         kinds = {type(h).__name__ for h in app.server.gui._gui_input_handle_from_uuid.values()}
         assert not any("Text" in k for k in kinds), kinds
@@ -231,6 +239,10 @@ def test_app_binds_loopback_and_refuses_share_links(stage):
         app.add_light("spot")
         app.wait_shown(app.update())
         app.save()
+        saved = open_stage(stage)
+        assert UsdLux.SphereLight(saved.GetPrimAtPath("/Scene/Lights/User/Point1")).GetRadiusAttr().Get() == \
+            pytest.approx(0.1)  # kept
+        assert saved.GetPrimAtPath("/Scene/Lights/User/Point2") and saved.GetPrimAtPath("/Scene/Lights/User/Spot1")
         live_cache = sorted((stage.parent / "cache").glob("relight-*.npz"))
         exr, png = app.export()
         assert exr == stage.parent.resolve() / "serve" / "export" / "relit.exr" and png.exists()

@@ -95,6 +95,8 @@ class ServeApp:
                 self.hdris[label] = Path(path)
         self.live = LiveRelight(self.stage_path, max_side, mode, self.hdris)
         self.live.keep_other(others)
+        self.reserved = {p.rsplit("/", 1)[-1] for p in others}  # names a new light must not take (saving would
+        # replace that prim)
         self.states = {s.name: s for s in states}
         self.managed = set(self.states)  # layer prims the app replaces when saving
         self.fitted_on, self.dimmer, self.mode = True, 1.0, self.live.mode
@@ -179,7 +181,7 @@ class ServeApp:
 
     def add_light(self, kind: str) -> str:
         with self._lock:
-            name = unique_name(kind, set(self.states) | self.managed)
+            name = unique_name(kind, set(self.states) | self.managed | self.reserved)
             s = self.default_light(kind, name)
             self.states[name] = s
         self.view.set_light(s)
