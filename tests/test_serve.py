@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, build_procedural
+from conftest import build_procedural
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.layout import USER_LIGHTS
 from usdrelight.stage.light_specs import parse_light

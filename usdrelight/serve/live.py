@@ -35,7 +35,7 @@ from ..imageio import linear_to_srgb, read_photo, resize_image
 from ..neural.composite import MODES
 from ..neural.relight import RelightSession
 from ..stage.layout import USER_LIGHTS_SCOPE
-from .state import LightState, to_record
+from .state import to_record
 
 log = logging.getLogger(__name__)
 DEFAULT_MODE = inspect.signature(RelightSession).parameters["mode"].default
