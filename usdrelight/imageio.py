@@ -184,11 +184,13 @@ def read_pfm(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(data[: w * h * c].reshape(h, w, c)[::-1], dtype=np.float32)
 
 
-def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half", srgb: bool = False) -> Path:
+def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half", srgb: bool = False,
+                metadata: dict | None = None) -> Path:
     """Write (H, W[, C]) pixels atomically.
 
     ``dtype`` is the stored format: ``half``/``float`` for EXR (linear), ``uint8``/``uint16`` for
     PNG/TIFF; with ``srgb=True`` linear values are sRGB-encoded first. EXR uses zip compression.
+    ``metadata``: string attributes stored in the file's header (see :func:`image_attribute`).
     """
     oiio = _oiio()
     path = Path(path)
@@ -206,6 +208,8 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half"
         spec.attribute("compression", "zip")
     if c >= 3:
         spec.channelnames = ("R", "G", "B", "A")[:c] if c <= 4 else spec.channelnames
+    for key, value in (metadata or {}).items():
+        spec.attribute(key, str(value))
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(path))
         if out is None or not out.open(str(tmp), spec):
@@ -215,6 +219,18 @@ def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half"
         if not ok:
             raise UsdRelightError(f"cannot write {path}: {out.geterror().strip()}")
     return path
+
+
+def image_attribute(path: str | os.PathLike, name: str) -> str | None:
+    """A string attribute of an image file's header (None when the file or the attribute is missing)."""
+    inp = _oiio().ImageInput.open(str(path))
+    if inp is None:
+        return None
+    try:
+        value = inp.spec().get_string_attribute(name, "")
+    finally:
+        inp.close()
+    return value or None
 
 
 def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -14,7 +14,9 @@ RenderVars are matched by ``sourceName`` (and ``sourceType``): the beauty is ``C
 """
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import write_image
+from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
 from ..stage.read import read_scene
 from ..stage.records import RenderVarRecord, SceneRecord
@@ -139,6 +141,31 @@ def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int =
     return out
 
 
+#: EXR header attribute of every AOV file ``render`` writes: the :func:`stage_stamp` it was rendered from.
+STAMP_KEY = "usdrelight:stageStamp"
+
+
+def stage_stamp(stage, resolution) -> str:
+    """A fingerprint of what a stage's AOVs depend on: every layer file it composes (path, size, modification
+    time: a rebuild, a fit or an edit of the user's lights changes it) and the render resolution."""
+    h = hashlib.sha256(repr(tuple(resolution or ())).encode())
+    for path in sorted(layer.realPath for layer in stage.GetUsedLayers() if layer.realPath):  # not the session
+        try:
+            st = os.stat(path.split("[")[0])
+            h.update(f"{path}|{st.st_size}|{st.st_mtime_ns}".encode())
+        except OSError:
+            h.update(path.encode())
+    return h.hexdigest()[:32]
+
+
+def stale_aov_files(stage_path, paths: dict) -> list[str]:
+    """Names (of ``paths``: product name -> file) whose file was not rendered from the stage as it is now:
+    no stamp (written by another tool, or before stamps) or another stage state (rebuilt, refit, relit)."""
+    stage = open_stage(stage_path)
+    stamp = stage_stamp(stage, read_scene(stage).resolution)
+    return [name for name, path in paths.items() if image_attribute(path, STAMP_KEY) != stamp]
+
+
 def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: int = 3, seed: int = 0,
                  progress=None) -> RenderResult:
     """Render the products the stage declares (optionally only those named in ``aovs``)."""
@@ -160,6 +187,7 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     wanted = {aov_kind(v) for p in products for v in p.vars}
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
+    stamp = stage_stamp(stage, rec.resolution)
     t1 = time.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed)
     t2 = time.perf_counter()
@@ -171,7 +199,7 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
         pix = np.concatenate(chans, axis=2)
         path = paths[p.name]
         try:
-            write_image(path, pix, "float")
+            write_image(path, pix, "float", metadata={STAMP_KEY: stamp})
         except OSError as exc:
             raise UsdRelightError(f"cannot write {path}: {exc.strerror or exc}") from None
         files[p.name] = str(path)

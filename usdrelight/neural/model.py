@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import read_map, write_image
-from ..mitsuba.render import aov_kind, render_stage
+from ..mitsuba.render import aov_kind, render_stage, stale_aov_files
 from ..onnx_runtime import first_line, open_session
 from ..safe_paths import confined_path
 from ..stage.read import read_scene
@@ -189,6 +189,10 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     t0 = time.perf_counter()
     aovs = find_aovs(stage_path)
     missing = [name for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and not path.is_file()]
+    present = {name: path for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and path.is_file()}
+    stale = stale_aov_files(stage_path, present)  # provenance: rendered from this stage as it is now?
+    if render_missing:
+        missing += stale
     if missing and render_missing:
         render_stage(stage_path, None, aovs=missing, spp=spp)
     elif missing:
@@ -197,6 +201,9 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     dt = read_map(aovs["diffuse"][1], 3)
     alb = read_map(aovs["albedo"][1], 3)
     valid = read_map(aovs["valid"][1], 1)[..., 0] > 0.5
+    if stale and not render_missing and dt.shape[:2] == alb.shape[:2] == valid.shape[:2]:  # else: sizes named below
+        raise UsdRelightError(f"AOV file(s) {stale} were not rendered from {stage_path} as it is now (rebuilt, refit, "
+                              f"lights edited, or written by another tool): render again or pass --render-missing")
     model = RelightModel(model_path)
     res = run_neural(dt, alb, valid, model, out_dir or Path(stage_path).resolve().parent / "neural")
     return replace(res, seconds={**res.seconds, "total": time.perf_counter() - t0})
