@@ -174,7 +174,7 @@ class Gui:
             f["enabled"] = gui.add_checkbox("On", s.enabled)
             f["colour"] = gui.add_rgb("Colour", picker_from_color(s.color))
             top = max(10.0, 4.0 * s.intensity)
-            f["intensity"] = gui.add_slider("Intensity", 0.0, round(top, 1), 0.01, min(s.intensity, top),
+            f["intensity"] = gui.add_slider("Intensity", 0.0, round(top, 1), 0.01, round(min(s.intensity, top), 4),
                                             hint={"point": "W/sr", "spot": "W/sr", "sun": "W/m^2",
                                                   "dome": "radiance"}[s.kind])
             f["exposure"] = gui.add_slider("Exposure", -10.0, 10.0, 0.1, round(s.exposure, 1), hint="stops")
@@ -184,11 +184,11 @@ class Gui:
                 f["direction"] = gui.add_vector3("Direction", tuple(round(float(v), 4) for v in s.direction),
                                                  step=0.01)
             if s.kind == "spot":
-                f["cone"] = gui.add_slider("Cone angle", 1.0, 90.0, 0.5, min(max(s.cone_angle, 1.0), 90.0),
+                f["cone"] = gui.add_slider("Cone angle", 1.0, 90.0, 0.5, round(min(max(s.cone_angle, 1.0), 90.0), 4),
                                            hint="half-angle, degrees")
-                f["softness"] = gui.add_slider("Softness", 0.0, 1.0, 0.01, s.softness)
+                f["softness"] = gui.add_slider("Softness", 0.0, 1.0, 0.01, round(s.softness, 4))
             if s.kind == "sun":
-                f["angle"] = gui.add_slider("Angle", 0.0, 10.0, 0.05, min(s.angle, 10.0),
+                f["angle"] = gui.add_slider("Angle", 0.0, 10.0, 0.05, round(min(s.angle, 10.0), 4),
                                             hint="angular diameter, degrees (the Sun: 0.53)")
             if s.kind == "dome":
                 options = (COLOUR_ONLY, *app.hdris)
