@@ -24,7 +24,7 @@ from .common import Plugin
 #: would otherwise grow exponentially).
 MAX_INCLUDES = 256
 #: XML elements in one scene, includes counted (a bigger document is refused while it is read).
-MAX_ELEMENTS = 1_000_000
+MAX_ELEMENTS = 500_000
 #: Element nesting (Mitsuba scenes nest a few levels; the reader recurses per level).
 MAX_DEPTH = 64
 #: Bytes of one scene file (an include counts on its own).
