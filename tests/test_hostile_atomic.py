@@ -156,11 +156,26 @@ def test_a_second_writer_is_refused_and_a_dead_writers_lock_is_taken_over(cli, i
 
 
 def test_stage_lock_is_reentrant_and_released(tmp_path):
+    import threading
+
+    errors = []
+
+    def other_thread():
+        try:
+            with stage_lock(tmp_path / "s"):
+                errors.append(None)
+        except UsdRelightError as exc:
+            errors.append(str(exc))
+
     with stage_lock(tmp_path / "s") as folder:
         assert (folder / LOCK_NAME).read_text().strip() == str(os.getpid())
         with stage_lock(tmp_path / "s"):
             pass
         assert (folder / LOCK_NAME).exists()
+        t = threading.Thread(target=other_thread)
+        t.start()
+        t.join()
+    assert errors and errors[0] and f"PID {os.getpid()}" in errors[0]  # another thread is another writer
     assert not (tmp_path / "s" / LOCK_NAME).exists()
 
 

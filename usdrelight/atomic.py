@@ -165,14 +165,14 @@ def stage_lock(folder: str | os.PathLike):
 
     The lock is ``folder/.usdrelight.lock``, created with ``O_CREAT | O_EXCL`` and holding this process's PID.
     Held by a live process: UsdRelightError "stage FOLDER is being written by PID N". Held by a dead process
-    (a killed writer): stale, taken over. Re-entrant within one process (``fit`` holds it while the
-    fitted-lights writer takes it again)."""
+    (a killed writer): stale, taken over. Re-entrant within one thread (``fit`` holds it while the
+    fitted-lights writer takes it again); another thread of the same process is excluded like another process."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UsdRelightError(f"cannot write to {folder}: {exc.strerror or exc}") from None
-    key = str(folder.resolve())
+    key = f"{folder.resolve()}|{threading.get_ident()}"  # re-entrant per thread; other threads are excluded
     with _held_guard:
         if key in _held:
             _held[key] += 1
@@ -205,7 +205,7 @@ def _acquire(lock: Path, folder: Path) -> None:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             pid = _lock_pid(lock)
-            if pid is not None and pid != os.getpid() and _pid_alive(pid):
+            if pid is not None and (pid == os.getpid() or _pid_alive(pid)):  # this process: another thread
                 raise UsdRelightError(f"stage {folder} is being written by PID {pid} (lock {lock})") from None
             if pid is None and _age(lock) < 10.0:  # just created; its PID is being written
                 raise UsdRelightError(f"stage {folder} is being written by another process (lock {lock})") from None
