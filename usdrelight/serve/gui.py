@@ -44,10 +44,14 @@ class Gui:
         with gui.add_folder("Photo's lighting"):
             on = gui.add_checkbox("Fitted lights", True, hint="the lights `usdrelight fit` found (day)")
             dim = gui.add_slider("Fitted dimmer", 0.0, 1.0, 0.01, 1.0, hint="1 = as photographed, 0 = night")
-            show = gui.add_checkbox("Show fitted in 3D", True)
             on.on_update(self._guard(lambda e: app.set_fitted(on=on.value)))
             self.widgets.update(fitted_on=on, dimmer=dim)
             dim.on_update(self._guard(lambda e: app.set_fitted(dimmer=dim.value)))
+        with gui.add_folder("3D view"):
+            through = gui.add_checkbox("From the camera", False, hint="look through the stage's camera")
+            show = gui.add_checkbox("Fitted lights", True, hint="show the fitted point lights")
+            through.on_update(lambda e: e.client is not None and app.view.look_through_camera(e.client,
+                                                                                            through.value))
             show.on_update(lambda e: app.view.show_fitted(show.value))
         with gui.add_folder("Lights"):
             self.kind = gui.add_dropdown("New light", KINDS, initial_value="point")

@@ -87,7 +87,9 @@ class SceneView:
         cam = scene.camera
         k = cam.intrinsics
         rot = cam.to_world[:3, :3] @ OPENCV_FROM_USD_CAMERA
-        server.scene.add_camera_frustum("/camera", fov=float(2 * np.arctan(k.height / (2 * k.fy))),
+        self.fov = float(2 * np.arctan(k.height / (2 * k.fy)))
+        self.camera_pose = (cam.to_world[:3, 3].copy(), cam.to_world[:3, :3].copy())
+        self.frustum = server.scene.add_camera_frustum("/camera", fov=self.fov,
                                         aspect=k.width / k.height, scale=0.15 * self.distance,
                                         thickness=0.004 * self.distance, color=(255, 140, 0), image=photo,
                                         wxyz=matrix_to_quat(rot), position=tuple(cam.to_world[:3, 3]))
@@ -102,6 +104,22 @@ class SceneView:
                 self.fitted_nodes.append(server.scene.add_icosphere(
                     f"/fitted/light{i}", radius=0.015 * self.distance, color=picker_from_color(rgb),
                     position=tuple(l.to_world[:3, 3])))
+
+    def look_through_camera(self, client, through: bool) -> None:
+        """Put ``client``'s view at the stage camera (vertical fov too; the frustum hidden), or back to the
+        overview."""
+        pos, rot = self.camera_pose
+        self.frustum.visible = not through
+        if through:
+            client.camera.fov = self.fov
+            client.camera.up_direction = tuple(rot[:, 1])
+            client.camera.position = tuple(pos)
+            client.camera.look_at = tuple(pos + rot @ np.array([0.0, 0.0, -self.distance]))
+        else:
+            client.camera.fov = float(np.radians(60.0))
+            client.camera.up_direction = tuple(rot[:, 1])
+            client.camera.position = tuple(self.server.initial_camera.position)
+            client.camera.look_at = tuple(self.centre)
 
     def show_fitted(self, visible: bool) -> None:
         for node in self.fitted_nodes:
