@@ -38,7 +38,11 @@ from ..stage.layout import USER_LIGHTS_SCOPE
 from .state import to_record
 
 log = logging.getLogger(__name__)
-DEFAULT_MODE = inspect.signature(RelightSession).parameters["mode"].default
+_RELIGHT_DEFAULT = inspect.signature(RelightSession).parameters["mode"].default
+#: The app's first mode: relight's default when it names one mode; otherwise (a rule such as "auto" that
+#: depends on whether the fitted lighting is kept, which the app changes live) ratio, the mode for a kept and
+#: dimmable photo lighting. A stage that cannot run it (no fit) falls back to neural.
+DEFAULT_MODE = _RELIGHT_DEFAULT if _RELIGHT_DEFAULT in MODES else "ratio"
 
 
 def to_display(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
