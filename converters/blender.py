@@ -26,6 +26,7 @@ from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import set_light_rgb
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
+from usdrelight.stage.validate import check_finite
 
 from .blender_units import Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
 
@@ -244,6 +245,7 @@ def read_from_file(path, usd_path=None):
         elif u["kind"] == "DistantLight":
             light.CreateAngleAttr(float(u["angle"]))
         UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
+    check_finite(stage, str(path))
     return stage
 
 

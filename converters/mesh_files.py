@@ -28,6 +28,7 @@ from usdrelight.imageio import linear_to_srgb, read_map, read_photo, srgb_to_lin
 from usdrelight.stage.create import author_lambertian, author_uv_texture, create_stage, define_preview_material
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import MaterialRecord, TextureRecord
+from usdrelight.stage.validate import check_finite
 
 log = logging.getLogger(__name__)
 
@@ -187,6 +188,7 @@ def read_from_file(path, usd_path=None):
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
         _author_material(stage, m.GetPrim(), name, getattr(mesh.visual, "material", None), usd_dir, warnings)
+    check_finite(stage, path.name)
     for kind, n in warnings.items():
         log.warning("%s: %d", kind, n)
     return stage

@@ -254,7 +254,8 @@ class XmlReader:
             else:
                 self.warnings[f"transform op <{op.tag}> (ignored)"] += 1
                 continue
-            M = np.array(T.matrix, dtype=np.float64) @ M
+            with np.errstate(all="ignore"):  # NaN/Inf from a degenerate op: refused by value()'s finite check
+                M = np.array(T.matrix, dtype=np.float64) @ M
         return M
 
 
@@ -262,6 +263,8 @@ def attach_paths(plugins, reader: XmlReader) -> None:
     """Resolve every 'filename' against the including file's folder and the <path> search list."""
     for p in plugins:
         fname = p.props.get("filename")
+        if fname is not None and not isinstance(fname, str):
+            raise UsdRelightError(f"<{p.tag} type='{p.type}'>: 'filename' must be a <string>")
         p.resolved = str(reader.resolve(fname, Path(p.source))) if fname else None
         attach_paths(p.children, reader)
 

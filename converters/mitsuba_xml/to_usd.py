@@ -25,6 +25,7 @@ from usdrelight.stage.aovs import AOVS
 from usdrelight.stage.camera import author_usd_camera
 from usdrelight.stage.create import author_render_settings, create_stage
 from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
+from usdrelight.stage.validate import check_finite
 
 from .common import Plugin, PrimNamer, rel_path
 from .materials import MaterialBuilder
@@ -160,7 +161,8 @@ class UsdBuilder:
     # ---- lights ---------------------------------------------------------------------------
     def _light_common(self, light, rgb, extra: dict | None = None):
         if np.any(np.asarray(rgb, np.float64) < 0):
-            raise UsdRelightError(f"emitter {light.GetPath().name}: negative radiance/intensity {tuple(rgb)}")
+            raise UsdRelightError(f"emitter {light.GetPath().name}: negative radiance/intensity "
+                                  f"{np.atleast_1d(rgb).tolist()}")
         set_light_rgb(light, rgb)
         if extra:
             light.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
@@ -300,20 +302,26 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
     b = UsdBuilder(stage, usd_path.parent if usd_path is not None else None, warnings)
     integrator = None
     for p in objs:
-        if p.tag == "shape":
-            b.shape(p)
-        elif p.tag == "emitter":
-            b.emitter(p)
-        elif p.tag == "sensor":
-            b.sensor(p)
-        elif p.tag == "integrator":
-            integrator = integrator_json(p)
-        elif p.tag in ("bsdf", "texture"):
-            continue  # referenced by id from shapes
-        else:
-            warnings[f"top-level <{p.tag}> (ignored)"] += 1
+        try:
+            if p.tag == "shape":
+                b.shape(p)
+            elif p.tag == "emitter":
+                b.emitter(p)
+            elif p.tag == "sensor":
+                b.sensor(p)
+            elif p.tag == "integrator":
+                integrator = integrator_json(p)
+            elif p.tag in ("bsdf", "texture"):
+                continue  # referenced by id from shapes
+            else:
+                warnings[f"top-level <{p.tag}> (ignored)"] += 1
+        except (TypeError, ValueError, IndexError, KeyError, AttributeError, ZeroDivisionError, OverflowError) as exc:
+            # a property of the wrong kind or shape (<boolean name="direction">, a 2-vector position ...)
+            raise UsdRelightError(f"<{p.tag} type='{p.type}'{f' id={p.id!r}' if p.id else ''}>: a property has the "
+                                  f"wrong type or shape ({type(exc).__name__})") from None
     if integrator is not None and b.settings is not None:
         b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps({"integrator": integrator}))
+    check_finite(stage, source)  # e.g. a float64 beyond float32 would be written as Inf
     for kind, n in warnings.items():
         log.warning("%s: %d", kind, n)
     return stage, warnings

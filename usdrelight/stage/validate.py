@@ -83,3 +83,22 @@ def validate_stage(stage) -> list[Finding]:
 
 def errors_only(findings: list[Finding]) -> list[Finding]:
     return [f for f in findings if f.severity.lower().startswith("error")]
+
+
+def check_finite(stage, what: str = "the converted stage") -> None:
+    """Every authored numeric attribute value of ``stage`` is finite (as stored: a float64 value beyond float32
+    becomes Inf in a ``float`` attribute); UsdRelightError naming the first one that is not."""
+    import numpy as np
+
+    for prim in stage.Traverse():
+        for attr in prim.GetAuthoredAttributes():
+            value = attr.Get()
+            if value is None or isinstance(value, (str, bool)):
+                continue
+            try:
+                arr = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                continue
+            if not np.all(np.isfinite(arr)):
+                raise UsdRelightError(f"{what}: {attr.GetPath()} would be NaN/Inf (out of range for its "
+                                      f"{attr.GetTypeName()} type)")
