@@ -201,3 +201,16 @@ def test_the_layout_before_versions_is_migrated_and_user_files_kept(cli, inputs,
     assert not (out / "textures" / "albedo.exr").exists() and (out / "geometry.usdc").is_symlink()
     assert not (tmp_path / ".out.tmp-abc123").exists()
     assert cli("validate", out / "scene.usda")[0] == 0
+
+
+def test_the_lock_of_a_killed_but_unreaped_writer_is_stale(tmp_path):
+    """A writer SIGKILLed under a parent that has not reaped it yet (a zombie) no longer holds the lock."""
+    import time
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    while open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":
+        time.sleep(0.05)  # exited, not waited for: a zombie, which os.kill(pid, 0) still finds
+    (tmp_path / LOCK_NAME).write_text(f"{child.pid}\n")
+    with stage_lock(tmp_path):
+        assert (tmp_path / LOCK_NAME).read_text().strip() == str(os.getpid())
+    child.wait()
