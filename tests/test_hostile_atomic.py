@@ -214,3 +214,25 @@ def test_the_lock_of_a_killed_but_unreaped_writer_is_stale(tmp_path):
     with stage_lock(tmp_path):
         assert (tmp_path / LOCK_NAME).read_text().strip() == str(os.getpid())
     child.wait()
+
+
+def test_a_failed_rebuild_leaves_the_previous_stage_untouched(cli, inputs, tmp_path, monkeypatch):
+    """One output that cannot be written (here the diffuse target): nothing of the new build is visible, the
+    fitted lights are not reset, no temporary folder is left."""
+    import usdrelight.stage.write as write
+
+    out = tmp_path / "out"
+    assert _build(inputs, "a.png", out).returncode == 0
+    assert cli("fit", out / "scene.usda", "--max-side", "16", "--iterations", "2")[0] == 0
+    before = _state(out)
+    real = write.write_image
+
+    def failing(path, *a, **k):
+        if "diffuse" in str(path):
+            raise OSError(28, "No space left on device")
+        return real(path, *a, **k)
+    monkeypatch.setattr(write, "write_image", failing)
+    rc, _, err = cli("build", inputs / "b.png", "--depth", inputs / "d.npy", "--fov-x", "60", "-o", out)
+    assert rc == 2 and err.count("\n") == 1 and "No space left on device" in err, err
+    assert _state(out) == before and _fitted(out)
+    assert _leftovers(out) == ([referenced_version(out)], []) and not (out / LOCK_NAME).exists()

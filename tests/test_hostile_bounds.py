@@ -123,3 +123,16 @@ def test_native_log_lines_go_to_stderr_and_json_stays_clean(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["errors"] == 0 and "native log line" in p.stderr
+
+
+@pytest.mark.parametrize("exc, needle", [(RecursionError, "nested too deeply"),
+                                         (MemoryError, "too large for the available memory")])
+def test_recursion_and_memory_errors_are_one_line_errors(cli, tmp_path, monkeypatch, exc, needle):
+    import usdrelight.stage.validate as validate
+
+    def boom(path):
+        raise exc()
+    monkeypatch.setattr(validate, "open_stage", boom)
+    rc, out, err = cli("validate", tmp_path / "any.usda", "--json")
+    _one_error(rc, err, needle)
+    assert out == ""
