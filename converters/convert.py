@@ -9,7 +9,7 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
-from usdrelight.stage.validate import open_stage
+from usdrelight.stage.validate import check_finite, open_stage
 
 from . import USD_SUFFIXES, converter_for
 
@@ -33,6 +33,7 @@ def convert(src, dst, **options) -> dict:
     if _is_usd(src):
         stage = open_stage(src)
         if _is_usd(dst):
+            check_finite(stage, str(src))  # a flattened copy carries no NaN/Inf either
             with atomic_path(dst) as tmp:
                 if not stage.Flatten().Export(str(tmp)):
                     raise UsdRelightError(f"cannot write {dst}")
