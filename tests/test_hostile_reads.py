@@ -166,3 +166,16 @@ def test_usdz_textures_are_extracted_for_the_xml_export(cli, tmp_path):
     assert 'value="textures/tex.exr"' in xml and ".usdz" not in xml
     assert (tmp_path / "x" / "textures" / "tex.exr").read_bytes() == (tmp_path / "tex.exr").read_bytes()
     assert cli("convert", tmp_path / "x" / "scene.xml", tmp_path / "back.usda")[0] == 0
+
+
+@pytest.mark.parametrize("ext", ["png", "exr", "jpg", "tif", "hdr", "tga", "ppm", "pfm"])
+def test_a_malformed_image_error_never_quotes_its_bytes(cli, tmp_path, ext):
+    """OpenImageIO's own messages can carry the first bytes (an EXR's "magic 0x5F495041" is "API_")."""
+    from conftest import make_photo
+
+    photo = make_photo(tmp_path / "p.png", 24, 32)
+    (tmp_path / f"d.{ext}").write_text(SECRET + "\n")
+    rc, _, err = cli("build", photo, "--depth", tmp_path / f"d.{ext}", "--fov-x", "60", "-o", tmp_path / "o")
+    _one_error(rc, err)
+    assert f"d.{ext}" in err and "0x" not in err and "magic" not in err.lower()
+    assert not (tmp_path / "o").exists()

@@ -65,13 +65,24 @@ def _oiio():
     return oiio
 
 
+def _read_failure(message: str, path: Path) -> str:
+    """Why OpenImageIO could not read ``path``, in words that never quote the file: its messages can carry
+    the first bytes (an EXR's "magic 0x..." is the file's first 8 bytes in hex)."""
+    text = (message or "").lower()
+    if "could not find a format reader" in text:
+        return "not an image format OpenImageIO reads"
+    if "end of file" in text or "truncat" in text or "premature" in text:
+        return "truncated file"
+    return f"not a valid {path.suffix.lstrip('.').upper() or 'image'} file (damaged, or another format)"
+
+
 def _checked_buf(path: Path):
     """An ImageBuf of ``path`` whose header (only) has been read and whose size is within the limit."""
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     buf = _oiio().ImageBuf(str(path))
     if buf.has_error or not buf.initialized:
-        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'unknown format'}")
+        raise UsdRelightError(f"cannot read image {path}: {_read_failure(buf.geterror(), path)}")
     spec = buf.spec()
     megapixels = spec.width * spec.height / 1e6
     if megapixels > max_megapixels():
@@ -103,7 +114,7 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
         buf = oiio.ImageBufAlgo.reorient(buf)
     pixels = buf.get_pixels(oiio.FLOAT)
     if buf.has_error or pixels is None or getattr(pixels, "size", 0) == 0:
-        raise UsdRelightError(f"cannot read image {path}: {buf.geterror().strip() or 'no pixels'}")
+        raise UsdRelightError(f"cannot read image {path}: {_read_failure(buf.geterror(), path)}")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
