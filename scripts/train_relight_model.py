@@ -70,7 +70,7 @@ def main() -> None:
     from usdrelight.neural.train import export_onnx, train_model
 
     model, info = train_model(pairs, steps=args.steps,
-                              progress=lambda s, n, l: log.info("step %d/%d loss %.5f", s, n, l) if s % 100 == 1 else None)
+                              progress=lambda s, n, l: log.info("step %d/%d loss %.5f", s, n, l) if s % 50 == 1 else None)
     export_onnx(model, args.output)
     info.update(pairs=len(pairs), scenes=args.scenes, seeds=[args.first_seed, args.first_seed + args.scenes - 1],
                 data_seconds=t_data, kinds=sorted({p.kind for p in pairs}))

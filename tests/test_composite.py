@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from usdrelight.imageio import read_photo, resize_image
-from usdrelight.neural.composite import add_composite, ratio_composite
+from usdrelight.neural.composite import add_composite, ratio_composite, ratio_guard
 from usdrelight.neural.relight import RelightSession
 from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.records import FitProvenance, PointLightValue
@@ -28,7 +28,20 @@ def test_ratio_of_identical_renders_gives_the_photo_back():
 
 def test_ratio_scales_by_the_light_change_and_never_darkens_when_light_is_added():
     f = RNG.random((12, 16, 3)).astype(np.float32) + 0.5
-    np.testing.assert_allclose(ratio_composite(PHOTO, 2 * f, f, VALID)[VALID], 2 * PHOTO[VALID], rtol=0.02)
+    k_up, k_down = ratio_guard(PHOTO, f, VALID)
+    # brightening is guarded by twice the fit's RMS error (here large: PHOTO and f are unrelated), dimming by 1%
+    np.testing.assert_allclose(k_up, 2 * np.sqrt(((PHOTO - f)[VALID] ** 2).mean(0)), rtol=1e-6)
+    np.testing.assert_allclose(k_down, 0.01 * f[VALID].mean(0), rtol=1e-6)
+    np.testing.assert_allclose(ratio_composite(PHOTO, 2 * f, f, VALID)[VALID],
+                               (PHOTO * (2 * f + k_up) / (f + k_up))[VALID], rtol=1e-5)
+    np.testing.assert_allclose(ratio_composite(PHOTO, 0.5 * f, f, VALID)[VALID],
+                               (PHOTO * (0.5 * f + k_down) / (f + k_down))[VALID], rtol=1e-5)
+    np.testing.assert_allclose(ratio_composite(PHOTO, 2 * f, f, VALID, k=(1e-9, 1e-9))[VALID], 2 * PHOTO[VALID],
+                               rtol=1e-5)
+    # continuous across N = F: the two guards meet at a gain of 1
+    eps = np.float32(1e-4)
+    below, above = (ratio_composite(PHOTO, f * (1 + s * eps), f, VALID) for s in (-1, 1))
+    assert np.max(np.abs(above - below)[VALID]) < 1e-3
     added = f + RNG.random(f.shape).astype(np.float32)
     assert np.all(ratio_composite(PHOTO, added, f, VALID) >= PHOTO - 1e-6)
     assert np.all(np.isfinite(ratio_composite(PHOTO, f * 0, f * 0, VALID)))
@@ -74,11 +87,11 @@ def test_fitted_scale_dims_the_photo_by_the_closed_form(fitted_stage):
     dim = RelightSession(fitted_stage, max_side=96, with_fitted=True, mode="ratio", fitted_scale=0.25)
     f = full.render([]).diffuse.astype(np.float64)
     out = dim.render([]).image
-    k = 0.01 * f[full.render([]).valid].mean(0)
     valid = full.render([]).valid
-    expected = full.photo * (0.25 * f + k) / (f + k)
+    _, k_down = ratio_guard(full.photo, f, valid)  # dimming everywhere: the 1% guard
+    expected = full.photo * (0.25 * f + k_down) / (f + k_down)
     np.testing.assert_allclose(out[valid], expected[valid], rtol=2e-3, atol=1e-6)
-    assert out[valid].mean() < 0.35 * full.photo[valid].mean()
+    assert out[valid].mean() < 0.3 * full.photo[valid].mean()
 
 
 def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_stage, tmp_path):
@@ -86,7 +99,10 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
 
     rep = cli.json("relight", fitted_stage, "--fitted-scale", "0.2", "--light", "point:0.5,1.0,-2.5:3,2,1",
                    "--max-side", "64", "--contact-sheet", "-o", tmp_path / "night")
-    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")
+    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")  # auto: fitted light kept
+    off = cli.json("relight", fitted_stage, "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side", "48",
+                   "-o", tmp_path / "off")
+    assert off["mode"] == "neural"  # auto: the photo's light is switched off
     sheet = read_photo(rep["contact_sheet"])
     assert sheet.shape[1] > 4 * sheet.shape[0] / 2  # photo, D~ and three modes side by side
     img = read_map(rep["exr"], 3)

@@ -124,5 +124,37 @@ def test_relight_end_to_end(cli, moto_stage, tmp_path):
     assert rc == 2 and "bad --light" in err
     rc, _, err = cli("relight", moto_stage, "--mode", "neural")
     assert rc == 2 and "no light" in err
-    rc, _, err = cli("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3")  # the default mode needs a fit
+    rc, _, err = cli("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--mode", "ratio")
     assert rc == 2 and "needs the fitted lights" in err and len(err.strip().splitlines()) == 1
+    # auto: no fitted lighting to keep -> the network
+    rep = cli.json("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--max-side", "64", "-o", tmp_path / "a")
+    assert rep["mode"] == "neural"
+
+
+def test_shipped_model_gain_is_bounded_so_nothing_is_blacked_out():
+    # out = D~ 4^tanh(g) + s 0.25 sigmoid(f): within [D~ / 4, 4 D~ + s / 4] for any input (s: mean D~ over valid)
+    rng = np.random.default_rng(5)
+    m = RelightModel()
+    x = np.zeros((7, 64, 80), np.float32)
+    x[0:3] = rng.gamma(0.6, 0.3, (3, 64, 80))  # heavy-tailed radiance with near-black pixels
+    x[3:6] = rng.random((3, 64, 80))
+    x[6, :8, :8] = 1.0  # a hole
+    d = x[0:3].transpose(1, 2, 0)
+    s = d[x[6] == 0].mean()
+    y = m(x)
+    assert np.all(y >= d / 4 - 1e-5), "the shipped model darkens a pixel below a quarter of the render"
+    assert np.all(y <= 4 * d + s / 4 + 1e-4)
+
+
+def test_shipped_model_is_monotone_when_a_light_is_added(tmp_path):
+    from conftest import build_procedural
+    from usdrelight.neural.relight import RelightSession
+
+    stage = build_procedural(tmp_path / "st")
+    session = RelightSession(stage, max_side=96, mode="neural")
+    base = session.render(["point:0.5,1.0,-2.5:3,2.5,2", "dome:0.05,0.05,0.06"])
+    more = session.render(["point:0.5,1.0,-2.5:3,2.5,2", "dome:0.05,0.05,0.06", "point:-0.8,0.6,-2.0:2,2,3"])
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    darker = (more.image @ lum) < (base.image @ lum) * 0.98
+    assert darker.mean() <= 0.005, f"{100 * darker.mean():.2f}% of pixels darker by > 2% after adding a light"
+    assert np.all(more.diffuse >= base.diffuse - 1e-6)  # the render itself only gains light

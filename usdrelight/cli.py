@@ -166,7 +166,7 @@ def cmd_relight(args) -> int:
                "seconds": secs(f.seconds)} for f in res.frames]
     first = res.frames[0]
     cache = None if res.cache_hit is None else ("hit" if res.cache_hit else "built")
-    summary = {"renderer": res.renderer, "mode": args.mode, "cache": cache,
+    summary = {"renderer": res.renderer, "mode": res.mode, "cache": cache,
                "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
                "contact_sheet": str(res.contact_sheet) if res.contact_sheet else None,
                "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,
@@ -319,8 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
     rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
     rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
                     help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
-    rl.add_argument("--mode", choices=["neural", "ratio", "add"], default="ratio",
-                    help="ratio (default): photo x new render / fitted render (needs `usdrelight fit`); "
+    rl.add_argument("--mode", choices=["auto", "neural", "ratio", "add"], default="auto",
+                    help="auto (default): ratio when the fitted lighting is kept (--with-fitted / --fitted-scale), "
+                         "else neural; ratio: photo x new render / fitted render (needs `usdrelight fit`); "
                          "neural: the network on the render; add: photo + render of the added lights")
     rl.add_argument("--contact-sheet", action="store_true",
                     help="also write contact_sheet.png: photo, diffuse render and every mode's result")

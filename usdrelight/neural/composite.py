@@ -4,10 +4,14 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
 
 * ``ratio``: I' = I * (N + k) / (F + k), with N the render under the new lights and F the render under the
   fitted lights (the photo's own lighting, as the fit found it). Every photographic detail, the non-diffuse
-  residual included, is kept and scaled by how much the light changed. The guard k (per channel, ``k_rel`` of F's
-  mean over valid pixels) keeps the ratio finite where F is near 0; N = F gives I back exactly, and adding a light
-  (N >= F) never darkens a pixel. Pixels without geometry take the ratio of their neighbours (pull-push fill of
-  both renders).
+  residual included, is kept and scaled by how much the light changed. The guard k (per channel) depends on the
+  direction of the change. Brightening (N >= F): k = twice the fit's own error, the RMS of I - F over valid pixels,
+  so where the fitted render is below what the fit cannot explain the ratio N / F is not trusted and the added
+  light is applied in proportion to the photo instead (I' -> I + I (N - F) / k as F -> 0): shadows and dark
+  corners the fit got wrong are not blown up. Dimming (N < F): k = 1% of F's mean, the ratio is trusted (it can
+  only scale I down), so the photo's light can really be switched down. Both branches give 1 at N = F, so I' is
+  continuous, N = F gives I back exactly, adding a light (N >= F) never darkens a pixel, and I' is finite.
+  Pixels without geometry take the ratio of their neighbours (pull-push fill of both renders).
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
@@ -21,14 +25,27 @@ from .model import hole_fill
 MODES = ("neural", "ratio", "add")
 
 
+def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01,
+                sigmas: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(k_up, k_down), each (3,) per channel: ``sigmas`` x the RMS of I - F over valid pixels (at least k_down),
+    and ``k_rel`` x F's mean (at least 1e-8)."""
+    sel = valid if valid.any() else np.ones(valid.shape, bool)
+    i, f = np.maximum(photo, 0.0)[sel].astype(np.float64), np.maximum(fitted, 0.0)[sel].astype(np.float64)
+    k_down = np.maximum(k_rel * f.mean(0), 1e-8)
+    k_up = np.maximum(sigmas * np.sqrt(np.mean((i - f) ** 2, axis=0)), k_down)
+    return k_up, k_down
+
+
 def ratio_composite(photo: np.ndarray, new: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
-                    k_rel: float = 0.01) -> np.ndarray:
-    """I * (N + k) / (F + k), renders hole-filled from valid pixels; finite and >= 0."""
+                    k_rel: float = 0.01, k=None) -> np.ndarray:
+    """I * (N + k) / (F + k) with k = k_up where N >= F and k_down where N < F (:func:`ratio_guard`, or the
+    pair ``k``); renders hole-filled from valid pixels; finite and >= 0."""
     n = hole_fill(np.maximum(new, 0.0), valid).astype(np.float64)
     f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
-    mean_f = f[valid].mean(0) if valid.any() else f.reshape(-1, 3).mean(0)
-    k = np.maximum(k_rel * mean_f, 1e-8)
-    out = np.maximum(photo, 0.0) * (n + k) / (f + k)
+    k_up, k_down = ratio_guard(photo, f, valid, k_rel) if k is None else (np.asarray(k[0]), np.asarray(k[1]))
+    k_up, k_down = np.maximum(k_up, 1e-8), np.maximum(k_down, 1e-8)
+    gain = np.where(n >= f, (n + k_up) / (f + k_up), (n + k_down) / (f + k_down))
+    out = np.maximum(photo, 0.0) * gain
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 

@@ -38,8 +38,19 @@ from .model import RelightModel, build_input, write_relit
 
 log = logging.getLogger(__name__)
 RENDERERS = ("fast", "mitsuba")
-DEFAULT_MODE = "ratio"
-"""The mode ``relight`` uses unless told otherwise (README, "Modes": chosen by benchmarks/bench_relit_quality.py)."""
+DEFAULT_MODE = "auto"
+"""The mode ``relight`` uses unless told otherwise: ``auto`` is ``ratio`` when the photo's own (fitted) lighting
+is kept, at any scale > 0, and ``neural`` when it is switched off (README, "Modes": chosen by
+benchmarks/bench_relit_quality.py: ratio is far ahead when the photo's light stays and behind when it goes)."""
+
+
+def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool) -> str:
+    """The mode that runs: ``auto`` -> ratio when the fitted lights are kept and the photo is known, else neural."""
+    if mode not in ("auto", *MODES):
+        raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
+    if mode != "auto":
+        return mode
+    return "ratio" if fitted_kept and photo_known else "neural"
 
 
 @dataclass(frozen=True)
@@ -68,8 +79,6 @@ class RelightSession:
                  mode: str = DEFAULT_MODE, fitted_scale: float = 1.0):
         if renderer not in RENDERERS:
             raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
-        if mode not in MODES:
-            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if spp < 1 or max_depth < 2:
             raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
         if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
@@ -87,10 +96,11 @@ class RelightSession:
         scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
         self.base_lights = self.user_lights + (scaled if with_fitted else ())
         self.scene = rec.with_camera(rec.camera.limited(max_side))
+        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._photo_path(stage) != "")
         self.spp, self.max_depth, self.mode = spp, max_depth, mode
         self.model = RelightModel(model_path) if mode == "neural" else None
         if mode == "ratio" and not fitted:
-            raise UsdRelightError("mode ratio (the default) needs the fitted lights: run `usdrelight fit` first, "
+            raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
                                   "or choose --mode neural or --mode add")
         self.photo = self._photo(stage) if mode != "neural" else None
         self._fitted_render = None
@@ -110,12 +120,17 @@ class RelightSession:
         """Whether the fast renderer found its prepared data on disk (None with Mitsuba)."""
         return None if self.engine is None else self.engine.cache_hit
 
-    def _photo(self, stage) -> np.ndarray:
-        """The source photo (RelightProvenanceAPI usdrelight:sourcePhoto) at the render resolution."""
+    @staticmethod
+    def _photo_path(stage) -> str:
+        """The resolved source photo (RelightProvenanceAPI usdrelight:sourcePhoto), or ""."""
         root = stage.GetDefaultPrim()
         attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
         asset = attr.Get() if attr else None
-        path = asset.resolvedPath if asset is not None else ""
+        return asset.resolvedPath if asset is not None else ""
+
+    def _photo(self, stage) -> np.ndarray:
+        """The source photo at the render resolution."""
+        path = self._photo_path(stage)
         if not path:
             raise UsdRelightError(f"modes ratio and add need the stage's source photo (usdrelight:sourcePhoto), "
                                   f"which {self.stage_path} does not name or which was moved")
@@ -188,6 +203,8 @@ class RelightResult:
     """(width, height) of the frames, pixels."""
     renderer: str
     """fast | mitsuba (what rendered, after any fallback)."""
+    mode: str
+    """neural | ratio | add (what ran: ``auto`` resolved)."""
     cache_hit: bool | None
     """Fast renderer: prepared data found on disk; None with Mitsuba."""
     seconds: dict
@@ -243,13 +260,13 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     sheet = None
     if contact_sheet:
         sheet = _contact_sheet(stage_path, out_dir, common + per_frame[0], session, opts)
-    return RelightResult(tuple(written), (w, h), session.renderer, session.cache_hit,
+    return RelightResult(tuple(written), (w, h), session.renderer, session.mode, session.cache_hit,
                          {**session.seconds, "total": time.perf_counter() - t0}, sheet)
 
 
 def _contact_sheet(stage_path, out_dir: Path, lights, first: RelightSession, opts: dict) -> Path:
     """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out)."""
-    panels, photo = [], None
+    panels, photo, resolved = [], None, first.mode
     for mode in MODES:
         try:
             session = first if mode == first.mode else RelightSession(stage_path, mode=mode, **opts)
@@ -261,7 +278,7 @@ def _contact_sheet(stage_path, out_dir: Path, lights, first: RelightSession, opt
             photo = session.photo
         if not panels:
             panels.append(("D~ (diffuse render)", frame.diffuse))
-        panels.append((f"{mode}{' (default)' if mode == DEFAULT_MODE else ''}", frame.image))
+        panels.append((f"{mode}{' (used)' if mode == resolved else ''}", frame.image))
     if photo is not None:
         panels.insert(0, ("photo", photo))
     ref = photo if photo is not None else panels[-1][1]

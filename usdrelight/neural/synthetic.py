@@ -9,8 +9,10 @@ MoGe / CID outputs would. Then the scene is lit by other light sets and both sid
 * **D~**: the 2.5D stage rendered by the fast relight engine (:mod:`usdrelight.engine`) under the same set, the
   render a relight mode starts from.
 
-Light sets (``kind``): ``identity`` (the photo's own lights), ``add`` (its lights plus a new point light) and
-``replace`` (a new point light and a new sky instead). Units: point light radiant intensity in W/sr, sky
+Light sets (``kind``): ``identity`` (the photo's own lights), ``add`` (its lights plus a new point light),
+``replace`` (a new point light and a new sky instead, drawn like the photo's own, so often similar to them) and
+``relight`` (a strongly coloured point light on the other side of the scene and a dim tinted sky instead: a
+lighting clearly unlike the photo's). Units: point light radiant intensity in W/sr, sky
 radiance in W/(m^2 sr); positions in the stage (= camera) frame, metres. Everything is deterministic per seed.
 Used to train the shipped network (``scripts/train_relight_model.py``) and by the held-out evaluation
 (``benchmarks/bench_relit_quality.py``).
@@ -31,6 +33,9 @@ from ..stage.read import read_scene
 from ..stage.validate import open_stage
 
 KINDS = ("identity", "add", "replace")
+"""The kinds the shipped network was trained on."""
+EVAL_KINDS = ("add", "replace", "relight")
+"""The kinds the held-out evaluation relights with."""
 
 
 @dataclass(frozen=True)
@@ -71,9 +76,17 @@ def light_sets(spec: SceneSpec, seed: int, kinds=KINDS) -> list[LightSet]:
     new = _new_point(rng)
     sky = tuple((rng.uniform(0.02, 0.12) * np.array([0.8, 0.9, 1.0])).round(4).tolist())
     own = tuple(spec.point_lights)
+    # relight: mirrored across the view axis from the photo's (first) light, saturated colour, dim tinted sky
+    x0 = own[0].position[0] if own else 0.0
+    pos = (float(-np.sign(x0 or 1.0) * rng.uniform(0.8, 1.5)), float(rng.uniform(0.2, 1.2)),
+           float(rng.uniform(-3.5, -1.5)))
+    hue = np.array([1.0, rng.uniform(0.3, 0.7), rng.uniform(0.05, 0.3)])[rng.permutation(3)]
+    strong = PointLight(pos, tuple((rng.uniform(5.0, 10.0) * hue).round(3).tolist()))
+    dim_sky = tuple((rng.uniform(0.005, 0.02) * rng.uniform(0.5, 1.0, 3)).round(4).tolist())
     sets = {"identity": LightSet("identity", own, tuple(spec.env_radiance)),
             "add": LightSet("add", own + (new,), tuple(spec.env_radiance), (new,)),
-            "replace": LightSet("replace", (new,), sky)}
+            "replace": LightSet("replace", (new,), sky),
+            "relight": LightSet("relight", (strong,), dim_sky)}
     return [sets[k] for k in kinds]
 
 

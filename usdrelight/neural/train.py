@@ -7,8 +7,8 @@ small bounded fill: out = D~ * 4^tanh(g) + s * 0.25 * sigmoid(f). The gain lies 
 render lights is never blacked out; with the head initialised to zero the untrained network returns D~ (plus
 s * 0.25 * sigmoid(-6), 6e-4 s). The exported graph takes and returns linear RGB (the model contract of
 :mod:`usdrelight.neural.model`).
-Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on images normalised
-by s, plus a monotonicity penalty: the same input with a random diffuse light added (albedo x a smooth positive
+Loss: MSE plus a multi-scale gradient loss (L1 of image-gradient differences at 4 scales), on log(1 + x / s)
+(normalised, compressed: highlights and fireflies do not dominate), plus a monotonicity penalty: the same input with a random diffuse light added (albedo x a smooth positive
 field) must not come out darker anywhere (hinge on the relative decrease). Whole images (s is an image-level
 statistic, so crops would shift it) and horizontal flips.
 """
@@ -155,7 +155,10 @@ def train_model(pairs, steps: int = 1500, batch: int = 2, crop: int = 0, lr: flo
         Y = torch.from_numpy(np.stack(yb)).to(device)
         s = image_scale(X)
         P = model(X)
-        loss = torch.mean((P / s - Y / s) ** 2) + 0.5 * gradient_loss(P / s, Y / s)
+        # compressive (log1p of the normalised radiance): a firefly or a point light's highlight on a metal,
+        # 100x the image mean, must not outweigh the whole image
+        Pc, Yc = torch.log1p(P / s), torch.log1p(Y / s)
+        loss = torch.mean((Pc - Yc) ** 2) + 0.5 * gradient_loss(Pc, Yc)
         if monotone:
             # adding light must not darken: hinge on the relative decrease of each pixel
             P2 = model(added_light(X, rng, torch))
