@@ -29,7 +29,7 @@ import scipy.sparse as sp
 from ..atomic import write_bytes_atomic
 from ..errors import UsdRelightError
 from ..fit.problem import EPS_REL, FitProblem, geometry_scene, problem_from_scene
-from ..fit.transport import R_MIN_REL, Transport, build_transport
+from ..fit.transport import R_MIN_REL, Transport, bounce_filter, build_transport
 from ..mitsuba.render import footprint_albedo
 from ..mitsuba.runtime import load_mitsuba
 from ..stage.records import LightRecord, SceneRecord, TextureRecord
@@ -73,33 +73,6 @@ class FastAovs:
     """(H, W, 1) 1 where a primary ray hits geometry."""
     seconds: dict = field(default_factory=dict)
     """Wall time per light kind and for the bounce."""
-
-
-def bounce_filter(prob: FitProblem, radius: int = 1, normal_power: float = 8.0, rel_dist: float = 0.02):
-    """(N, N) row-normalised joint-bilateral weights over the (2 radius + 1)^2 pixel neighbourhood: neighbours
-    count by (n . n')^normal_power * exp(-(|p - p'| / (rel_dist |p|))^2), so the Monte Carlo noise of the
-    gathered bounce is averaged within a surface, never across a depth edge or a crease."""
-    H, W = prob.height, prob.width
-    lut = -np.ones((H, W), np.int64)
-    lut[prob.idx[:, 0], prob.idx[:, 1]] = np.arange(prob.n_pixels)
-    rows, cols, vals = [], [], []
-    scale = rel_dist * np.maximum(np.linalg.norm(prob.p, axis=1), 1e-12)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            r, c = prob.idx[:, 0] + dy, prob.idx[:, 1] + dx
-            inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
-            j = np.full(prob.n_pixels, -1, np.int64)
-            j[inside] = lut[r[inside], c[inside]]
-            ok = j >= 0
-            i = np.nonzero(ok)[0]
-            j = j[ok]
-            w = np.clip(np.einsum("ij,ij->i", prob.n[i], prob.n[j]), 0.0, 1.0) ** normal_power
-            w *= np.exp(-(np.linalg.norm(prob.p[i] - prob.p[j], axis=1) / scale[i]) ** 2)
-            rows.append(i), cols.append(j), vals.append(w)
-    F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(prob.n_pixels, prob.n_pixels))
-    norm = np.asarray(F.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(norm, 1e-300)) @ F
 
 
 def _hash_array(h, a) -> None:

@@ -10,9 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
-from .problem import FitProblem
-from .transport import Transport, build_transport
+from .problem import FitProblem, coarse_problem
+from .transport import Transport, bounce_filter, build_transport
 
 
 def initial_positions(prob: FitProblem, k: int) -> np.ndarray:
@@ -68,7 +69,10 @@ class FitState:
 def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, lr_rel: float = 0.03,
              env_samples: int = 128, indirect_samples: int = 32, seed: int = 0, progress=None,
              transport: Transport | None = None, positions: np.ndarray | None = None,
-             smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None) -> tuple[FitState, Transport]:
+             smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None,
+             patience: int | None = None) -> tuple[FitState, Transport]:
+    """Adam on the light positions with intensities and environment at their optimum (VarPro); keeps the best
+    state. ``patience``: stop early once the best MSE has not improved by 0.1% for that many iterations."""
     t0 = time.perf_counter()
     tr = transport or build_transport(prob, env_shape, env_samples, indirect_samples, seed)
     pos = initial_positions(prob, k) if positions is None else np.array(positions, np.float64)
@@ -84,17 +88,20 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
     curve = []
     N = prob.n_pixels
     its = iterations if len(pos) else 1
+    last_gain = 0
     for it in range(its):
         g, dg = tr.point_columns(pos, with_grad=True)
         theta, mse, res = tr.solve(g, smooth=smooth)
         curve.append([time.perf_counter() - t0, mse])
         if best is None or mse < best.mse:
+            if patience and best is not None and mse < best.mse * (1 - 1e-3):
+                last_gain = it
             best = FitState(pos.copy(), theta, mse, it + 1)
         if progress:
             progress(it + 1, its, mse)
         if callback is not None:
             callback(it, time.perf_counter() - t0, pos.copy(), theta.copy())
-        if len(pos) == 0 or it == its - 1:
+        if len(pos) == 0 or it == its - 1 or (patience and it - last_gain >= patience):
             break
         # VarPro gradient of the MSE w.r.t. light positions (intensities at their optimum)
         w = np.zeros((N, len(pos)))
@@ -110,7 +117,7 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
         pos = keep_off_surfaces(np.clip(pos - np.nan_to_num(step), box_lo, box_hi), tree, prob.p, d_min,
                                 prob.scene.camera.to_world[:3, 3])
     best.curve = curve
-    best.iterations = its
+    best.iterations = it + 1  # iterations run (fewer than ``iterations`` when stopped early)
     best.seconds = time.perf_counter() - t0
     return best, tr
 
@@ -167,6 +174,7 @@ def candidate_positions(prob: FitProblem, per_axis: int = 5, min_distance_rel: f
 
 
 def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, tol: float = 0.02,
+                    patience: int | None = None,
                     refine_iterations: int = 20, env_samples: int = 128, indirect_samples: int = 32, seed: int = 0,
                     smooth: float = 1e-3, progress=None, callback=None) -> tuple[FitState, Transport]:
     """Forward selection: add the candidate light that best explains the residual, re-fit every light's
@@ -193,7 +201,8 @@ def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations
         if score[j] <= 0:
             break
         trial = np.concatenate([pos, cands[j:j + 1]])
-        st, _ = fit_fast(prob, len(trial), env_shape, refine_iterations, transport=tr, positions=trial, smooth=smooth)
+        st, _ = fit_fast(prob, len(trial), env_shape, refine_iterations, transport=tr, positions=trial, smooth=smooth,
+                         patience=patience)
         used += st.iterations
         curve.append([time.perf_counter() - t0, st.mse])
         if np.sqrt(st.mse) > np.sqrt(best.mse) * (1 - tol):
@@ -207,6 +216,7 @@ def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations
             callback(len(pos), time.perf_counter() - t0, pos.copy(), theta.copy())
     if len(pos) and iterations > refine_iterations:
         st, _ = fit_fast(prob, len(pos), env_shape, iterations - refine_iterations, transport=tr, positions=pos,
+                         patience=patience,
                          smooth=smooth)
         used += st.iterations
         curve.append([time.perf_counter() - t0, st.mse])
@@ -216,3 +226,81 @@ def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations
     best.iterations = max(used, 1)
     best.seconds = time.perf_counter() - t0
     return best, tr
+
+
+COARSE_SAMPLES = (128, 32)
+"""Environment and bounce rays per pixel of the coarse problem (cheap there: it has few pixels)."""
+
+
+@dataclass(frozen=True)
+class FastSettings:
+    """Knobs of the coarse-to-fine fast fit (:func:`fit_fast_coarse_to_fine`); the defaults are the
+    README's measured choice (error against time per knob: ``benchmarks/bench_batch.py``)."""
+
+    coarse_side: int = 128
+    """Longer image side (pixels) of the coarse problem on which lights are selected, refined and pruned;
+    0 = search at the full fit resolution (the pre-issue-14 fit)."""
+    polish_iterations: int = 1
+    """Position iterations (VarPro + Adam) at the full resolution after the coarse search."""
+    polish_lr_rel: float = 0.005
+    """Adam step of the polish, relative to the scene extent (the coarse search uses 0.03)."""
+    env_samples: int = 32
+    """Cosine-weighted environment rays per pixel at the full resolution (the coarse problem: COARSE_SAMPLES)."""
+    indirect_samples: int = 16
+    """One-bounce gather rays per pixel at the full resolution (the coarse problem: COARSE_SAMPLES)."""
+    filter_env: bool = True
+    """Average the full-resolution environment columns over like neighbours (:func:`bounce_filter`, as the
+    relight engine does): their Monte Carlo noise is the model's largest error at few rays."""
+    select_tol: float = 0.005
+    """Forward selection stops when a new light improves the (coarse) RMSE by less than this fraction."""
+    refine_iterations: int = 20
+    """Position iterations after each light added by the forward selection (coarse problem)."""
+    patience: int | None = 5
+    """Position iterations stop early once the best MSE has not improved by 0.1% for this many (None: never)."""
+    blas_threads: int | None = 1
+    """BLAS threads during the fit (None = the library's default). The fit's products are tall and skinny;
+    extra BLAS threads mostly spin, badly so on a shared CPU."""
+
+
+def fit_fast_coarse_to_fine(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40,
+                            prune_tol: float | None = 0.01, settings: FastSettings = FastSettings(),
+                            seed: int = 0, smooth: float = 1e-3, progress=None,
+                            callback=None) -> tuple[FitState, bool, Transport]:
+    """Select, refine and prune the lights on a coarse copy of the problem (``settings.coarse_side``), then
+    build the full-resolution transport, polish the positions there for a few iterations and solve the
+    intensities and the environment exactly; the environment is kept unless dropping it keeps the
+    full-resolution RMSE within ``prune_tol``. Returns (state at full resolution, environment kept, transport).
+    Problems already no larger than about the coarse size are fitted directly at their resolution."""
+    t0 = time.perf_counter()
+    with threadpool_limits(settings.blas_threads, user_api="blas"):
+        coarse = prob
+        if settings.coarse_side and max(prob.width, prob.height) > 1.5 * settings.coarse_side:
+            coarse = coarse_problem(prob, settings.coarse_side)
+        direct = coarse is prob
+        st, tr = fit_fast_greedy(coarse, k, env_shape, iterations, tol=settings.select_tol,
+                                 refine_iterations=settings.refine_iterations, patience=settings.patience,
+                                 env_samples=COARSE_SAMPLES[0] if not direct else settings.env_samples,
+                                 indirect_samples=COARSE_SAMPLES[1] if not direct else settings.indirect_samples,
+                                 seed=seed, smooth=smooth, progress=progress, callback=callback)
+        env_on = env_shape[0] * env_shape[1] > 0
+        if prune_tol is not None:
+            st, env_on_c = prune(st, tr, coarse, prune_tol, smooth=smooth)
+            env_on = env_on_c if direct else env_on
+        if direct:
+            return st, env_on, tr
+        curve = list(st.curve)
+        tr = build_transport(prob, env_shape, settings.env_samples, settings.indirect_samples, seed)
+        if settings.filter_env and tr.H.shape[1]:
+            tr = Transport(prob, tr.env_shape, bounce_filter(prob) @ tr.H, tr.P, tr.r_min, tr.eps)
+        t1 = time.perf_counter() - t0
+        full, _ = fit_fast(prob, len(st.positions), env_shape, max(1, settings.polish_iterations),
+                           lr_rel=settings.polish_lr_rel, transport=tr, positions=st.positions, smooth=smooth)
+        curve += [[t1 + s, m] for s, m in full.curve]
+        if env_shape[0] * env_shape[1] > 0 and (not env_on or prune_tol is not None):
+            th, ms, _ = tr.solve(tr.point_columns(full.positions), env=False, smooth=smooth)
+            if not env_on or np.sqrt(ms) <= np.sqrt(full.mse) * (1 + prune_tol):
+                env_on, full = False, FitState(full.positions, th, ms, full.iterations)
+    full.curve = curve
+    full.iterations = st.iterations + full.iterations
+    full.seconds = time.perf_counter() - t0
+    return full, env_on, tr

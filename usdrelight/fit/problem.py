@@ -90,9 +90,12 @@ def geometry_scene(rec: SceneRecord):
     return mi.load_dict(to_mitsuba(scene_dict(rec.with_lights(()), spp=1, max_depth=2), mi))
 
 
-def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stage_path=None) -> FitProblem:
+def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stage_path=None,
+                       mi_scene=None) -> FitProblem:
     """Trace one primary ray per pixel of ``rec``'s camera at ``max_side``; ``target`` is D at the camera's
-    full resolution (None: zeros, for renderers that need the hits but no target)."""
+    full resolution (None: zeros, for renderers that need the hits but no target; NaN pixels are left out).
+    ``mi_scene``: an already loaded geometry scene of ``rec`` (rays are generated in normalized film
+    coordinates, so one scene serves every resolution)."""
     if rec.camera is None:
         raise UsdRelightError(f"{stage_path or 'the stage'} has no camera")
     if not rec.meshes and not rec.shapes:
@@ -101,7 +104,7 @@ def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stag
     W, H = rec.resolution
     D = np.zeros((H, W, 3), np.float32) if target is None else resize_image(target, W, H)
     mi = load_mitsuba()
-    scene = geometry_scene(rec)
+    scene = geometry_scene(rec) if mi_scene is None else mi_scene
     ray, si = trace_pixel_centres(mi, scene, W, H)
     hit = np.array(si.is_valid(), bool)
     p = np.array(si.p, np.float64).T
@@ -124,6 +127,20 @@ def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stag
     return FitProblem(Path(stage_path) if stage_path else Path(), rec, W, H,
                       D.reshape(-1, 3)[ok].astype(np.float64), np.stack([rows, cols], 1), P, n[ok], ng[ok],
                       np.clip(alb[ok], 0.0, 1.0), (lo + hi) / 2, extent, scene)
+
+
+def coarse_problem(prob: FitProblem, max_side: int) -> FitProblem:
+    """``prob`` at a coarser fit resolution (longer side ``max_side``), sharing its Mitsuba scene. D is the
+    box average of the valid fine pixels under each coarse pixel; coarse pixels without one are left out."""
+    fine = np.zeros((prob.height, prob.width, 4), np.float32)
+    fine[prob.idx[:, 0], prob.idx[:, 1], :3] = prob.target
+    fine[prob.idx[:, 0], prob.idx[:, 1], 3] = 1.0
+    k = prob.scene.camera.intrinsics.limited(max_side)
+    W, H = k.width, k.height
+    small = resize_image(fine, W, H)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        D = np.where(small[..., 3:] > 1e-6, small[..., :3] / small[..., 3:], np.nan).astype(np.float32)
+    return problem_from_scene(prob.scene, max_side, D, prob.stage_path, mi_scene=prob.mi_scene)
 
 
 def load_problem(stage_path, max_side: int = 512, target=None) -> FitProblem:

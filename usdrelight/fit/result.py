@@ -74,10 +74,11 @@ class FitReport:
     """Wall time of the optimisation."""
     iterations: int
     """Optimiser iterations used."""
-    render_mse: float
-    """Masked MSE of the Mitsuba render of the fitted lights against D (the verification)."""
-    render_psnr_db: float
-    """PSNR of ``render_mse``."""
+    render_mse: float | None
+    """Masked MSE of the Mitsuba render of the fitted lights against D (the verification); None when the
+    verification render was skipped."""
+    render_psnr_db: float | None
+    """PSNR of ``render_mse`` (None when skipped)."""
     verify_seconds: float
     """Wall time of the verification render and of writing the layer."""
     lights_kept: int

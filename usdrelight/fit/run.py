@@ -21,7 +21,7 @@ from ..mitsuba.render import render_record
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
 from .adam import fit_adam
-from .fast import fit_fast_greedy, prune as prune_lights
+from .fast import FastSettings, fit_fast_coarse_to_fine
 from .problem import FitProblem, load_problem
 from .report import write_report
 from .result import FitReport, FitResult, masked_mse, psnr
@@ -34,12 +34,10 @@ PRUNE_TOL = 0.01
 
 
 def fast_result(prob: FitProblem, k: int, env_shape, iterations: int, prune: bool = True, progress=None,
-                **kw) -> FitResult:
+                settings: FastSettings = FastSettings(), **kw) -> FitResult:
     t0 = time.perf_counter()
-    state, tr = fit_fast_greedy(prob, k, env_shape, iterations, progress=progress, **kw)
-    env_on = env_shape[0] * env_shape[1] > 0
-    if prune:
-        state, env_on = prune_lights(state, tr, prob, PRUNE_TOL)
+    state, env_on, _ = fit_fast_coarse_to_fine(prob, k, env_shape, iterations, PRUNE_TOL if prune else None,
+                                               settings, progress=progress, **kw)
     seconds = time.perf_counter() - t0
     K = len(state.positions)
     lights = tuple(PointLightValue(state.positions[i], state.theta[:, i]) for i in range(K))
@@ -126,15 +124,18 @@ def fit_stage(stage_path, *args, **kwargs) -> FitReport:
 
 
 def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
-              max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0) -> FitReport:
-    """Fit, write the fitted-lights layer, verify by rendering with Mitsuba, and report."""
+              max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0,
+              fast_settings: FastSettings = FastSettings()) -> FitReport:
+    """Fit, write the fitted-lights layer, verify by rendering with Mitsuba (``verify_spp`` samples per
+    pixel; 0 = no verification render, render_* are then None), and report."""
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
     t_all = time.perf_counter()
     prob = load_problem(stage_path, max_side)
     if method == "fast":
         env_shape = _parse_env_res(env_res or "8x16", FAST_MAX_ENV_CELLS)
-        res = fast_result(prob, lights, env_shape, iterations or 40, progress=progress, seed=seed)
+        res = fast_result(prob, lights, env_shape, iterations or 40, progress=progress, seed=seed,
+                          settings=fast_settings)
     elif method == "adam":
         env_shape = _parse_env_res(env_res or "128x256")
         res = fit_adam(prob, lights, env_shape, iterations or 200, progress=progress, seed=seed)
@@ -148,13 +149,14 @@ def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=Non
         raise UsdRelightError("the fit diverged (non-finite environment); nothing was written")
     # verification: render the fitted lights with Mitsuba, as the converter would
     t = time.perf_counter()
-    img = render_fitted(prob, res.lights, res.env, spp=verify_spp, seed=seed + 1)
-    render_mse = masked_mse(prob, img)
+    img = render_fitted(prob, res.lights, res.env, spp=verify_spp, seed=seed + 1) if verify_spp > 0 else None
+    render_mse = masked_mse(prob, img) if img is not None else None
     peak = float(prob.target.max())
+    render_psnr = psnr(render_mse, peak) if img is not None else None
     stage_dir = Path(stage_path).resolve().parent
     write_fitted_lights(stage_dir, list(res.lights), res.env, res.provenance())
     report = FitReport(res.method, float(res.mse), float(res.psnr_db), float(res.seconds), int(res.iterations),
-                       render_mse, psnr(render_mse, peak), time.perf_counter() - t, len(res.lights),
+                       render_mse, render_psnr, time.perf_counter() - t, len(res.lights),
                        res.env is not None, [res.width, res.height], prob.n_pixels, peak, res.curve,
                        time.perf_counter() - t_all, dict(res.extra))
     if report_dir is not None:
