@@ -99,7 +99,11 @@ def real_photo(name, files, work, sheet, stage=None):
         s = RelightSession(stage, max_side=512, with_fitted=mode != "add", mode=mode)
         k = s.scene.camera.intrinsics
         photo = resize_image(read_photo(files["photo"]), k.width, k.height)
-        ident = s.render([]).image
+        first = s.render([])
+        ident = first.image
+        if mode == "neural":  # the diffuse render itself, for reference
+            row["dtilde_identity_psnr_db"] = psnr(first.diffuse, photo)
+            row["dtilde_identity_ssim"] = ssim(first.diffuse, photo)
         lit = s.render([ADDED_LIGHT])
         row["modes"][mode] = {"identity_psnr_db": psnr(ident, photo), "identity_ssim": ssim(ident, photo),
                               "darkened_pct": darkened_pct(ident, lit.image),
@@ -206,6 +210,7 @@ def main():
         write_image(ROOT / "docs" / "neural_contact_sheet.png", np.concatenate(model_sheet, 0), "uint8")
     print("real photos: mode | identity PSNR dB / SSIM | darkened % | blacked out %")
     for r in real:
+        print(f"{r['photo']:17s} D~      | {r['dtilde_identity_psnr_db']:6.2f} / {r['dtilde_identity_ssim']:.3f} |")
         for m, v in r["modes"].items():
             print(f"{r['photo']:17s} {m:7s} | {v['identity_psnr_db']:6.2f} / {v['identity_ssim']:.3f} | "
                   f"{v['darkened_pct']:6.3f} | {v['blacked_pct']:6.3f}")
