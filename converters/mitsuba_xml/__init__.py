@@ -7,7 +7,7 @@ written as binary PLY into ``meshes/`` next to the XML, textures referenced rela
 scene file as people write them -> a USD stage, created at ``usd_path`` or in memory (:mod:`.parse` reads
 the XML, :mod:`.to_usd` and :mod:`.materials` author the stage).
 
-Modules: ``common`` (tags, the Plugin record, paths, prim names) is shared; the others import it, never
+Modules: ``common`` (tags, the Plugin record, paths, prim names, sensor field of view) is shared; the others import it, never
 each other, except that ``to_usd`` drives ``parse`` and ``materials``.
 """
 from __future__ import annotations

@@ -1,15 +1,19 @@
-"""Shared by the Mitsuba XML reader and writer: plugin tags, the parsed plugin record, paths, prim names.
+"""Shared by the Mitsuba XML reader and writer: plugin tags, the parsed plugin record, paths, prim names, and
+Mitsuba's own resolution of a sensor's field of view (:func:`horizontal_fov`).
 
 The reader (``parse`` -> ``to_usd`` + ``materials``) and the writer (``write``) both import this module and
 never each other.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from usdrelight.errors import UsdRelightError
 
 #: Mitsuba plugin type -> the XML tag it is declared with.
 TAG_OF: dict[str, str] = {}
@@ -75,3 +79,57 @@ class PrimNamer:
         self.counts[key] += 1
         n = self.counts[key]
         return key if n == 1 else f"{key}_{n}"
+
+
+#: Mitsuba's film when a sensor gives a focal length: 36 x 24 mm, the field of view taken along its diagonal.
+FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)
+#: Mitsuba's focal length when a sensor gives neither ``fov`` nor ``focal_length``.
+DEFAULT_FOCAL_LENGTH = "50mm"
+
+
+def horizontal_fov(props: dict, width: int, height: int) -> tuple[float, float | None]:
+    """The horizontal field of view (degrees) of a perspective/thinlens sensor on a ``width`` x ``height`` film,
+    resolved exactly as Mitsuba 3's ``parse_fov`` (src/render/sensor.cpp) does, and the focal length in mm when
+    the sensor gives one (else None).
+
+    ``fov`` along ``fov_axis`` (x, the default | y | diagonal | smaller | larger, case-insensitive; smaller and
+    larger pick y or x by the film's aspect), or ``focal_length`` ("50mm", "35", or a number: millimetres on a
+    36 x 24 mm film, the angle taken along the image's diagonal); neither: 50 mm. Both are an error, as in Mitsuba.
+    """
+    aspect = width / height
+    focal_mm = None
+    if "fov" in props:
+        if "focal_length" in props:
+            raise UsdRelightError("<sensor>: give either a focal length ('focal_length') or a field of view "
+                                  "('fov'), not both")
+        fov = float(props["fov"])
+        if not 0 < fov < 180:
+            raise UsdRelightError(f"<sensor> fov must be between 0 and 180 degrees (exclusive), got {fov:g}")
+        axis = str(props.get("fov_axis", "x")).lower()
+        if axis == "smaller":
+            axis = "y" if aspect > 1 else "x"
+        elif axis == "larger":
+            axis = "x" if aspect > 1 else "y"
+    else:
+        text = props.get("focal_length", DEFAULT_FOCAL_LENGTH)
+        text = str(text).strip()
+        try:
+            focal_mm = float(text[:-2] if text.endswith("mm") else text)
+        except ValueError:
+            raise UsdRelightError(f"<sensor> focal_length {text!r} is not of the form <x>mm") from None
+        if not (focal_mm > 0 and math.isfinite(focal_mm)):
+            raise UsdRelightError(f"<sensor> focal_length must be positive, got {focal_mm:g}")
+        fov = math.degrees(2 * math.atan(FILM_DIAGONAL_MM / (2 * focal_mm)))
+        axis = "diagonal"
+    half = math.tan(math.radians(fov) / 2)
+    if axis == "x":
+        result = fov
+    elif axis == "y":
+        result = math.degrees(2 * math.atan(half * aspect))
+    elif axis == "diagonal":
+        result = math.degrees(2 * math.atan(half / math.sqrt(1 + 1 / (aspect * aspect))))
+    else:
+        raise UsdRelightError(f"unknown fov_axis '{props.get('fov_axis')}' (x, y, diagonal, smaller or larger)")
+    if not 0 < result < 180:
+        raise UsdRelightError(f"<sensor> horizontal field of view must be between 0 and 180 degrees, got {result:g}")
+    return result, focal_mm

@@ -27,7 +27,7 @@ from usdrelight.stage.create import author_render_settings, create_stage
 from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
 from usdrelight.stage.validate import check_finite
 
-from .common import Plugin, PrimNamer, rel_path
+from .common import Plugin, PrimNamer, horizontal_fov, rel_path
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
 
@@ -257,35 +257,24 @@ class UsdBuilder:
         if p.type != "perspective":
             self.warnings[f"sensor type '{p.type}' (converted as perspective)"] += 1
         film = next((c for c in p.children if c.tag == "film"), None)
-        W, H = check_resolution(film.props.get("width", 768) if film else 768,
-                                film.props.get("height", 576) if film else 576, "<film>")
-        if "fov" in p.props:
-            fov = float(p.props["fov"])
-        elif "focal_length" in p.props:
-            try:
-                fl = float(str(p.props["focal_length"]).rstrip("m"))
-            except ValueError:
-                raise UsdRelightError(f"<sensor> focal_length {p.props['focal_length']!r} is not a number") from None
-            if not (fl > 0 and math.isfinite(fl)):
-                raise UsdRelightError(f"<sensor> focal_length must be positive, got {fl:g}")
-            fov = math.degrees(2 * math.atan(36.0 / (2 * fl)))
-            p.props.setdefault("fov_axis", "x")
-        else:
-            fov = 39.3077
-        if not 0 < fov < 180:
-            raise UsdRelightError(f"<sensor> fov must be between 0 and 180 degrees (exclusive), got {fov:g}")
-        axis = p.props.get("fov_axis", "x")
-        ref = {"x": W, "y": H, "diagonal": math.hypot(W, H), "smaller": min(W, H), "larger": max(W, H)}.get(axis)
-        if ref is None:
-            raise UsdRelightError(f"unknown fov_axis '{axis}'")
-        f = ref / (2 * math.tan(math.radians(fov) / 2))
+        fp = film.props if film else {}
+        W, H = check_resolution(fp.get("width", 768), fp.get("height", 576), "<film>")
+        fov, focal_mm = horizontal_fov(p.props, W, H)
+        f = W / (2 * math.tan(math.radians(fov) / 2))
+        # principal_point_offset is a fraction of the whole film, also when the film is cropped (Mitsuba scales it
+        # by film size / crop size); the crop window renders crop_width x crop_height pixels of the full film.
         cx = W * (0.5 - float(p.props.get("principal_point_offset_x", 0.0)))
         cy = H * (0.5 - float(p.props.get("principal_point_offset_y", 0.0)))
-        intr = Intrinsics(f, f, cx, cy, W, H)
+        ox, oy = int(fp.get("crop_offset_x", 0)), int(fp.get("crop_offset_y", 0))
+        cw, ch = int(fp.get("crop_width", W)), int(fp.get("crop_height", H))  # Mitsuba's defaults
+        if min(ox, oy) < 0 or min(cw, ch) < 1 or ox + cw > W or oy + ch > H:
+            raise UsdRelightError(f"<film>: crop window {cw} x {ch} at ({ox}, {oy}) is not inside the {W} x {H} film")
+        intr = Intrinsics(f, f, cx - ox, cy - oy, cw, ch)
         cam = UsdGeom.Camera.Define(self.stage, self.unique(ROOT, p.id or "Camera"))
-        author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)))
+        author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)),
+                          focal_mm)
         self.set_xform(cam.GetPrim(), p.props.get("to_world", np.eye(4)) @ CAMERA_FLIP)
-        self.settings = author_render_settings(self.stage, str(cam.GetPath()), W, H, [AOVS["color"]])
+        self.settings = author_render_settings(self.stage, str(cam.GetPath()), cw, ch, [AOVS["color"]])
         sampler = next((c for c in p.children if c.tag == "sampler"), None)
         self.spp = int(sampler.props.get("sample_count", 4)) if sampler else None
 

@@ -34,9 +34,10 @@ def opencv_to_usd(points: np.ndarray) -> np.ndarray:
     return p
 
 
-def usd_camera_params(intr: Intrinsics) -> dict:
-    """UsdGeom.Camera attribute values (floats) that reproduce ``intr``."""
-    focal = intr.fx * SENSOR_WIDTH_MM / intr.width
+def usd_camera_params(intr: Intrinsics, focal_mm: float | None = None) -> dict:
+    """UsdGeom.Camera attribute values (floats) that reproduce ``intr``: a 36 mm horizontal aperture, or, when
+    ``focal_mm`` is given (a lens known in millimetres), that focal length and the apertures it implies."""
+    focal = intr.fx * SENSOR_WIDTH_MM / intr.width if focal_mm is None else float(focal_mm)
     return {
         "focalLength": focal,
         "horizontalAperture": intr.width * focal / intr.fx,
@@ -55,12 +56,13 @@ def check_clipping(near: float, far: float, where: str) -> None:
                               f"0 < near < far")
 
 
-def author_usd_camera(camera, intr: Intrinsics, near: float, far: float) -> dict:
-    """Author a perspective ``UsdGeom.Camera`` that reproduces ``intr``; returns the parameters."""
+def author_usd_camera(camera, intr: Intrinsics, near: float, far: float, focal_mm: float | None = None) -> dict:
+    """Author a perspective ``UsdGeom.Camera`` that reproduces ``intr`` (see :func:`usd_camera_params`);
+    returns the parameters."""
     from pxr import Gf, UsdGeom
 
     check_clipping(near, far, str(camera.GetPath()))
-    params = usd_camera_params(intr)
+    params = usd_camera_params(intr, focal_mm)
     if not all(np.isfinite(v) for v in params.values()):
         raise UsdRelightError(f"camera {camera.GetPath()}: intrinsics {intr} give non-finite USD camera values")
     camera.CreateProjectionAttr(UsdGeom.Tokens.perspective)
