@@ -109,7 +109,10 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
                "matrix": (conv @ rec.camera.to_world).tolist()}
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
-    lights = [light_to_blender(l, rec.up_axis) for l in rec.lights]
+    lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
+    if len(lights) < len(rec.lights):
+        rec.warnings["mesh lights (MeshLightAPI) in the Blender converter (geometry kept, emission not converted)"] \
+            += len(rec.lights) - len(lights)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights}

@@ -34,6 +34,8 @@ from .parse import integrator_json, parse_scene
 log = logging.getLogger(__name__)
 
 ROOT = "/World"
+#: Shapes an area emitter turns into a Mesh with UsdLux MeshLightAPI (Mitsuba's cube is a mesh too).
+MESH_TYPES = ("obj", "ply", "serialized", "cube")
 
 
 class UsdBuilder:
@@ -67,13 +69,18 @@ class UsdBuilder:
         M = p.props.get("to_world", np.eye(4))
         bsdf = next((c for c in p.children if c.tag == "bsdf"), None)
         emitter = next((c for c in p.children if c.tag == "emitter"), None)
-        if emitter is not None and emitter.type == "area":
+        if emitter is not None and emitter.type != "area":
+            self.warnings[f"'{emitter.type}' emitter on a shape (ignored)"] += 1
+        emitter = emitter if emitter is not None and emitter.type == "area" else None
+        if emitter is not None:
             if p.type in ("rectangle", "sphere", "disk"):
                 self.area_light(p, emitter, M)
                 return
-            self.warnings[f"area emitter on a '{p.type}' shape (geometry kept, emission dropped)"] += 1
+            if p.type not in MESH_TYPES:
+                self.warnings[f"area emitter on a '{p.type}' shape (geometry kept, emission dropped)"] += 1
+                emitter = None
         path = self.unique(ROOT, p.id or p.type)
-        if p.type in ("obj", "ply", "serialized"):
+        if p.type in ("obj", "ply", "serialized") or (p.type == "cube" and emitter is not None):
             pts, faces, normals, uv = self.load_mesh(p, M)
             m = UsdGeom.Mesh.Define(self.stage, path)
             m.CreatePointsAttr([Gf.Vec3f(*map(float, v)) for v in pts])
@@ -132,11 +139,16 @@ class UsdBuilder:
             self.warnings[f"shape type '{p.type}' (not converted)"] += 1
             return
         self.looks.bind(prim, bsdf)
+        if emitter is not None:
+            self.mesh_light(prim, emitter)
 
     def load_mesh(self, p: Plugin, M: np.ndarray):
-        """Let Mitsuba load obj/ply/serialized (its own conventions) and read the buffers back."""
+        """Let Mitsuba load obj/ply/serialized (its own conventions) or make its cube mesh, and read the
+        buffers back."""
         mi = load_mitsuba()
-        props = {"type": p.type, "filename": p.resolved, "to_world": mi.ScalarTransform4f(M.tolist())}
+        props = {"type": p.type, "to_world": mi.ScalarTransform4f(M.tolist())}
+        if p.type != "cube":
+            props["filename"] = p.resolved
         for k in ("face_normals", "flip_normals", "flip_tex_coords", "shape_index"):
             if k in p.props:
                 props[k] = p.props[k]
@@ -200,6 +212,19 @@ class UsdBuilder:
             self.set_xform(light.GetPrim(), T)
         light.CreateNormalizeAttr(False)
         self._light_common(light, rgb)
+
+    def mesh_light(self, prim, emitter: Plugin) -> None:
+        """UsdLux MeshLightAPI on an emitting mesh: its radiance as intensity * color, not normalized, emission
+        independent of the bound material (which is kept for what the mesh reflects)."""
+        from pxr import UsdLux
+
+        UsdLux.MeshLightAPI.Apply(prim)
+        light = UsdLux.LightAPI(prim)
+        light.CreateNormalizeAttr(False)
+        light.CreateMaterialSyncModeAttr(UsdLux.Tokens.independent)
+        if any(c.tag == "texture" for c in emitter.children):
+            self.warnings["textured area emitter radiance (not converted; radiance 1 used)"] += 1
+        self._light_common(light, emitter.props.get("radiance", (1.0, 1.0, 1.0)))
 
     def emitter(self, p: Plugin) -> None:
         from pxr import Sdf, UsdLux

@@ -13,6 +13,8 @@ pixel centre, then the render of a diffuse scene with one indirect bounce (Mitsu
 D~ = a_px * (e + F @ P @ (a * e)), where F averages the gathered bounce over like neighbours (bounce_filter), a is the albedo at the pixel centre and a_px the albedo averaged over the
 pixel's area with misses as 0 (4 x 4 rays at prepare time: what a box pixel filter sees of a textured or
 partly covered pixel). Emitters are never seen by camera rays; pixels whose centre sees no geometry are 0.
+Stages with mesh lights (MeshLightAPI) are refused, as non-Lambertian ones are (RelightSession falls back to
+Mitsuba with one warning).
 """
 from __future__ import annotations
 
@@ -116,6 +118,9 @@ class FastRenderer:
     def __init__(self, rec: SceneRecord, settings: EngineSettings = EngineSettings(), cache_dir=None):
         if rec.camera is None:
             raise UsdRelightError("the stage has no camera to render from")
+        mesh_lights = [light.path for light in rec.lights if light.kind == "mesh"]
+        if mesh_lights:  # RelightSession then renders with Mitsuba, which does
+            raise UsdRelightError(f"the fast renderer does not render mesh lights (MeshLightAPI on {mesh_lights[0]})")
         unsupported = sorted({m.path for m in rec.meshes if not m.material.is_lambertian}
                              | {s.path for s in rec.shapes if not s.material.is_lambertian})
         if unsupported:

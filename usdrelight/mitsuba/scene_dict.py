@@ -141,6 +141,8 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         return {name: {"type": "point", "position": [float(x) for x in pos], "intensity": _rgb(L)}}
     if light.cone_angle_deg is not None:
         warnings["ShapingAPI on an area, distant or dome light (ignored)"] += 1
+    if light.kind == "mesh":
+        return {}  # an area emitter on the light's own mesh (scene_dict)
     emitter = {"type": "area", "radiance": _rgb(L)}
     black = {"type": "diffuse", "reflectance": _rgb(0.0)}
     if light.kind == "sphere":
@@ -192,10 +194,15 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
         used.add(k)
         return k
 
+    mesh_lights = {light.path: light for light in scene.lights if light.kind == "mesh"}
+    emitting = set()
     for mesh in scene.meshes:
         uv = None if mesh.uv is None else np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
         k = key(safe_name(mesh.path))
         bsdf = bsdf_dict(mesh.material, warnings)
+        # a MeshLightAPI mesh (or one of its GeomSubsets) emits: Mitsuba's area emitter on the same shape
+        owner = mesh.path if mesh.path in mesh_lights else mesh.path.rsplit("/", 1)[0]
+        light = mesh_lights.get(owner)
         if mesh_dir is not None:
             mdir = Path(mesh_dir)
             mdir.mkdir(parents=True, exist_ok=True)
@@ -205,6 +212,11 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
         else:
             d[k] = {"type": "_mesh", "points": mesh.points, "faces": mesh.faces, "normals": mesh.normals,
                     "uv": uv, "bsdf": bsdf}
+        if light is not None:
+            d[k]["emitter"] = {"type": "area", "radiance": _rgb(emitted_radiance(light))}
+            emitting.add(light.path)
+    if set(mesh_lights) - emitting:
+        warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for shape in scene.shapes:
         d[key(safe_name(shape.path))] = {"type": shape.kind, "to_world": Matrix(shape.to_world),
                                      "bsdf": bsdf_dict(shape.material, warnings)}
@@ -217,6 +229,8 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
 def _make_mesh(mi, name: str, spec: dict):
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(to_mitsuba(spec["bsdf"], mi))
+    if "emitter" in spec:
+        props["emitter"] = mi.load_dict(to_mitsuba(spec["emitter"], mi))
     has_n, has_uv = spec["normals"] is not None, spec["uv"] is not None
     mesh = mi.Mesh(name, len(spec["points"]), len(spec["faces"]), props, has_vertex_normals=has_n,
                    has_vertex_texcoords=has_uv)

@@ -9,6 +9,8 @@ The table (also in the README, "Light and camera units"), following the UsdLux s
   (Mitsuba ``point``; Blender's USD importer with Cycles and hdMitsuba agree).
 * SphereLight/DiskLight/RectLight: an area light of radiance L on the shape's (front) surface;
   Disk and Rect emit towards their local -Z.
+* A Mesh with MeshLightAPI: radiance L on the mesh's front side (where its normals point), or L / (its
+  world-space area) with ``normalize`` (Mitsuba: the mesh with an ``area`` emitter).
 * DistantLight with angle 0: irradiance E = L [W/m^2] on a surface facing it, travelling along
   the light's local -Z (Mitsuba ``directional``). A non-zero angle is not represented (warned).
 * DomeLight: environment radiance L (untextured) or texel * L (latlong texture, OpenEXR layout:
@@ -38,12 +40,14 @@ def world_area(light: LightRecord) -> float:
         return np.pi * light.radius ** 2 * sx * sy
     if light.kind == "rect":
         return light.width * light.height * sx * sy
+    if light.kind == "mesh":
+        return light.area
     return 1.0
 
 
 def emitted_radiance(light: LightRecord) -> np.ndarray:
     """L after ``normalize`` for area lights; L itself for point, distant and dome lights."""
-    if light.normalize and light.kind in ("sphere", "disk", "rect") and not light.treat_as_point:
+    if light.normalize and light.kind in ("sphere", "disk", "rect", "mesh") and not light.treat_as_point:
         area = world_area(light)
         if area > 0:
             return light.radiance / area

@@ -6,7 +6,8 @@ units, in world space. Nothing here imports a renderer.
 
 Supported: Mesh and UsdPreviewSurface (see :mod:`usdrelight.stage.read_geometry`), Sphere, Cube, Plane
 gprims; Camera (through RenderSettings); RenderProducts and RenderVars;
-SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and ShapingAPI.
+SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and ShapingAPI; a Mesh with
+MeshLightAPI is both a mesh and a light of kind ``mesh``.
 Anything else is counted in ``warnings`` (one line per kind), never dropped silently.
 """
 from __future__ import annotations
@@ -21,7 +22,7 @@ from ..errors import UsdRelightError
 from ..imageio import check_image_size, check_resolution
 from ..safe_paths import check_read, stage_folder
 from .camera import check_clipping, intrinsics_from_usd_camera
-from .read_geometry import read_material, read_mesh
+from .read_geometry import mesh_area, read_material, read_mesh
 from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
 
 log = logging.getLogger(__name__)
@@ -61,19 +62,20 @@ def _finite_xform(m, prim) -> np.ndarray:
     return xf
 
 
-def read_light(prim, xf: np.ndarray, warnings) -> LightRecord | None:
+def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0) -> LightRecord | None:
     """The light record of a UsdLux prim (None for kinds not converted); non-finite or negative sizes and
-    radiance are errors."""
-    rec = _light_record(prim, xf, warnings)
+    radiance are errors. ``area``: the world-space area of a mesh light's mesh."""
+    rec = _light_record(prim, xf, warnings, area)
     if rec is not None:
-        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg) if v is not None]
+        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg, rec.area)
+                 if v is not None]
         if not all(np.isfinite(sizes)) or any(v < 0 for v in sizes):
             raise UsdRelightError(f"light {prim.GetPath()} has a negative or non-finite size or angle")
     return rec
 
 
-def _light_record(prim, xf: np.ndarray, warnings) -> LightRecord | None:
-    from pxr import UsdLux
+def _light_record(prim, xf: np.ndarray, warnings, area: float) -> LightRecord | None:
+    from pxr import UsdGeom, UsdLux
 
     L = light_radiance(prim)
     common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
@@ -90,6 +92,8 @@ def _light_record(prim, xf: np.ndarray, warnings) -> LightRecord | None:
         if sh.GetShapingIesFileAttr().Get() and sh.GetShapingIesFileAttr().Get().path:
             warnings["ShapingAPI IES profile (ignored)"] += 1
     t = prim.GetTypeName()
+    if prim.IsA(UsdGeom.Mesh):
+        return LightRecord(kind="mesh", area=area, **common)
     if t == "SphereLight":
         s = UsdLux.SphereLight(prim)
         r = float(s.GetRadiusAttr().Get())
@@ -223,7 +227,9 @@ def read_scene(stage, time=None) -> SceneRecord:
             if img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or \
                     img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
                 continue
-        if prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or prim.IsA(UsdLux.NonboundableLightBase):
+        is_light = prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or \
+            prim.IsA(UsdLux.NonboundableLightBase)
+        if is_light and not prim.IsA(UsdGeom.Mesh):  # a mesh light (MeshLightAPI) is read as a mesh too, below
             light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim), warnings)
             if light is not None:
                 lights.append(light)
@@ -235,7 +241,11 @@ def read_scene(stage, time=None) -> SceneRecord:
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim)
         mat = read_material(prim, warnings)
         if prim.IsA(UsdGeom.Mesh):
-            meshes.extend(read_mesh(prim, xf, mat, warnings))
+            records = read_mesh(prim, xf, mat, warnings)
+            meshes.extend(records)
+            if is_light:
+                light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)))
+                lights.append(light)
             continue
         with np.errstate(all="ignore"):  # an Inf size: refused just below
             shape = _shape(prim, xf, mat, t)

@@ -221,3 +221,9 @@ def _compact(path, pts, faces, normals, uv, material, ds) -> MeshRecord:
     remap[used] = np.arange(len(used))
     return MeshRecord(path, pts[used], remap[faces], None if normals is None else normals[used],
                       None if uv is None else uv[used], material, ds)
+
+
+def mesh_area(mesh: MeshRecord) -> float:
+    """World-space surface area of a mesh record (the sum of its triangles' areas)."""
+    p = mesh.points[mesh.faces]
+    return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())

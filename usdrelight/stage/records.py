@@ -127,7 +127,8 @@ class LightRecord:
     path: str
     """Prim path."""
     kind: str
-    """sphere | disk | rect | distant | dome."""
+    """sphere | disk | rect | distant | dome | mesh (a Mesh with UsdLux MeshLightAPI: its geometry is the
+    :class:`MeshRecord` (or records, one per GeomSubset) at ``path`` in ``SceneRecord.meshes``)."""
     to_world: np.ndarray
     """4x4 light frame -> world (may scale the sizes below)."""
     radiance: np.ndarray
@@ -150,6 +151,8 @@ class LightRecord:
     """ShapingAPI cone half-angle in degrees; None = no shaping (or a cone of 180 degrees)."""
     cone_softness: float = 0.0
     """ShapingAPI cone softness in [0, 1]."""
+    area: float = 0.0
+    """Mesh light: world-space area of its mesh (what ``normalize`` divides by); 0 for the other kinds."""
 
 
 @dataclass(frozen=True)
