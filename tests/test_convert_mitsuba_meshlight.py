@@ -186,3 +186,22 @@ def test_relight_session_falls_back_to_mitsuba_for_mesh_lights(tmp_path, caplog)
     frame = session.render()  # no added light: the panel's emission alone lights the floor
     expect = ALBEDO * 3.0 * np.array([1.0, 0.5, 0.25]) * _view_factor(0.5, 1.0)
     np.testing.assert_allclose(frame.diffuse.mean(axis=(0, 1)), expect, rtol=0.1)
+
+
+def test_sampled_spectra_become_the_rgb_mitsuba_uses(cli, tmp_path):
+    """A sampled <spectrum> (an emitter's radiance: unbounded; a reflectance: bounded, D65) becomes exactly the
+    RGB Mitsuba's RGB variants render with (read back from Mitsuba's own scene)."""
+    spectral = EMITTER_OBJ.replace('<rgb name="reflectance" value="0"/>',
+                                   '<spectrum name="reflectance" value="400:0.2, 500:0.5, 600:0.7, 700:0.9"/>')
+    spectral = spectral.replace(f'<rgb name="radiance" value="{", ".join(map(str, L))}"/>',
+                                '<spectrum name="radiance" value="400:0, 500:8, 600:15.6, 700:18.4"/>')
+    src, stage, _ = _round_trip(cli, tmp_path, _scene("floor", spectral), "spectral")
+    params = load_mitsuba().traverse(load_mitsuba().load_file(str(src)))
+    key = next(k for k in params.keys() if k.endswith("emitter.radiance.value"))
+    mitsuba_radiance = np.array(params[key]).reshape(-1)
+    mitsuba_albedo = np.array(params[key.replace("emitter.radiance", "bsdf.reflectance")]).reshape(-1)
+    (ml,) = read_scene(stage).lights
+    np.testing.assert_allclose(ml.radiance, mitsuba_radiance, rtol=1e-5)
+    assert mitsuba_radiance[0] > 2 * mitsuba_radiance[2]  # red-heavy, not a grey
+    mesh = next(m for m in read_scene(stage).meshes if m.path == ml.path)
+    np.testing.assert_allclose(mesh.material.diffuse, mitsuba_albedo, rtol=1e-5)

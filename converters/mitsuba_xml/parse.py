@@ -144,7 +144,7 @@ class XmlReader:
                 elif obj is not None:
                     self.warnings[f"top-level <{el.tag}> (ignored)"] += 1
 
-    def element(self, el: ET.Element, here: Path):
+    def element(self, el: ET.Element, here: Path, in_emitter: bool = False):
         tag = el.tag
         if tag in ("shape", "emitter", "bsdf", "texture", "sensor", "film", "sampler", "rfilter", "integrator",
                    "medium", "phase", "volume"):
@@ -160,7 +160,7 @@ class XmlReader:
                     p.children.append(Plugin(target.tag, target.type, target.id, child.get("name"), target.props,
                                              target.children, target.source))
                     continue
-                v = self.element(child, here)
+                v = self.element(child, here, tag == "emitter")
                 if isinstance(v, Plugin):
                     p.children.append(v)
                 elif v is not None:
@@ -168,15 +168,15 @@ class XmlReader:
             if p.id:
                 self.ids[p.id] = p
             return p
-        return self.value(el, here)
+        return self.value(el, here, in_emitter)
 
-    def value(self, el: ET.Element, here: Path):
-        v = self._value(el, here)
+    def value(self, el: ET.Element, here: Path, in_emitter: bool = False):
+        v = self._value(el, here, in_emitter)
         if isinstance(v, (float, tuple, np.ndarray)) and not np.all(np.isfinite(np.asarray(v, np.float64))):
             raise UsdRelightError(f"<{el.tag} name='{el.get('name')}'> has a non-finite value (NaN/Inf)")
         return v
 
-    def _value(self, el: ET.Element, here: Path):
+    def _value(self, el: ET.Element, here: Path, in_emitter: bool):
         tag = el.tag
         val = self.sub(el.get("value"))
         try:
@@ -192,7 +192,7 @@ class XmlReader:
                 nums = [float(x) for x in re.split(r"[,\s]+", val.strip()) if x]
                 return tuple(nums * 3 if len(nums) == 1 else nums[:3])
             if tag == "spectrum":
-                return self.spectrum(val)
+                return self.spectrum(val, in_emitter)
             if tag in ("point", "vector"):
                 if val is not None:
                     nums = [float(x) for x in re.split(r"[,\s]+", val.strip()) if x]
@@ -205,15 +205,25 @@ class XmlReader:
         self.warnings[f"XML element <{tag}> (ignored)"] += 1
         return None
 
-    def spectrum(self, val: str):
+    def spectrum(self, val: str, in_emitter: bool):
+        """A <spectrum> as the RGB Mitsuba's RGB variants use: a uniform value as it is, a sampled one
+        ("400:0.1, 500:0.2 ...") integrated against the CIE curves into linear sRGB by Mitsuba itself, bounded
+        and under D65 outside emitters, unbounded inside them (as Mitsuba's parser does)."""
         parts = [x for x in re.split(r"[,\s]+", val.strip()) if x]
         if all(":" not in x for x in parts):
             v = float(parts[0])
             return (v, v, v)
-        self.warnings["sampled <spectrum> (approximated by its values at 610/550/465 nm)"] += 1
-        wl = np.array([float(x.split(":")[0]) for x in parts])
-        vv = np.array([float(x.split(":")[1]) for x in parts])
-        return tuple(float(np.interp(w, wl, vv)) for w in (610.0, 550.0, 465.0))
+        if any(x.count(":") != 1 for x in parts):
+            raise ValueError("a sampled spectrum is a list of wavelength:value pairs")
+        wl = [float(x.split(":")[0]) for x in parts]
+        vv = [float(x.split(":")[1]) for x in parts]
+        if not np.all(np.isfinite(wl + vv)) or len(wl) < 2 or np.any(np.diff(wl) <= 0):
+            raise ValueError("wavelengths must be finite and increasing, values finite")
+        try:
+            rgb = load_mitsuba().spectrum_list_to_srgb(wl, vv, bounded=not in_emitter, d65=not in_emitter)
+        except RuntimeError as exc:
+            raise ValueError(f"Mitsuba cannot convert it ({type(exc).__name__})") from None
+        return tuple(float(c) for c in rgb)
 
     def transform(self, el: ET.Element) -> np.ndarray:
         mi = load_mitsuba()
