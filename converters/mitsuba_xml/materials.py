@@ -3,10 +3,13 @@
 diffuse -> Lambertian (specular workflow, black specular, roughness 1); plastic/roughplastic -> specular
 workflow with roughness sqrt(alpha) and ior int_ior / ext_ior; conductor/roughconductor -> metallic 1 with
 the specular reflectance as base colour; principled -> metallic workflow; twosided and mask are unwrapped.
-Bitmap textures become UsdUVTexture shaders reading the ``st`` primvar.
+Bitmap textures become UsdUVTexture shaders reading the ``st`` primvar. A rough BSDF's microfacet
+``distribution`` (UsdPreviewSurface has none) is kept in the Material's ``customData["mitsuba"]`` for the XML
+export.
 """
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from pathlib import Path
@@ -109,6 +112,9 @@ class MaterialBuilder:
         else:
             self.warnings[f"BSDF '{t}' (approximated by a grey diffuse surface)"] += 1
             sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.5, 0.5, 0.5))
+        dist = inner.props.get("distribution")
+        if t in ("roughplastic", "roughconductor") and isinstance(dist, str):
+            mat.GetPrim().SetCustomDataByKey("mitsuba", json.dumps({"distribution": dist.lower()}))
         self.materials[key] = mat
         return mat
 

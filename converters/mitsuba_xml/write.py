@@ -4,7 +4,8 @@ Meshes are written as binary PLY into ``meshes/`` next to the XML; textures insi
 referenced relatively, the others (and those inside a ``.usdz`` package) are copied into ``textures/`` first,
 so the XML reads only inside its own folder tree (see :mod:`usdrelight.safe_paths`); units
 and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
-XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator) are put back.
+XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator, a rough BSDF's microfacet
+distribution) are put back.
 """
 from __future__ import annotations
 
@@ -113,6 +114,7 @@ def write_to_string(stage, base_dir, spp: int = 64, max_depth: int = 3) -> tuple
         integrator = settings_extra["integrator"]
     d = scene_dict(rec, spp=spp, max_depth=max_depth, mesh_dir=base / "meshes", integrator=integrator)
     _restore_extras(stage, d)
+    _restore_material_extras(stage, rec, d)
     files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]
     root = ET.Element("scene", version="3.0.0")
     for k, v in d.items():
@@ -168,3 +170,20 @@ def _restore_extras(stage, d: dict) -> None:
                 if k == "texture" and isinstance(v, str):
                     v = {"type": "bitmap", "filename": v}
                 d[key][k] = v
+
+
+def _restore_material_extras(stage, rec, d: dict) -> None:
+    """Put back a rough BSDF's microfacet ``distribution`` kept in its Material's customData['mitsuba']."""
+    for item in (*rec.meshes, *rec.shapes):
+        prim = stage.GetPrimAtPath(item.material.path) if item.material.path else None
+        data = prim.GetCustomDataByKey("mitsuba") if prim else None
+        entry = d.get(safe_name(item.path))
+        if not data or not isinstance(entry, dict) or "bsdf" not in entry:
+            continue
+        try:
+            dist = json.loads(data).get("distribution")
+        except (TypeError, ValueError, AttributeError):
+            continue
+        inner = entry["bsdf"].get("bsdf", entry["bsdf"])
+        if dist in ("beckmann", "ggx") and inner.get("type") in ("roughplastic", "roughconductor"):
+            inner["distribution"] = dist
