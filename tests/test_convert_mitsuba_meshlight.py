@@ -205,3 +205,13 @@ def test_sampled_spectra_become_the_rgb_mitsuba_uses(cli, tmp_path):
     assert mitsuba_radiance[0] > 2 * mitsuba_radiance[2]  # red-heavy, not a grey
     mesh = next(m for m in read_scene(stage).meshes if m.path == ml.path)
     np.testing.assert_allclose(mesh.material.diffuse, mitsuba_albedo, rtol=1e-5)
+
+
+def test_negative_or_non_finite_mesh_light_is_a_one_line_error(cli, tmp_path):
+    for i, value in enumerate((-2.0, float("nan"))):
+        stage = _mesh_light_stage(tmp_path / f"bad{i}.usda", normalize=False)
+        UsdLux.LightAPI(stage.GetPrimAtPath("/World/Panel")).GetIntensityAttr().Set(value)
+        stage.GetRootLayer().Save()
+        rc, _, err = cli("convert", tmp_path / f"bad{i}.usda", tmp_path / f"bad{i}" / "s.xml")
+        assert rc == 2 and "/World/Panel" in err and "Traceback" not in err
+        assert not (tmp_path / f"bad{i}" / "s.xml").exists()
