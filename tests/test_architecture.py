@@ -27,6 +27,7 @@ LAYERS = [
     ("fit", ["usdrelight.fit"]),
     ("engine", ["usdrelight.engine"]),
     ("neural", ["usdrelight.neural"]),
+    ("batch", ["usdrelight.batch"]),
     ("serve", ["usdrelight.serve"]),
     ("converters", ["usdrelight.converters"]),
     ("cli", ["usdrelight.cli", "usdrelight.__main__"]),

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .batch.args import add_batch_parser
 from .errors import UsdRelightError
 from .native_io import command_context
 
@@ -49,7 +50,6 @@ class _Steps:
 
     def __init__(self, names, title):
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
         self.names = list(names)
         self.progress = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                                  console=_stderr_console(), transient=True,
@@ -102,7 +102,6 @@ def cmd_build(args) -> int:
 
 def cmd_validate(args) -> int:
     from .stage.validate import errors_only, open_stage, validate_stage
-
     stage = open_stage(args.stage)
     findings = validate_stage(stage)
     errors = errors_only(findings)
@@ -125,7 +124,6 @@ def cmd_render(args) -> int:
 
 def cmd_fit(args) -> int:
     from .fit.run import fit_stage
-
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("fit {task.description}"), BarColumn(), TimeElapsedColumn(), console=_stderr_console(),
@@ -188,6 +186,11 @@ def cmd_train(args) -> int:
                "parameters": res.parameters, "device": res.device}
     _emit(args, summary, f"wrote {res.model} ({res.pairs} pairs, {res.steps} steps, {res.seconds:.0f} s)")
     return 0
+
+
+def cmd_batch(args) -> int:
+    from .batch.console import run_command
+    return run_command(args, _stderr_console(), _emit)
 
 
 def cmd_convert(args) -> int:
@@ -341,6 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=_positive_int, default=1500)
     tr.set_defaults(func=cmd_train)
 
+    add_batch_parser(sub, common, cmd_batch)
     c = sub.add_parser("convert", parents=[common, reads], help="convert between USD and Mitsuba XML, Blender, glTF/PLY/OBJ",
                        description="Convert SRC to DST, each format chosen by its suffix.")
     c.add_argument("src", type=Path)

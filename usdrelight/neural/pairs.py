@@ -4,12 +4,14 @@ render D~ (diffuse render under the fitted lights), albedo and the valid mask; t
 Training folder layout (works for real photographs with estimator outputs and for procedural ones):
 ``NAME.{png,jpg,tif,exr}`` the photo; optional ``NAME.depth.{exr,npy,pfm}`` or ``NAME.points.npy``,
 ``NAME.intrinsics.json``, ``NAME.albedo.exr`` (+ ``NAME.shading.exr``). Missing estimates fall back to the
-built-in priors of ``usdrelight build``.
+built-in priors of ``usdrelight build``. A ``usdrelight batch --pairs`` output folder (``manifest.jsonl``) is
+accepted as it is.
 """
 from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +19,7 @@ import numpy as np
 
 from ..atomic import write_text_atomic
 from ..errors import UsdRelightError
+from ..fit.result import FitReport
 from ..fit.run import fit_stage
 from ..imageio import read_map, read_photo
 from ..mitsuba.render import render_stage
@@ -24,6 +27,8 @@ from ..stage.build import BuildOptions, build
 
 log = logging.getLogger(__name__)
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+MANIFEST = "manifest.jsonl"
+"""A ``usdrelight batch`` output folder lists its photos here (one JSON object per line)."""
 
 
 @dataclass(frozen=True)
@@ -65,37 +70,121 @@ def _sidecar(photo: Path, kind: str, suffixes) -> Path | None:
     return None
 
 
-def prepare_pair(photo: Path, work: Path, max_side: int = 256, fit_iterations: int = 30, spp: int = 64) -> Pair:
-    """Build, fit and render one training pair (cached in ``work/NAME``)."""
-    out = work / photo.stem
-    done = out / "pair.json"
-    if not done.exists():
-        opts = BuildOptions(depth=_sidecar(photo, "depth", (".exr", ".npy", ".pfm")),
-                            points=_sidecar(photo, "points", (".npy", ".exr")),
-                            intrinsics=_sidecar(photo, "intrinsics", (".json",)),
-                            albedo=_sidecar(photo, "albedo", (".exr", ".png", ".npy")),
-                            shading=_sidecar(photo, "shading", (".exr", ".npy")))
-        if opts.depth is not None and opts.points is not None:
-            opts.points = None
-        build(photo, out, opts)
-        rep = fit_stage(out / "scene.usda", "fast", lights=8, iterations=fit_iterations, max_side=max_side,
-                        verify_spp=16)
+def build_options(photo: Path) -> BuildOptions:
+    """The ``usdrelight build`` options of one training photo: its sidecar estimates (a depth map wins
+    over a point map); what is missing falls back to build's priors."""
+    opts = BuildOptions(depth=_sidecar(photo, "depth", (".exr", ".npy", ".pfm")),
+                        points=_sidecar(photo, "points", (".npy", ".exr")),
+                        intrinsics=_sidecar(photo, "intrinsics", (".json",)),
+                        albedo=_sidecar(photo, "albedo", (".exr", ".png", ".npy")),
+                        shading=_sidecar(photo, "shading", (".exr", ".npy")))
+    if opts.depth is not None and opts.points is not None:
+        opts.points = None
+    return opts
+
+
+def photo_inputs(photo: Path) -> list[Path]:
+    """The photo and every sidecar file it is built from (what a change of must redo the pair)."""
+    o = build_options(photo)
+    return [Path(photo)] + [Path(q) for q in (o.depth, o.points, o.intrinsics, o.albedo, o.shading) if q]
+
+
+@dataclass(frozen=True)
+class PairWork:
+    """What making one pair's files cost and gave (see :func:`make_pair_files`)."""
+
+    build_seconds: float
+    """Wall time of ``usdrelight build``, s."""
+    fit: FitReport
+    """The light fit's report (its ``seconds`` is the optimisation's wall time, s)."""
+    render_seconds: float
+    """Wall time of rendering D~, albedo and valid, s (0 without ``render``)."""
+    fit_mse_rel: float | None
+    """Fit MSE over the photo's mean squared value on valid pixels (what :func:`prepare_pairs` ranks by);
+    None without ``render`` (no valid mask)."""
+
+
+def make_pair_files(photo: Path, out: Path, max_side: int = 256, fit_iterations: int = 30, spp: int = 64,
+                    lights: int = 8, verify_spp: int = 16, render: bool = True, after_build=None) -> PairWork:
+    """Build the stage of ``photo`` into ``out``, fit its lights and (``render``) render D~, albedo and valid
+    into ``out/renders``; ``out/pair.json`` is written last. ``after_build()`` is called between build and fit."""
+    photo, out = Path(photo), Path(out)
+    t = time.perf_counter()
+    build(photo, out, build_options(photo))
+    t_build = time.perf_counter() - t
+    if after_build is not None:
+        after_build()
+    rep = fit_stage(out / "scene.usda", "fast", lights=lights, iterations=fit_iterations, max_side=max_side,
+                    verify_spp=verify_spp)
+    t = time.perf_counter()
+    rel = None
+    if render:
         render_stage(out / "scene.usda", out, aovs=["diffuse", "albedo", "valid"], spp=spp)
-        write_text_atomic(done, json.dumps({"fit_mse": rep.mse, "fit_psnr_db": rep.psnr_db}) + "\n")
-    meta = json.loads(done.read_text())
+        valid = read_map(out / "renders" / "valid.exr", 1)[..., 0] > 0.5
+        rel = relative_fit_error(rep.mse, read_photo(photo), valid)
+    t_render = time.perf_counter() - t if render else 0.0
+    write_text_atomic(out / "pair.json", json.dumps({"fit_mse": rep.mse, "fit_psnr_db": rep.psnr_db,
+                                                     "fit_mse_rel": rel}) + "\n")
+    return PairWork(t_build, rep, t_render, rel)
+
+
+def relative_fit_error(fit_mse: float, photo: np.ndarray, valid: np.ndarray) -> float:
+    """The fit MSE normalised by the photo's brightness (mean squared value over valid pixels), so pairs of
+    different exposure compare."""
+    scale = float(np.mean(photo[valid] ** 2)) if valid.any() else 1.0
+    return float(fit_mse) / max(scale, 1e-12)
+
+
+def load_pair(photo: Path, out: Path) -> Pair:
+    """Read a pair made by :func:`make_pair_files` (``out`` holds its stage and renders)."""
+    meta = json.loads((out / "pair.json").read_text())
     dt = read_map(out / "renders" / "diffuse.exr", 3)
     alb = read_map(out / "renders" / "albedo.exr", 3)
     valid = read_map(out / "renders" / "valid.exr", 1)[..., 0] > 0.5
     img = read_photo(photo)
     if img.shape != dt.shape:
         raise UsdRelightError(f"{photo.name}: render {dt.shape} and photo {img.shape} differ")
-    # normalise the fit error by the photo's brightness so pairs of different exposure compare
-    scale = float(np.mean(img[valid] ** 2)) if valid.any() else 1.0
-    return Pair(photo.stem, dt, alb, valid, img, meta["fit_mse"] / max(scale, 1e-12))
+    rel = meta.get("fit_mse_rel")
+    return Pair(photo.stem, dt, alb, valid, img, rel if rel is not None else
+                relative_fit_error(meta["fit_mse"], img, valid))
+
+
+def prepare_pair(photo: Path, work: Path, max_side: int = 256, fit_iterations: int = 30, spp: int = 64) -> Pair:
+    """Build, fit and render one training pair (cached in ``work/NAME``)."""
+    out = work / photo.stem
+    if not (out / "pair.json").exists():
+        make_pair_files(photo, out, max_side, fit_iterations, spp)
+    return load_pair(photo, out)
+
+
+def batch_pair_rows(batch_dir) -> list[dict] | None:
+    """The manifest rows of a ``usdrelight batch --pairs`` output folder whose pair is done (None when
+    ``batch_dir`` has no manifest). Each row names its photo (``photo``) and its folder (``name``)."""
+    path = Path(batch_dir) / MANIFEST
+    if not path.is_file():
+        return None
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return [r for r in rows if r.get("status") == "done" and r.get("pairs")]
+
+
+def drop_worst(items: list, key, drop_fraction: float) -> list:
+    """``items`` without the ``drop_fraction`` with the largest ``key`` (the paper's worst-fit filter)."""
+    n_drop = int(round(drop_fraction * len(items)))
+    if n_drop and len(items) - n_drop >= 1:
+        items = sorted(items, key=key)[: len(items) - n_drop]
+    return items
 
 
 def prepare_pairs(data_dir, work_dir, drop_fraction: float = 0.15, progress=None, **kw) -> list[Pair]:
-    """All pairs of a training folder, without the ``drop_fraction`` with the highest relative fit error."""
+    """All pairs of a training folder, without the ``drop_fraction`` with the highest relative fit error.
+    A ``usdrelight batch --pairs`` output folder is read as it is (``work_dir`` unused): the filter is
+    computed from its manifest's ``fit_mse_rel``."""
+    rows = batch_pair_rows(data_dir)
+    if rows is not None:
+        rows = drop_worst(rows, lambda r: r["fit_mse_rel"], drop_fraction)
+        if not rows:
+            raise UsdRelightError(f"{data_dir}: the batch manifest lists no finished pair (run batch --pairs)")
+        return [load_pair(Path(r["photo"]), Path(data_dir) / r["name"]) for r in rows]
     photos = list_photos(data_dir)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -104,7 +193,4 @@ def prepare_pairs(data_dir, work_dir, drop_fraction: float = 0.15, progress=None
         pairs.append(prepare_pair(p, work, **kw))
         if progress:
             progress(i + 1, len(photos))
-    n_drop = int(round(drop_fraction * len(pairs)))
-    if n_drop and len(pairs) - n_drop >= 1:
-        pairs = sorted(pairs, key=lambda q: q.fit_mse)[: len(pairs) - n_drop]
-    return pairs
+    return drop_worst(pairs, lambda q: q.fit_mse, drop_fraction)

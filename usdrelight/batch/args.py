@@ -1,0 +1,61 @@
+"""The ``usdrelight batch`` command-line arguments (argparse only, so building the command line stays light)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .records import BatchOptions
+
+DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth.exr, NAME.intrinsics.json, "
+               "NAME.albedo.exr ...): build the stage into OUT_DIR/NAME, fit its lights, with --pairs render the "
+               "training pair, on Dask (an embedded LocalCluster or --scheduler); OUT_DIR/manifest.jsonl lists every "
+               "photo. A re-run skips unchanged photos. Exit 0 when every photo ended done or recorded failed, "
+               "2 when the batch cannot run.")
+
+
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.ArgumentParser:
+    """Add the ``batch`` subcommand to the subparsers ``sub``; ``func(args)`` runs it."""
+    d = BatchOptions()
+    bt = sub.add_parser("batch", parents=[common], help="build + fit a folder of photos on Dask (resumable)",
+                        description=DESCRIPTION)
+    bt.add_argument("photos", type=Path, metavar="PHOTO_DIR")
+    bt.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR")
+    where = bt.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, default=d.workers,
+                       help="worker processes of the embedded Dask LocalCluster, 1 thread each (default %(default)s)")
+    where.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786")
+    bt.add_argument("--pairs", action="store_true", help="also render the training pair (D~, albedo, valid)")
+    bt.add_argument("--max-side", type=_positive_int, default=d.max_side, help="longer image side of the fit")
+    bt.add_argument("--lights", type=_non_negative_int, default=d.lights, help="most point lights the fit keeps")
+    bt.add_argument("--iterations", type=_positive_int, default=d.iterations, help="position iterations of the fit")
+    bt.add_argument("--verify-spp", type=_non_negative_int, default=d.verify_spp, metavar="N",
+                    help="samples per pixel of the fit's Mitsuba verification render (default 0: none)")
+    bt.add_argument("--spp", type=_positive_int, default=d.spp, help="samples per pixel of the pair's D~ render")
+    bt.add_argument("--retries", type=_non_negative_int, default=d.retries,
+                    help="LocalCluster: how often a photo whose worker died is tried again (default %(default)s)")
+    bt.add_argument("--retry-failed", action="store_true",
+                    help="redo photos recorded failed on an input error even when their inputs are unchanged")
+    bt.add_argument("--no-dashboard", action="store_true", help="no Dask dashboard for the LocalCluster")
+    bt.set_defaults(func=func)
+    return bt
+
+
+def options_from_args(args) -> BatchOptions:
+    return BatchOptions(max_side=args.max_side, lights=args.lights, iterations=args.iterations,
+                        verify_spp=args.verify_spp, pairs=args.pairs, spp=args.spp, workers=args.workers,
+                        scheduler=args.scheduler, retries=args.retries, retry_failed=args.retry_failed,
+                        dashboard=not args.no_dashboard)

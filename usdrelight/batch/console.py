@@ -1,0 +1,29 @@
+"""``usdrelight batch`` in a terminal: the cluster's addresses and a progress bar over photos on stderr, the
+summary on stdout (only JSON with ``--json``)."""
+from __future__ import annotations
+
+import sys
+
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from .args import options_from_args
+from .run import run_batch
+
+
+def run_command(args, console, emit) -> int:
+    """Run the batch of the parsed ``args``; ``console`` is a rich Console on stderr, ``emit(args, summary,
+    human)`` prints the summary."""
+    with Progress(TextColumn("batch {task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, disable=not sys.stderr.isatty()) as bar:
+        task = bar.add_task("photos", total=None)
+
+        def on_cluster(scheduler, dashboard):
+            console.print(f"dask scheduler {scheduler}, dashboard {dashboard or '(none)'}", highlight=False)
+
+        def progress(n, total, rec):
+            bar.update(task, completed=n, total=total, description=f"{rec.name}: {rec.status}")
+
+        res = run_batch(args.photos, args.output, options_from_args(args), progress=progress, on_cluster=on_cluster)
+    emit(args, res.to_dict(), f"batch: {res.done} done, {res.failed} failed, {res.skipped} skipped of {res.photos} "
+                              f"photo(s) in {res.seconds:.1f} s; manifest {res.manifest}")
+    return 0

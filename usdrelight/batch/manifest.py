@@ -1,0 +1,105 @@
+"""The batch's bookkeeping: input hashes, ``manifest.jsonl``, and what a re-run may skip.
+
+A finished photo's folder ``OUT_DIR/NAME`` holds ``batch.json`` (its manifest row), written inside the temp
+folder before the folder is published by one rename, so a folder with a ``batch.json`` is complete. The
+manifest is the client's copy of every row, rewritten atomically after each photo; failed photos live only
+there (they have no folder).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+from pathlib import Path
+
+from .. import __version__
+from ..atomic import write_text_atomic
+from ..neural.pairs import MANIFEST, photo_inputs
+from .records import MANIFEST_FIELDS_VERSION, BatchOptions, PhotoJob, PhotoRecord
+
+log = logging.getLogger(__name__)
+RECORD = "batch.json"
+"""A finished photo's own manifest row, inside its folder."""
+TEMP_MARKERS = (".tmp-", ".old-")
+"""Hidden folders of unfinished or replaced photos (``.NAME.tmp-*``, ``.NAME.old-*``), removed between runs."""
+
+
+def input_hash(files, options: BatchOptions) -> str:
+    """sha256 over each input file's name and bytes, the hashed options, the package version and the
+    manifest version: equal hashes mean the outputs would be the same."""
+    h = hashlib.sha256()
+    h.update(json.dumps({"options": options.hashed(), "version": __version__,
+                         "manifest": MANIFEST_FIELDS_VERSION}, sort_keys=True).encode())
+    for f in files:
+        f = Path(f)
+        h.update(f.name.encode() + b"\0")
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def make_job(photo: Path, out_dir: Path, options: BatchOptions) -> PhotoJob:
+    photo = Path(photo).resolve()
+    files = tuple(p.resolve() for p in photo_inputs(photo))
+    return PhotoJob(photo.stem, photo, files, input_hash(files, options), Path(out_dir).resolve(), options)
+
+
+def read_manifest(out_dir: Path) -> dict[str, PhotoRecord]:
+    """name -> row of ``out_dir/manifest.jsonl`` (empty when there is none; unreadable lines are ignored)."""
+    path = Path(out_dir) / MANIFEST
+    rows = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rec = PhotoRecord.from_dict(json.loads(line))
+            except (ValueError, TypeError):
+                log.warning("manifest: ignoring an unreadable line")
+                continue
+            rows[rec.name] = rec
+    return rows
+
+
+def write_manifest(out_dir: Path, rows: dict[str, PhotoRecord]) -> Path:
+    """Replace ``manifest.jsonl`` atomically: one JSON object per photo, sorted by name."""
+    text = "".join(json.dumps(rows[k].to_dict(), sort_keys=True) + "\n" for k in sorted(rows))
+    return write_text_atomic(Path(out_dir) / MANIFEST, text)
+
+
+def finished_record(job: PhotoJob) -> PhotoRecord | None:
+    """The photo's ``NAME/batch.json`` row when its folder is complete and was made from the same inputs
+    and options; None otherwise."""
+    path = job.out_dir / job.name / RECORD
+    try:
+        rec = PhotoRecord.from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+    if rec.status != "done" or rec.input_hash != job.input_hash:
+        return None
+    if job.options.pairs and not (job.out_dir / job.name / "pair.json").is_file():
+        return None
+    return rec
+
+
+def reusable(job: PhotoJob, previous: PhotoRecord | None) -> PhotoRecord | None:
+    """The record a re-run keeps instead of processing ``job``: a complete, unchanged done photo, or an
+    unchanged photo that failed on an input error (unless ``retry_failed``)."""
+    rec = finished_record(job)
+    if rec is not None:
+        return rec
+    if (previous is not None and previous.status == "failed" and previous.error_kind == "input"
+            and previous.input_hash == job.input_hash and not job.options.retry_failed):
+        return previous
+    return None
+
+
+def remove_leftovers(out_dir: Path) -> int:
+    """Remove temp and replaced folders left by killed workers or an interrupted run; returns how many."""
+    n = 0
+    for p in Path(out_dir).iterdir():
+        if p.name.startswith(".") and any(m in p.name for m in TEMP_MARKERS) and p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+            n += 1
+    return n

@@ -1,0 +1,156 @@
+"""The client side of ``usdrelight batch``: list the photos, decide what a re-run may skip, start a Dask
+LocalCluster (worker processes, 1 thread each) or connect to an existing scheduler, submit one task per
+photo, record each result in the manifest as it arrives, and summarise.
+
+Exit status (cli): 0 when every photo ended done, skipped or recorded failed; 2 when the batch itself cannot
+run (no such folder, no photos, unreachable scheduler): :class:`usdrelight.errors.UsdRelightError`.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from ..errors import UsdRelightError
+from ..neural.pairs import MANIFEST, list_photos
+from .manifest import make_job, read_manifest, remove_leftovers, reusable, write_manifest
+from .records import BatchOptions, BatchSummary, PhotoJob, PhotoRecord
+from .task import process_photo
+
+log = logging.getLogger(__name__)
+PHOTO_RESOURCE = "photo"
+"""Dask worker resource: a worker with ``photo=1`` runs one photo at a time and holds no queue of them."""
+
+
+def _dask():
+    """dask and distributed (the ``batch`` extra), imported when a batch has work to do."""
+    try:
+        import dask
+        import distributed
+    except ImportError:
+        raise UsdRelightError("usdrelight batch needs Dask: pip install 'usdrelight[batch]'") from None
+    return dask, distributed
+
+
+def _client(options: BatchOptions):
+    """(client, the LocalCluster or None when connected to ``options.scheduler``)."""
+    dask, distributed = _dask()
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
+    if options.scheduler:
+        try:
+            return Client(options.scheduler, timeout="10s"), None
+        except (OSError, TimeoutError) as exc:
+            raise UsdRelightError(f"cannot reach the Dask scheduler {options.scheduler}: {exc}") from None
+    if options.workers < 1:
+        raise UsdRelightError(f"--workers must be >= 1, got {options.workers}")
+    # a worker that dies mid-photo makes the tasks it holds 'suspicious'; after `retries` more deaths a task
+    # fails. The PHOTO resource (1 per worker) keeps waiting photos on the scheduler, so a dying worker holds
+    # only the photo it runs and never marks a queued one.
+    with dask.config.set({"distributed.scheduler.allowed-failures": options.retries}):
+        cluster = LocalCluster(n_workers=options.workers, threads_per_worker=1, processes=True,
+                               resources={PHOTO_RESOURCE: 1},
+                               dashboard_address=":0" if options.dashboard else None,
+                               silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def _crash_record(job: PhotoJob, exc: BaseException) -> PhotoRecord:
+    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    return PhotoRecord(job.name, "failed", job.input_hash, str(job.photo),
+                       error=f"worker died while processing the photo ({type(exc).__name__}: {text})"[:500],
+                       error_kind="crash", pairs=job.options.pairs)
+
+
+def run_batch(photo_dir, out_dir, options: BatchOptions = BatchOptions(), progress=None,
+              on_cluster=None) -> BatchSummary:
+    """Process every photo of ``photo_dir`` into ``out_dir`` (see the module docstring).
+    ``progress(done, total, record)`` after each photo; ``on_cluster(scheduler, dashboard)`` once the cluster
+    is up (the dashboard is None when there is none)."""
+    t0 = time.perf_counter()
+    if not Path(photo_dir).is_dir():
+        raise UsdRelightError(f"photo folder not found: {photo_dir}")
+    photos = list_photos(photo_dir)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise UsdRelightError(f"output {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    if Path(photo_dir).resolve() == out.resolve():
+        raise UsdRelightError("the output folder must not be the photo folder")
+    names = [p.stem for p in photos]
+    if len(set(names)) != len(names):
+        raise UsdRelightError(f"{photo_dir}: two photos share a name ({', '.join(sorted(set(n for n in names if names.count(n) > 1)))})")
+    remove_leftovers(out)
+    previous = read_manifest(out)
+    rows: dict[str, PhotoRecord] = {}
+    per_photo, todo = [], []
+    for p in photos:
+        job = make_job(p, out, options)
+        kept = reusable(job, previous.get(job.name))
+        if kept is not None:
+            rows[job.name] = kept
+            per_photo.append(_entry(kept, "skipped"))
+        else:
+            todo.append(job)
+            if job.name in previous:
+                rows[job.name] = previous[job.name]
+    summary = BatchSummary(out_dir=str(out.resolve()), manifest=str(out.resolve() / MANIFEST), photos=len(photos), done=0, failed=0,
+                           skipped=len(photos) - len(todo), manifest_done=0, manifest_failed=0, seconds=0.0,
+                           cluster_seconds=0.0, scheduler=None, dashboard=None, workers=0, per_photo=per_photo)
+    if todo:
+        _run(todo, options, rows, summary, out, progress, on_cluster, len(photos) - len(todo), len(photos))
+    write_manifest(out, rows)
+    remove_leftovers(out)
+    summary.manifest_done = sum(r.status == "done" for r in rows.values())
+    summary.manifest_failed = sum(r.status == "failed" for r in rows.values())
+    summary.per_photo.sort(key=lambda e: e["name"])
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _entry(rec: PhotoRecord, outcome: str) -> dict:
+    return {"name": rec.name, "outcome": outcome, "status": rec.status, "seconds": rec.seconds,
+            "build_seconds": rec.build_seconds, "fit_seconds": rec.fit_seconds, "fit_psnr_db": rec.fit_psnr_db,
+            "error": rec.error}
+
+
+def _run(todo, options, rows, summary, out, progress, on_cluster, done0, total) -> None:
+    t = time.perf_counter()
+    client, cluster = _client(options)
+    try:
+        summary.cluster_seconds = time.perf_counter() - t
+        summary.scheduler = client.scheduler.address
+        summary.dashboard = client.dashboard_link if (cluster is None or options.dashboard) else None
+        summary.workers = len(client.scheduler_info(n_workers=-1)["workers"])
+        if on_cluster is not None:
+            on_cluster(summary.scheduler, summary.dashboard)
+        log.info("batch: %d photo(s) to process on %d worker(s) (%s)", len(todo), summary.workers,
+                 summary.scheduler)
+        workers = client.scheduler_info(n_workers=-1)["workers"].values()
+        limit = {PHOTO_RESOURCE: 1} if any(PHOTO_RESOURCE in w.get("resources", {}) for w in workers) else None
+        if limit is None:
+            log.warning("batch: the workers declare no '%s' resource (dask worker --resources %s=1): a worker "
+                        "that dies may take queued photos' retries with it", PHOTO_RESOURCE, PHOTO_RESOURCE)
+        futures = {client.submit(process_photo, job, key=f"photo-{job.name}-{job.input_hash[:12]}", pure=False,
+                                 resources=limit): job for job in todo}
+        n = done0
+        for fut in _dask()[1].as_completed(futures):
+            job = futures[fut]
+            try:
+                rec = fut.result()
+            except Exception as exc:  # the task's worker died (KilledWorker) or the cluster failed
+                rec = _crash_record(job, exc)
+                log.warning("%s: %s", job.name, rec.error)
+            rows[job.name] = rec
+            write_manifest(out, rows)
+            if rec.status == "done":
+                summary.done += 1
+            else:
+                summary.failed += 1
+            summary.per_photo.append(_entry(rec, rec.status))
+            n += 1
+            if progress is not None:
+                progress(n, total, rec)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,95 @@
+"""What a worker does for one photo: build its stage, fit its lights and (``--pairs``) render the training
+pair into a hidden temp folder beside ``OUT_DIR/NAME``, write ``batch.json`` last, then publish the folder by
+one rename. A worker killed at any point leaves only a temp folder (removed by the next run); the photo's
+previous folder, if any, is replaced only by a complete one.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import time
+from pathlib import Path
+
+from ..atomic import fsync_tree, publish, temp_dir_beside, write_text_atomic
+from ..errors import UsdRelightError
+from ..neural.pairs import make_pair_files
+from .manifest import RECORD
+from .records import PhotoJob, PhotoRecord
+
+log = logging.getLogger(__name__)
+TEST_KILL_ENV = "USDRELIGHT_BATCH_TEST_KILL"
+"""Test-only hook, ``NAME:TIMES[,NAME:TIMES...]``: the worker processing photo NAME kills its own process
+(SIGKILL) halfway through, after the build, the first TIMES times (counted by marker files
+``OUT_DIR/.test-kill-NAME.I`` holding the killed process's id)."""
+
+
+def _one_line(exc: BaseException) -> str:
+    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    return text if isinstance(exc, UsdRelightError) else f"{type(exc).__name__}: {text}"
+
+
+def _worker_address() -> str | None:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):
+        return None
+
+
+def _test_kill_hook(job: PhotoJob) -> None:
+    specs = dict(item.partition(":")[::2] for item in os.environ.get(TEST_KILL_ENV, "").split(",") if item)
+    if job.name not in specs:
+        return
+    for i in range(int(specs[job.name] or 1)):
+        marker = job.out_dir / f".test-kill-{job.name}.{i}"
+        if not marker.exists():
+            marker.write_text(f"{os.getpid()}\n")
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def process_photo(job: PhotoJob) -> PhotoRecord:
+    """Build, fit and (with ``pairs``) render one photo into ``out_dir/NAME``. Never raises for a bad photo:
+    a usdrelight error (bad file, no valid depth, fit error) or an unexpected exception becomes a failed
+    record; only the death of the worker process itself is left to the scheduler."""
+    t0 = time.perf_counter()
+    o = job.options
+    final = job.out_dir / job.name
+    rec = PhotoRecord(job.name, "failed", job.input_hash, str(job.photo), pairs=o.pairs, worker=_worker_address())
+    tmp = temp_dir_beside(final)
+    try:
+        work = make_pair_files(job.photo, tmp, max_side=o.max_side, fit_iterations=o.iterations, spp=o.spp,
+                               lights=o.lights, verify_spp=o.verify_spp, render=o.pairs,
+                               after_build=lambda: _test_kill_hook(job))
+        fit = work.fit
+        rec.status = "done"
+        rec.fit_mse, rec.fit_psnr_db, rec.fit_mse_rel = fit.mse, fit.psnr_db, work.fit_mse_rel
+        rec.render_psnr_db = fit.render_psnr_db
+        rec.fit_seconds, rec.build_seconds, rec.render_seconds = fit.seconds, work.build_seconds, work.render_seconds
+        rec.lights_kept, rec.environment_kept = fit.lights_kept, fit.environment_kept
+        rec.seconds = time.perf_counter() - t0
+        write_text_atomic(tmp / RECORD, json.dumps(rec.to_dict(), indent=2, sort_keys=True) + "\n")
+        fsync_tree(tmp)
+        _replace(tmp, final)
+    except Exception as exc:  # a bad photo must not stop the batch: it is recorded with its error
+        shutil.rmtree(tmp, ignore_errors=True)
+        rec.status = "failed"
+        rec.error = _one_line(exc)
+        rec.error_kind = "input" if isinstance(exc, UsdRelightError) else "crash"
+        rec.seconds = time.perf_counter() - t0
+        log.warning("%s: failed: %s", job.name, rec.error)
+    return rec
+
+
+def _replace(tmp: Path, final: Path) -> None:
+    """Publish ``tmp`` as ``final``; an existing ``final`` is moved aside first and removed after."""
+    old = None
+    if final.exists():
+        old = final.with_name(f".{final.name}.old-{os.getpid()}-{time.monotonic_ns()}")
+        publish(final, old)
+    publish(tmp, final)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
