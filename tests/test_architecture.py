@@ -17,8 +17,8 @@ SOURCES = {ROOT / "usdrelight": "usdrelight", ROOT / "converters": "usdrelight.c
            ROOT / "schemas": "usdrelight.schemas"}
 #: The data flow, upstream first: a module may import its own layer and the layers before it, never later ones.
 LAYERS = [
-    ("leaf", ["usdrelight", "usdrelight._llvm", "usdrelight.errors", "usdrelight.atomic", "usdrelight.imageio",
-              "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.safe_paths",
+    ("leaf", ["usdrelight", "usdrelight._llvm", "usdrelight.argtypes", "usdrelight.errors", "usdrelight.atomic",
+              "usdrelight.imageio", "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.safe_paths",
               "usdrelight.native_io",
               "usdrelight.schemas"]),
     ("estimate", ["usdrelight.estimate"]),

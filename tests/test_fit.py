@@ -214,3 +214,13 @@ def test_empty_valid_mask_is_a_clear_error(cli, tmp_path):
     s.GetRootLayer().Save()
     rc, _, err = cli("fit", stage)
     assert rc == 2 and "valid mask" in err
+
+
+def test_fit_cli_can_skip_the_verification_render(cli, tmp_path):
+    # a uniform target on a plane: the fit reproduces it; with --verify-spp 0 no Mitsuba render is made
+    stage = _synthetic_stage(tmp_path, np.full((24, 32), 2.0), target=np.full((24, 32, 3), 0.3, np.float32))
+    rep = cli.json("fit", stage, "--verify-spp", "0", "--lights", "2")
+    assert rep["render_mse"] is None and rep["render_psnr_db"] is None and rep["psnr_db"] > 30
+    with pytest.raises(SystemExit) as exc:  # argparse refuses it before anything runs
+        cli("fit", stage, "--verify-spp", "-1")
+    assert exc.value.code == 2

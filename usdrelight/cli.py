@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .argtypes import non_negative_int as _non_negative_int, port as _port, positive_int as _positive_int
 from .batch.args import add_batch_parser
 from .errors import UsdRelightError
 from .native_io import command_context
@@ -134,9 +135,10 @@ def cmd_fit(args) -> int:
             bar.update(task, completed=it, total=total, description=f"{args.method} mse={mse:.3e}")
 
         rep = fit_stage(args.stage, args.method, args.lights, args.env_res, args.iterations, args.max_side,
-                        args.report, progress=progress, seed=args.seed)
+                        args.report, verify_spp=args.verify_spp, progress=progress, seed=args.seed)
     summary = {k: v for k, v in rep.to_dict().items() if k != "curve"}
-    _emit(args, summary, f"fit ({rep.method}): PSNR {rep.psnr_db:.2f} dB (model), {rep.render_psnr_db:.2f} dB "
+    verified = "not rendered" if rep.render_psnr_db is None else f"{rep.render_psnr_db:.2f} dB"
+    _emit(args, summary, f"fit ({rep.method}): PSNR {rep.psnr_db:.2f} dB (model), {verified} "
                          f"(Mitsuba render), {rep.lights_kept} point light(s), environment "
                          f"{'kept' if rep.environment_kept else 'dropped'}, {rep.seconds:.2f} s")
     return 0
@@ -224,20 +226,6 @@ def cmd_serve(args) -> int:
 
 
 # ---- parser ---------------------------------------------------------------------------------
-def _port(text: str) -> int:
-    v = int(text)
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"must be in 0..65535, got {v}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
 def build_parser() -> argparse.ArgumentParser:
     reads = argparse.ArgumentParser(add_help=False)  # commands that read scene files
     reads.add_argument("--allow-path", action="append", type=Path, default=[], metavar="DIR",
@@ -296,6 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--max-side", type=_positive_int, default=512, help="longer image side of the fit")
     f.add_argument("--report", type=Path, help="write fit_report.json and an error-vs-time plot here")
     f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--verify-spp", type=_non_negative_int, default=128, metavar="N",
+                   help="samples per pixel of the Mitsuba verification render (0: skip it)")
     f.set_defaults(func=cmd_fit)
 
     n = sub.add_parser("neural", parents=[common, reads], help="run the neural renderer on the stage's AOVs",

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
 from .records import BatchOptions
 
 DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth.exr, NAME.intrinsics.json, "
@@ -11,20 +12,6 @@ DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth
                "training pair, on Dask (an embedded LocalCluster or --scheduler); OUT_DIR/manifest.jsonl lists every "
                "photo. A re-run skips unchanged photos. Exit 0 when every photo ended done or recorded failed, "
                "2 when the batch cannot run.")
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
 
 
 def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.ArgumentParser:
