@@ -35,6 +35,7 @@ from ..imageio import linear_to_srgb, read_photo, resize_image
 from ..neural.composite import MODES
 from ..neural.relight import RelightSession
 from ..stage.layout import USER_LIGHTS_SCOPE
+from ..stage.validate import open_stage
 from .state import to_record
 
 log = logging.getLogger(__name__)
@@ -210,9 +211,7 @@ class LiveRelight:
     def photo(self) -> np.ndarray | None:
         """The source photo at the live resolution (linear), or None when the stage does not name it."""
         if self._photo is None:
-            from pxr import Usd
-
-            stage = Usd.Stage.Open(str(self.stage_path))
+            stage = open_stage(self.stage_path)  # one-line errors for a stage that no longer composes
             root = stage.GetDefaultPrim()
             attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
             asset = attr.Get() if attr else None
