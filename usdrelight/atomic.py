@@ -234,3 +234,94 @@ def _acquire(lock: Path, folder: Path) -> None:
             f.write(f"{os.getpid()}\n")
         return
     raise UsdRelightError(f"cannot lock {folder}: the lock file {lock} keeps changing")
+
+
+RESULTS_DIR = ".results"
+"""Hidden folder of an output folder holding the versions of a command's result files (:func:`result_group`)."""
+
+
+def _point(link: Path, target: str) -> None:
+    """Make ``link`` a symbolic link to ``target`` (relative), atomically: a new link beside it, renamed over."""
+    tmp = link.with_name(f".{link.name}.link-{os.getpid()}-{threading.get_ident()}")
+    tmp.unlink(missing_ok=True)
+    os.symlink(target, tmp)
+    _rename(tmp, link)
+
+
+@contextmanager
+def result_group(out_dir: str | os.PathLike, keep_previous: bool = False):
+    """Yield a new, hidden folder to write one result's files into (relative names: ``relit.exr``,
+    ``relit.png``, ``renders/diffuse.exr`` ...); on a clean exit they all appear under ``out_dir`` at once.
+
+    Layout: ``out_dir/.results/<version>/`` holds each result; ``out_dir/.results/current`` is a symbolic link to
+    the newest; every public name ``out_dir/<name>`` is a symbolic link to ``.results/current/<name>``. Publishing
+    is one rename (``current``), so a reader sees the previous result or the new one for every name together,
+    never a mix, and a killed writer leaves the previous result. A regular file left by an older usdrelight under
+    a public name is first moved into the current version (hard link) before it becomes a link, so that step
+    never changes what a reader sees either. Names of the previous result that the new one lacks disappear, or
+    with ``keep_previous`` stay as they were (a render of some AOVs keeps the others); versions other than the
+    current one are removed. Holds :func:`stage_lock` on ``out_dir`` meanwhile; on an
+    exception nothing is published and the new version is removed."""
+    out = Path(out_dir)
+    created = not out.exists()
+    try:
+        with stage_lock(out):
+            yield from _publish_group(out, keep_previous)
+    except BaseException:
+        # nothing was published: leave no trace of this run (a folder it created, an empty .results)
+        for leftover in (out / RESULTS_DIR, out) if created else (out / RESULTS_DIR,):
+            try:
+                leftover.rmdir()
+            except OSError:
+                pass
+        raise
+
+
+def _publish_group(out: Path, keep_previous: bool):
+    results = out / RESULTS_DIR
+    results.mkdir(exist_ok=True)
+    version = Path(tempfile.mkdtemp(prefix="v-", dir=results))
+    os.chmod(version, 0o777 & ~current_umask())
+    try:
+        yield version
+    except BaseException:
+        shutil.rmtree(version, ignore_errors=True)
+        raise
+    _switch(out, results, version, keep_previous)
+
+
+def _switch(out: Path, results: Path, version: Path, keep_previous: bool) -> None:
+    """Publish ``version``: public links first (they keep showing the current result), then one rename."""
+    current = results / "current"
+    old = (results / os.readlink(current)) if current.is_symlink() else None
+    previous = sorted(p.relative_to(old) for p in old.rglob("*") if p.is_file()) if old and old.is_dir() else []
+    if keep_previous:  # carried into the new version (hard links: the published files are never written)
+        for name in previous:
+            if not (version / name).exists():
+                link_or_copy(old / name, version / name)
+    fsync_tree(version)
+    names = sorted(p.relative_to(version) for p in version.rglob("*") if p.is_file())
+    for name in names:
+        public = out / name
+        public.parent.mkdir(parents=True, exist_ok=True)
+        target = os.path.relpath(current / name, public.parent)
+        if public.is_symlink() and os.readlink(public) == target:
+            continue
+        if public.exists() and not public.is_symlink():  # an older usdrelight's regular file: keep it visible
+            if old is None:
+                old = Path(tempfile.mkdtemp(prefix="v-", dir=results))
+                _point(current, old.name)
+            if not (old / name).exists():
+                link_or_copy(public, old / name)
+        _point(public, target)
+    _point(current, version.name)
+    _fsync_path(results, directory=True)
+    for name in set(previous) - set(names):  # left over from the previous result: gone with it
+        public = out / name
+        if public.is_symlink() and os.readlink(public) == os.path.relpath(current / name, public.parent):
+            public.unlink()
+    for stale in results.iterdir():
+        if stale.is_dir() and not stale.is_symlink() and stale.name != version.name:
+            shutil.rmtree(stale, ignore_errors=True)
+        elif stale.is_symlink() and stale.name.startswith("."):  # a link a killed writer had not renamed yet
+            stale.unlink(missing_ok=True)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import result_group
 from ..errors import UsdRelightError
 from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
@@ -192,19 +193,21 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     images = render_record(rec, wanted, spp, max_depth, seed)
     t2 = time.perf_counter()
     files = {}
-    for p in products:
-        chans = [images[aov_kind(v)] for v in p.vars]
-        if not chans:
-            continue
-        pix = np.concatenate(chans, axis=2)
-        path = paths[p.name]
-        try:
-            write_image(path, pix, "float", metadata={STAMP_KEY: stamp})
-        except OSError as exc:
-            raise UsdRelightError(f"cannot write {path}: {exc.strerror or exc}") from None
-        files[p.name] = str(path)
-        if progress:
-            progress(p.name)
+    # every AOV of this render appears at once (atomic.result_group); AOVs not rendered now stay as they were
+    with result_group(base, keep_previous=True) as folder:
+        for p in products:
+            chans = [images[aov_kind(v)] for v in p.vars]
+            if not chans:
+                continue
+            pix = np.concatenate(chans, axis=2)
+            path = paths[p.name]
+            try:
+                write_image(folder / path.relative_to(base), pix, "float", metadata={STAMP_KEY: stamp})
+            except OSError as exc:
+                raise UsdRelightError(f"cannot write {path}: {exc.strerror or exc}") from None
+            files[p.name] = str(path)
+            if progress:
+                progress(p.name)
     for kind, n in rec.warnings.items():
         log.warning("%s: %d", kind, n)
     return RenderResult(files, {"read": t1 - t0, "render": t2 - t1, "write": time.perf_counter() - t2,

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import result_group
 from ..errors import UsdRelightError
 from ..imageio import read_map, write_image
 from ..mitsuba.render import aov_kind, render_stage, stale_aov_files
@@ -179,7 +180,9 @@ def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = 
     y = model(x)
     sec["network"] = time.perf_counter() - t
     t = time.perf_counter()
-    exr, png = write_relit(out_dir, name, y)
+    with result_group(out_dir) as folder:  # the EXR and the PNG appear together (old or new, never a mix)
+        exr, png = write_relit(folder, name, y)
+    exr, png = Path(out_dir) / exr.name, Path(out_dir) / png.name
     sec["write"] = time.perf_counter() - t
     return NeuralResult(exr, png, sec)
 

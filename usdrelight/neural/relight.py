@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import result_group
 from ..engine.renderer import CACHE_DIR, EngineSettings, FastRenderer
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image, write_image
@@ -253,13 +254,17 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     session = RelightSession(stage_path, mode=mode, **opts)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
-    for i, extra in enumerate(per_frame):
-        frame = session.render(common + extra)
-        written.append(_write_frame(out_dir, f"_{i:04d}" if frames is not None else "", frame))
-    h, w = frame.image.shape[:2]
     sheet = None
-    if contact_sheet:
-        sheet = _contact_sheet(stage_path, out_dir, common + per_frame[0], session, opts)
+    # every file of this run appears at once (atomic.result_group): a reader never mixes two runs' files
+    with result_group(out_dir) as folder:
+        for i, extra in enumerate(per_frame):
+            frame = session.render(common + extra)
+            written.append(_write_frame(folder, f"_{i:04d}" if frames is not None else "", frame))
+        if contact_sheet:
+            sheet = out_dir / _contact_sheet(stage_path, folder, common + per_frame[0], session, opts).name
+    written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
+               for f in written]
+    h, w = frame.image.shape[:2]
     return RelightResult(tuple(written), (w, h), session.renderer, session.mode, session.cache_hit,
                          {**session.seconds, "total": time.perf_counter() - t0}, sheet)
 
