@@ -24,7 +24,7 @@ for _tag, _types in {
     "rfilter": ("box", "tent", "gaussian", "mitchell", "catmullrom", "lanczos"),
     "integrator": ("path", "direct", "aov", "moment", "volpath", "prb", "depth"),
     "bsdf": ("diffuse", "twosided", "plastic", "roughplastic", "conductor", "roughconductor", "principled",
-             "dielectric", "roughdielectric", "mask", "blendbsdf"),
+             "dielectric", "roughdielectric", "thindielectric", "mask", "blendbsdf"),
     "texture": ("bitmap", "checkerboard"),
     "emitter": ("point", "spot", "area", "directional", "constant", "envmap"),
     "shape": ("ply", "obj", "serialized", "rectangle", "sphere", "cube", "disk", "cylinder"),

@@ -2,10 +2,13 @@
 
 diffuse -> Lambertian (specular workflow, black specular, roughness 1); plastic/roughplastic -> specular
 workflow with roughness sqrt(alpha) and ior int_ior / ext_ior; conductor/roughconductor -> metallic 1 with
-the specular reflectance as base colour; principled -> metallic workflow; twosided and mask are unwrapped.
+the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (eta/k of a named
+``material`` read from Mitsuba itself) times the specular reflectance as base colour; dielectric/
+roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
+itself kept in the Material's ``customData["mitsuba"]["bsdf"]`` for the XML export; principled -> metallic
+workflow; mask -> opacity (a constant or the texture's red channel); twosided is unwrapped.
 Bitmap textures become UsdUVTexture shaders reading the ``st`` primvar. A rough BSDF's microfacet
-``distribution`` (UsdPreviewSurface has none) is kept in the Material's ``customData["mitsuba"]`` for the XML
-export.
+``distribution`` (UsdPreviewSurface has none) is kept in ``customData["mitsuba"]`` too.
 """
 from __future__ import annotations
 
@@ -16,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from usdrelight.errors import UsdRelightError
+from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.stage.create import author_lambertian, author_uv_texture, define_preview_material
 
 from .common import Plugin, PrimNamer
@@ -32,18 +37,22 @@ class MaterialBuilder:
         self.warnings = warnings
         self.materials: dict = {}
 
-    def texture_input(self, mat_path, shader, input_name, tex: Plugin):
+    def texture_input(self, mat_path, shader, input_name, tex: Plugin, output: str = "rgb"):
         from pxr import Sdf
 
         fname = tex.props.get("filename")
         if tex.type != "bitmap" or not fname:
             self.warnings[f"texture type '{tex.type}' (constant 0.5 used)"] += 1
-            shader.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).Set((0.5, 0.5, 0.5))
-            return
+            if output == "r":
+                shader.CreateInput(input_name, Sdf.ValueTypeNames.Float).Set(0.5)
+            else:
+                shader.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).Set((0.5, 0.5, 0.5))
+            return None
         path = tex.resolved
         linear = tex.props.get("raw", False) or Path(path).suffix.lower() in (".exr", ".hdr", ".pfm")
-        author_uv_texture(self.stage, shader, input_name, self.asset(path), "raw" if linear else "sRGB",
-                          self.unique(mat_path, input_name + "Texture"), self.unique(mat_path, "StReader"))
+        return author_uv_texture(self.stage, shader, input_name, self.asset(path), "raw" if linear else "sRGB",
+                                 self.unique(mat_path, input_name + "Texture"), self.unique(mat_path, "StReader"),
+                                 output=output)
 
     def material(self, bsdf: Plugin | None):
         from pxr import Gf, Sdf
@@ -53,10 +62,10 @@ class MaterialBuilder:
         key = bsdf.id or id(bsdf)
         if key in self.materials:
             return self.materials[key]
-        inner = bsdf
+        inner, mask = bsdf, None
         while inner.type in ("twosided", "mask") and inner.children:
-            if inner.type == "mask":
-                self.warnings["mask BSDF opacity (ignored)"] += 1
+            if inner.type == "mask" and mask is None:
+                mask = inner
             inner = next((c for c in inner.children if c.tag == "bsdf"), None) or inner
             if inner.type in ("twosided", "mask") and not inner.children:
                 break
@@ -82,6 +91,7 @@ class MaterialBuilder:
 
         t = inner.type
         F = Sdf.ValueTypeNames.Float
+        extra = {}
         if t == "diffuse":
             colour("diffuseColor", "reflectance", (0.5, 0.5, 0.5))
             author_lambertian(sh)
@@ -94,14 +104,28 @@ class MaterialBuilder:
             sh.CreateInput("ior", F).Set(ior_value(inner.props.get("int_ior"), 1.49) /
                                          ior_value(inner.props.get("ext_ior"), 1.000277))
         elif t in ("conductor", "roughconductor"):
-            if "specular_reflectance" in inner.props or "specular_reflectance" in textures:
-                colour("diffuseColor", "specular_reflectance", (1.0, 1.0, 1.0))
-            else:
-                self.warnings["conductor eta/k or named material (approximated by a grey 0.9 base colour)"] += 1
-                sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.9, 0.9, 0.9))
-            sh.CreateInput("metallic", F).Set(1.0)
+            f0, eta_k = self.conductor_f0(inner, textures)
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughconductor" else 0.0
+            sh.CreateInput("metallic", F).Set(1.0)
             sh.CreateInput("roughness", F).Set(math.sqrt(max(alpha, 0.0)))
+            if "specular_reflectance" in textures:
+                tex = self.texture_input(path, sh, "diffuseColor", textures["specular_reflectance"])
+                if tex is not None and not np.allclose(f0, 1.0):
+                    tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, f0), 1.0))
+            else:
+                spec = np.broadcast_to(np.asarray(inner.props.get("specular_reflectance", 1.0), np.float64), (3,))
+                base = [float(x) for x in f0 * spec]
+                sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*base))
+                if eta_k is not None:  # the exact conductor, for the XML export while these inputs hold
+                    extra["bsdf"] = {"type": t, **eta_k, "specular_reflectance": [float(x) for x in spec]}
+                    if t == "roughconductor":
+                        extra["bsdf"]["alpha"] = alpha
+                    extra["inputs"] = {"metallic": 1.0, "roughness": math.sqrt(max(alpha, 0.0)),
+                                       "diffuse": [float(np.float32(x)) for x in base]}
+        elif t in ("dielectric", "roughdielectric", "thindielectric"):
+            extra["bsdf"] = self.dielectric(inner, textures, sh, ior_value)
+            extra["inputs"] = {"opacity": 0.0, "ior": extra["bsdf"]["int_ior"] / extra["bsdf"]["ext_ior"],
+                               "roughness": math.sqrt(extra["bsdf"].get("alpha", 0.0))}
         elif t == "principled":
             colour("diffuseColor", "base_color", (0.5, 0.5, 0.5))
             sh.CreateInput("metallic", F).Set(float(inner.props.get("metallic", 0.0)))
@@ -114,9 +138,75 @@ class MaterialBuilder:
             sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.5, 0.5, 0.5))
         dist = inner.props.get("distribution")
         if t in ("roughplastic", "roughconductor") and isinstance(dist, str):
-            mat.GetPrim().SetCustomDataByKey("mitsuba", json.dumps({"distribution": dist.lower()}))
+            extra["distribution"] = dist.lower()
+        if mask is not None:  # UsdPreviewSurface opacity (opacityThreshold 0) is a coverage blend, as mask is
+            op_tex = next((c for c in mask.children if c.tag == "texture" and c.name == "opacity"), None)
+            if op_tex is not None:
+                self.texture_input(path, sh, "opacity", op_tex, output="r")
+            else:
+                sh.CreateInput("opacity", F).Set(float(np.mean(mask.props.get("opacity", 0.5))))
+        if extra:
+            mat.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
         self.materials[key] = mat
         return mat
+
+    def conductor_f0(self, inner: Plugin, textures: dict):
+        """Normal-incidence Fresnel reflectance per RGB channel of a conductor: its eta/k (Mitsuba's defaults
+        0 and 1, a perfect mirror), or those Mitsuba itself loads for a named ``material``. Warns unless 1.
+        Returns (F0, {"eta": rgb, "k": rgb} or None when F0 is 1)."""
+        props = inner.props
+        if "eta" in textures or "k" in textures:
+            self.warnings[f"{inner.type}: textured eta/k (constants used)"] += 1
+        material = str(props.get("material", "none"))
+        if "eta" in props or material == "none":
+            eta, k = props.get("eta", 0.0), props.get("k", 1.0)
+        else:
+            mi = load_mitsuba()
+            try:
+                params = mi.traverse(mi.load_dict({"type": "conductor", "material": material}))
+            except Exception:  # Mitsuba's message for an unknown material name
+                raise UsdRelightError(f"<bsdf type='{inner.type}'>: Mitsuba knows no conductor material "
+                                      f"{material!r}") from None
+            eta, k = np.array(params["eta.value"]).reshape(-1), np.array(params["k.value"]).reshape(-1)
+        eta = np.broadcast_to(np.asarray(eta, np.float64).reshape(-1), (3,))
+        k = np.broadcast_to(np.asarray(k, np.float64).reshape(-1), (3,))
+        with np.errstate(all="ignore"):
+            f0 = ((eta - 1) ** 2 + k ** 2) / ((eta + 1) ** 2 + k ** 2)
+        if not np.all(np.isfinite(f0)) or np.any(eta < 0) or np.any(k < 0):
+            raise UsdRelightError(f"<bsdf type='{inner.type}'>: eta {eta.tolist()} and k {k.tolist()} must be "
+                                  f"non-negative")
+        if np.allclose(f0, 1.0):
+            return f0, None
+        self.warnings[f"{inner.type}: Fresnel approximated by its normal-incidence colour"] += 1
+        return f0, {"eta": [float(x) for x in eta], "k": [float(x) for x in k]}
+
+    def dielectric(self, inner: Plugin, textures: dict, sh, ior_value) -> dict:
+        """A dielectric's UsdPreviewSurface (clear: opacity 0, black base colour, its ior and roughness) and the
+        Mitsuba BSDF itself, for ``customData`` (the XML export restores it while those inputs are unchanged)."""
+        from pxr import Gf, Sdf
+
+        t, props = inner.type, inner.props
+        self.warnings[f"{t}: refraction approximated by opacity 0 and ior (the BSDF kept in customData for "
+                      f"XML export)"] += 1
+        for name in textures:
+            self.warnings[f"{t}: textured {name} (not kept)"] += 1
+        int_ior, ext_ior = ior_value(props.get("int_ior"), 1.5046), ior_value(props.get("ext_ior"), 1.000277)
+        alpha = float(props.get("alpha", 0.1)) if t == "roughdielectric" else 0.0
+        F = Sdf.ValueTypeNames.Float
+        sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.0, 0.0, 0.0))
+        sh.CreateInput("metallic", F).Set(0.0)
+        sh.CreateInput("roughness", F).Set(math.sqrt(max(alpha, 0.0)))
+        sh.CreateInput("ior", F).Set(int_ior / ext_ior)
+        sh.CreateInput("opacity", F).Set(0.0)
+        d = {"type": t, "int_ior": int_ior, "ext_ior": ext_ior}
+        if t == "roughdielectric":
+            d["alpha"] = alpha
+            if isinstance(props.get("distribution"), str):
+                d["distribution"] = props["distribution"].lower()
+        for name in ("specular_reflectance", "specular_transmittance"):
+            if name in props:
+                d[name] = [float(x) for x in np.broadcast_to(np.asarray(props[name], np.float64), (3,))]
+        return d
 
     def bind(self, prim, bsdf):
         from pxr import UsdShade

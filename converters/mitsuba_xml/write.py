@@ -21,8 +21,9 @@ import numpy as np
 from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
-from usdrelight.mitsuba.scene_dict import Matrix, safe_name, scene_dict
+from usdrelight.mitsuba.scene_dict import Matrix, _rgb, safe_name, scene_dict
 from usdrelight.stage.read import read_scene
+from usdrelight.stage.records import TextureRecord
 
 from .common import TAG_OF, VECTOR_KEYS, rel_path
 
@@ -173,7 +174,10 @@ def _restore_extras(stage, d: dict) -> None:
 
 
 def _restore_material_extras(stage, rec, d: dict) -> None:
-    """Put back a rough BSDF's microfacet ``distribution`` kept in its Material's customData['mitsuba']."""
+    """Put back what the XML reader kept in a Material's customData['mitsuba']: a rough BSDF's microfacet
+    ``distribution``, and a conductor's or dielectric's BSDF itself while the UsdPreviewSurface still has the
+    inputs the reader wrote (conductor: base colour, metallic, roughness; dielectric: opacity 0, ior,
+    roughness); an edited material is exported from its inputs (warned)."""
     for item in (*rec.meshes, *rec.shapes):
         prim = stage.GetPrimAtPath(item.material.path) if item.material.path else None
         data = prim.GetCustomDataByKey("mitsuba") if prim else None
@@ -181,9 +185,37 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
         if not data or not isinstance(entry, dict) or "bsdf" not in entry:
             continue
         try:
-            dist = json.loads(data).get("distribution")
+            extra = json.loads(data)
+            dist, kept = extra.get("distribution"), extra.get("bsdf")
         except (TypeError, ValueError, AttributeError):
             continue
-        inner = entry["bsdf"].get("bsdf", entry["bsdf"])
+        inner = entry["bsdf"]
+        while inner.get("type") in ("mask", "twosided") and isinstance(inner.get("bsdf"), dict):
+            inner = inner["bsdf"]
+        if isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS:
+            if _unchanged(item.material, extra.get("inputs") or {}):
+                kept = {k: (_rgb(v) if isinstance(v, list) else v) for k, v in kept.items()}
+                if "conductor" in kept["type"]:  # inside the twosided wrapper, as the other opaque BSDFs
+                    inner.clear()
+                    inner.update(kept)
+                else:
+                    entry["bsdf"] = inner = kept
+            else:
+                rec.warnings[f"{kept['type']} kept in customData (ignored: the UsdPreviewSurface was edited)"] += 1
         if dist in ("beckmann", "ggx") and inner.get("type") in ("roughplastic", "roughconductor"):
             inner["distribution"] = dist
+
+
+#: BSDFs the XML reader keeps whole in a Material's customData (UsdPreviewSurface only approximates them).
+KEPT_BSDFS = ("conductor", "roughconductor", "dielectric", "roughdielectric", "thindielectric")
+
+
+def _unchanged(m, inputs: dict) -> bool:
+    """Whether the material record still has the UsdPreviewSurface inputs the XML reader wrote."""
+    for name, want in inputs.items():
+        have = getattr(m, name, None)
+        if have is None or isinstance(have, TextureRecord):
+            return False
+        if not np.allclose(np.asarray(have, np.float64), np.asarray(want, np.float64), rtol=1e-5, atol=1e-6):
+            return False
+    return bool(inputs)

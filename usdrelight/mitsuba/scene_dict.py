@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,7 @@ import numpy as np
 from ..atomic import write_bytes_atomic
 from ..errors import UsdRelightError
 from ..stage.lux import emitted_radiance, light_direction, world_scale
+from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .runtime import load_mitsuba
 
@@ -64,7 +66,8 @@ def _scalar(v, default: float, what: str, warnings) -> float:
 
 
 def bsdf_dict(mat: MaterialRecord, warnings) -> dict:
-    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table)."""
+    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table); opacity < 1 (or textured): a
+    ``mask`` around it."""
     if mat.is_lambertian:
         inner = {"type": "diffuse", "reflectance": _value(mat.diffuse, warnings)}
     else:
@@ -81,7 +84,12 @@ def bsdf_dict(mat: MaterialRecord, warnings) -> dict:
             f0 = ((mat.ior - 1.0) / (mat.ior + 1.0)) ** 2
             inner = {"type": "principled", "base_color": _value(mat.diffuse, warnings), "metallic": metal,
                      "roughness": max(rough, 1e-3), "specular": float(min(max(f0 / 0.08, 0.0), 1.0))}
-    return {"type": "twosided", "bsdf": inner}
+    d = {"type": "twosided", "bsdf": inner}
+    if isinstance(mat.opacity, TextureRecord):  # coverage, as UsdPreviewSurface's opacity with threshold 0
+        return {"type": "mask", "opacity": _texture(mat.opacity, Counter()), "bsdf": d}
+    if mat.opacity < 1.0:
+        return {"type": "mask", "opacity": float(max(mat.opacity, 0.0)), "bsdf": d}
+    return d
 
 
 def write_ply(path: Path, pts, faces, normals, uv) -> None:
@@ -180,6 +188,7 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
                integrator: dict | None = None) -> dict:
     """The Mitsuba scene dict. ``mesh_dir``: write PLY files there (for XML) instead of in-memory meshes."""
     warnings = scene.warnings
+    warnings.pop(OPACITY_WARNING, None)  # Mitsuba renders it: a mask (bsdf_dict)
     d = {"type": "scene",
          "integrator": integrator or {"type": "path", "max_depth": int(max_depth)}}
     if scene.camera is not None:

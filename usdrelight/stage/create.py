@@ -84,9 +84,10 @@ def author_lambertian(surface) -> None:
 
 
 def author_uv_texture(stage, surface, input_name: str, file: str, color_space: str, texture_path: str,
-                      reader_path: str, wrap: str | None = None):
+                      reader_path: str, wrap: str | None = None, output: str = "rgb"):
     """Connect ``surface``'s colour input ``input_name`` to a UsdUVTexture at ``texture_path`` reading ``file``
-    (an asset path) through the ``st`` primvar (a UsdPrimvarReader_float2 at ``reader_path``)."""
+    (an asset path) through the ``st`` primvar (a UsdPrimvarReader_float2 at ``reader_path``); ``output="r"``:
+    a float input (opacity) read from the texture's red channel."""
     from pxr import Sdf, UsdShade
 
     tex = UsdShade.Shader.Define(stage, texture_path)
@@ -100,6 +101,8 @@ def author_uv_texture(stage, surface, input_name: str, file: str, color_space: s
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
     tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
-    tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
-    surface.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    scalar = output == "r"
+    tex.CreateOutput(output, Sdf.ValueTypeNames.Float if scalar else Sdf.ValueTypeNames.Float3)
+    surface.CreateInput(input_name, Sdf.ValueTypeNames.Float if scalar else Sdf.ValueTypeNames.Color3f) \
+        .ConnectToSource(tex.ConnectableAPI(), output)
     return tex

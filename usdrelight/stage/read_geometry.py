@@ -16,6 +16,10 @@ from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, MeshRecord, TextureRecord
 
 
+#: Counted for a material with opacity < 1; renderers that render it (Mitsuba: a mask) drop the line.
+OPACITY_WARNING = "UsdPreviewSurface opacity < 1 (rendered opaque)"
+
+
 # ---- materials --------------------------------------------------------------------------------
 def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | None:
     sid = shader.GetIdAttr().Get()
@@ -86,7 +90,7 @@ def read_material(prim, warnings) -> MaterialRecord:
         if inp and (inp.HasConnectedSource() or (inp.Get() not in (None, 0.0))):
             warnings[f"UsdPreviewSurface input '{name}' (ignored)"] += 1
     if rec.opacity != 1.0:
-        warnings["UsdPreviewSurface opacity < 1 (rendered opaque)"] += 1
+        warnings[OPACITY_WARNING] += 1
     if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
         warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
     return rec
