@@ -39,10 +39,10 @@ sys.path.insert(0, str(ROOT / "examples" / "motorcycle"))
 
 from make_example import write_right_view  # noqa: E402
 from usdrelight.fit.run import fit_stage  # noqa: E402
-from usdrelight.imageio import linear_to_srgb, read_photo, resize_image, write_image  # noqa: E402
+from usdrelight.imageio import read_photo, resize_image, write_image  # noqa: E402
 from usdrelight.mitsuba.procedural import render_ground_truth  # noqa: E402
 from usdrelight.neural.composite import MODES, add_composite, ratio_composite  # noqa: E402
-from usdrelight.neural.contact_sheet import write_contact_sheet  # noqa: E402
+from usdrelight.neural.contact_sheet import tonemapped, write_contact_sheet  # noqa: E402
 from usdrelight.neural.model import RelightModel, build_input  # noqa: E402
 from usdrelight.neural.relight import RelightSession  # noqa: E402
 from usdrelight.neural.synthetic import EVAL_KINDS, light_sets, make_scene  # noqa: E402
@@ -53,8 +53,6 @@ ADDED_LIGHT = "point:0.6,0.4,-1.2:4,3.6,3"  # the demo's added light (stage fram
 LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
-def tonemap(img, ref):
-    return np.clip(linear_to_srgb(np.maximum(img, 0) / max(float(np.percentile(ref, 99.5)), 1e-6)), 0, 1)
 
 
 def psnr(a, ref):
@@ -65,7 +63,7 @@ def psnr(a, ref):
 def ssim(a, ref):
     from skimage.metrics import structural_similarity
 
-    return float(structural_similarity(tonemap(a, ref), tonemap(ref, ref), channel_axis=2, data_range=1.0))
+    return float(structural_similarity(tonemapped(a, ref), tonemapped(ref, ref), channel_axis=2, data_range=1.0))
 
 
 def darkened_pct(before, after, tol=0.02):
@@ -160,7 +158,7 @@ def held_out(seed, work, model, sheet):
         rows.append(row)
         log.info("%s", row)
         if len(sheet) < 4 and kind == "relight":
-            sheet.append(np.concatenate([tonemap(x, gt) for x in (photo, n, outs["neural"], outs["ratio"], gt)], 1))
+            sheet.append(np.concatenate([tonemapped(x, gt) for x in (photo, n, outs["neural"], outs["ratio"], gt)], 1))
     return rows
 
 

@@ -36,17 +36,28 @@ def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel:
     return k_up, k_down
 
 
+def ratio_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01, k=None):
+    """What the ratio needs of the fitted render, the same for every new render: (F hole-filled, float64;
+    (k_up, k_down) from :func:`ratio_guard`, or the pair ``k``)."""
+    f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
+    k_up, k_down = ratio_guard(photo, f, valid, k_rel) if k is None else (np.asarray(k[0]), np.asarray(k[1]))
+    return f, (np.maximum(k_up, 1e-8), np.maximum(k_down, 1e-8))
+
+
+def ratio_apply(photo: np.ndarray, new: np.ndarray, valid: np.ndarray, reference) -> np.ndarray:
+    """I * (N + k) / (F + k) for a :func:`ratio_reference` (F, (k_up, k_down)); N hole-filled; finite, >= 0."""
+    f, (k_up, k_down) = reference
+    n = hole_fill(np.maximum(new, 0.0), valid).astype(np.float64)
+    gain = np.where(n >= f, (n + k_up) / (f + k_up), (n + k_down) / (f + k_down))
+    out = np.maximum(photo, 0.0) * gain
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
+
 def ratio_composite(photo: np.ndarray, new: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
                     k_rel: float = 0.01, k=None) -> np.ndarray:
     """I * (N + k) / (F + k) with k = k_up where N >= F and k_down where N < F (:func:`ratio_guard`, or the
     pair ``k``); renders hole-filled from valid pixels; finite and >= 0."""
-    n = hole_fill(np.maximum(new, 0.0), valid).astype(np.float64)
-    f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
-    k_up, k_down = ratio_guard(photo, f, valid, k_rel) if k is None else (np.asarray(k[0]), np.asarray(k[1]))
-    k_up, k_down = np.maximum(k_up, 1e-8), np.maximum(k_down, 1e-8)
-    gain = np.where(n >= f, (n + k_up) / (f + k_up), (n + k_down) / (f + k_down))
-    out = np.maximum(photo, 0.0) * gain
-    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    return ratio_apply(photo, new, valid, ratio_reference(photo, fitted, valid, k_rel, k))
 
 
 def add_composite(photo: np.ndarray, added: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
 from ..stage.read import read_scene
 from ..stage.validate import open_stage
-from .composite import MODES, add_composite, ratio_composite
+from .composite import MODES, add_composite, ratio_apply, ratio_reference
 from .contact_sheet import write_contact_sheet
 from .model import RelightModel, build_input, write_relit
 
@@ -97,14 +97,13 @@ class RelightSession:
         scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
         self.base_lights = self.user_lights + (scaled if with_fitted else ())
         self.scene = rec.with_camera(rec.camera.limited(max_side))
-        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._photo_path(stage) != "")
+        self._source_photo = self._photo_path(stage)
+        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "")
         self.spp, self.max_depth, self.mode = spp, max_depth, mode
-        self.model = RelightModel(model_path) if mode == "neural" else None
-        if mode == "ratio" and not fitted:
-            raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
-                                  "or choose --mode neural or --mode add")
-        self.photo = self._photo(stage) if mode != "neural" else None
-        self._fitted_render = None
+        self._model_path = model_path
+        self.model = self.photo = None
+        self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
+        self._prepare_mode(mode)
         self.seconds = {"read": time.perf_counter() - t0}
         self.engine = None
         if renderer == "fast":
@@ -115,6 +114,18 @@ class RelightSession:
                 log.warning("fast renderer not used (%s): rendering with Mitsuba", exc)
         self.renderer = "fast" if self.engine is not None else "mitsuba"
         self.seconds["prepare"] = time.perf_counter() - t0
+
+    def _prepare_mode(self, mode: str) -> None:
+        """Load what ``mode`` needs (the network; the source photo) once; clear errors when it cannot run."""
+        if mode not in MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
+        if mode == "neural" and self.model is None:
+            self.model = RelightModel(self._model_path)
+        if mode == "ratio" and not self.fitted_lights:
+            raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
+                                  "or choose --mode neural or --mode add")
+        if mode != "neural" and self.photo is None:
+            self.photo = self._photo()
 
     @property
     def cache_hit(self) -> bool | None:
@@ -129,9 +140,9 @@ class RelightSession:
         asset = attr.Get() if attr else None
         return asset.resolvedPath if asset is not None else ""
 
-    def _photo(self, stage) -> np.ndarray:
+    def _photo(self) -> np.ndarray:
         """The source photo at the render resolution."""
-        path = self._photo_path(stage)
+        path = self._source_photo
         if not path:
             raise UsdRelightError(f"modes ratio and add need the stage's source photo (usdrelight:sourcePhoto), "
                                   f"which {self.stage_path} does not name or which was moved")
@@ -147,29 +158,32 @@ class RelightSession:
                             max_depth=self.max_depth, hide_emitters=True)
         return out["beauty"], out["albedo"], out["valid"][..., 0] > 0.5
 
-    def render(self, lights=()) -> RelitFrame:
-        """Relight with the stage's lights plus ``lights`` (``--light`` strings or LightRecords)."""
+    def render(self, lights=(), mode: str | None = None) -> RelitFrame:
+        """Relight with the stage's lights plus ``lights`` (``--light`` strings or LightRecords), in the
+        session's mode or in ``mode`` (neural, ratio or add; what it needs is loaded on first use)."""
         t0 = time.perf_counter()
+        mode = mode or self.mode
+        self._prepare_mode(mode)
         added = parse_lights(lights)
         all_lights = list(self.base_lights) + added
-        if self.mode == "add":
+        if mode == "add":
             all_lights = list(self.user_lights) + added  # rendered on top of the photo's own light
-        if not all_lights and self.mode != "add":
+        if not all_lights and mode != "add":
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
         beauty, albedo, valid = self._diffuse(all_lights)
         sec = {"render": time.perf_counter() - t0}
         t = time.perf_counter()
-        if self.mode == "neural":
+        if mode == "neural":
             x = build_input(beauty, albedo, valid)
             sec["hole_fill"] = time.perf_counter() - t
             t = time.perf_counter()
             image = self.model(x)
             sec["network"] = time.perf_counter() - t
-        elif self.mode == "ratio":
-            if self._fitted_render is None:
-                self._fitted_render = self._diffuse(list(self.fitted_lights))[0]
-            image = ratio_composite(self.photo, beauty, self._fitted_render, valid)
+        elif mode == "ratio":
+            if self._ratio_reference is None:
+                self._ratio_reference = ratio_reference(self.photo, self._diffuse(list(self.fitted_lights))[0], valid)
+            image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
             sec["composite"] = time.perf_counter() - t
         else:
             image = add_composite(self.photo, beauty)
@@ -249,9 +263,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in frames] if frames is not None else [[]]
     with_fitted = with_fitted or fitted_scale != 1.0
-    opts = dict(max_side=max_side, renderer=renderer, with_fitted=with_fitted, model_path=model_path, spp=spp,
-                max_depth=max_depth, fitted_scale=fitted_scale)
-    session = RelightSession(stage_path, mode=mode, **opts)
+    session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
+                             model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale)
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
     sheet = None
@@ -261,7 +274,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
             frame = session.render(common + extra)
             written.append(_write_frame(folder, f"_{i:04d}" if frames is not None else "", frame))
         if contact_sheet:
-            sheet = out_dir / _contact_sheet(stage_path, folder, common + per_frame[0], session, opts).name
+            sheet = out_dir / _contact_sheet(folder, common + per_frame[0], session).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
                for f in written]
     h, w = frame.image.shape[:2]
@@ -269,22 +282,19 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
                          {**session.seconds, "total": time.perf_counter() - t0}, sheet)
 
 
-def _contact_sheet(stage_path, out_dir: Path, lights, first: RelightSession, opts: dict) -> Path:
+def _contact_sheet(out_dir: Path, lights, session: RelightSession) -> Path:
     """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out)."""
-    panels, photo, resolved = [], None, first.mode
+    panels = []
     for mode in MODES:
         try:
-            session = first if mode == first.mode else RelightSession(stage_path, mode=mode, **opts)
-            frame = session.render(lights)
+            frame = session.render(lights, mode=mode)
         except UsdRelightError as exc:
             log.warning("contact sheet: mode %s left out (%s)", mode, exc)
             continue
-        if photo is None and session.photo is not None:
-            photo = session.photo
         if not panels:
             panels.append(("D~ (diffuse render)", frame.diffuse))
-        panels.append((f"{mode}{' (used)' if mode == resolved else ''}", frame.image))
-    if photo is not None:
-        panels.insert(0, ("photo", photo))
-    ref = photo if photo is not None else panels[-1][1]
+        panels.append((f"{mode}{' (used)' if mode == session.mode else ''}", frame.image))
+    if session.photo is not None:
+        panels.insert(0, ("photo", session.photo))
+    ref = session.photo if session.photo is not None else panels[-1][1]
     return write_contact_sheet(out_dir / "contact_sheet.png", panels, ref)

@@ -92,7 +92,7 @@ def light_sets(spec: SceneSpec, seed: int, kinds=KINDS) -> list[LightSet]:
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """A procedural photo, its 2.5D stage and the fast renderer prepared for it."""
+    """A procedural photo and its 2.5D stage."""
 
     name: str
     """File stem of the photo in the work folder."""
@@ -102,13 +102,11 @@ class SyntheticScene:
     """(H, W, 3) the photo, linear."""
     stage: Path
     """The built stage's scene.usda."""
-    engine: FastRenderer
-    """Fast renderer prepared for the stage at full resolution (no cache on disk)."""
 
 
 def make_scene(work, seed: int, width: int = 256, height: int = 192, spp: int = 64,
                n_lights: int = 1) -> SyntheticScene:
-    """Render the photo of procedural scene ``seed`` (glossy materials), build its stage, prepare the engine."""
+    """Render the photo of procedural scene ``seed`` (glossy materials) and build its stage."""
     work = Path(work)
     name = f"scene{seed}"
     spec = random_spec(seed=seed, width=width, height=height, n_lights=n_lights, glossy=True)
@@ -116,9 +114,7 @@ def make_scene(work, seed: int, width: int = 256, height: int = 192, spp: int = 
     build(work / f"{name}.exr", work / name, BuildOptions(depth=work / f"{name}.depth.exr",
                                                           intrinsics=work / f"{name}.intrinsics.json",
                                                           albedo=work / f"{name}.albedo.exr"))
-    stage = work / name / "scene.usda"
-    engine = FastRenderer(read_scene(open_stage(stage)), EngineSettings(max_side=None))
-    return SyntheticScene(name, spec, read_photo(work / f"{name}.exr"), stage, engine)
+    return SyntheticScene(name, spec, read_photo(work / f"{name}.exr"), work / name / "scene.usda")
 
 
 @dataclass(frozen=True)
@@ -144,11 +140,13 @@ class RelitPair:
 
 
 def relit_pairs(scene: SyntheticScene, sets, spp: int = 64) -> list[RelitPair]:
-    """Render D~ (fast engine) and the target (Mitsuba, ``spp``) of each light set of ``scene``."""
+    """Render D~ (fast engine at full resolution, no cache on disk) and the target (Mitsuba, ``spp``) of each light
+    set of ``scene``."""
+    engine = FastRenderer(read_scene(open_stage(scene.stage)), EngineSettings(max_side=None))
     out = []
     for ls in sets:
-        aovs = scene.engine.render(ls.records())
-        added = scene.engine.render(ls.records(ls.added)).beauty if ls.added else None
+        aovs = engine.render(ls.records())
+        added = engine.render(ls.records(ls.added)).beauty if ls.added else None
         target = render_ground_truth(replace(scene.spec, point_lights=list(ls.point_lights),
                                              env_radiance=ls.env_radiance), spp=spp).image
         out.append(RelitPair(f"{scene.name}-{ls.kind}", ls.kind, aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5,
