@@ -54,6 +54,15 @@ def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool) -> str:
     return "ratio" if fitted_kept and photo_known else "neural"
 
 
+def source_photo_path(stage) -> str:
+    """The resolved path of the photo a stage was built from (RelightProvenanceAPI usdrelight:sourcePhoto), or ""
+    when the stage names none or the file was moved."""
+    root = stage.GetDefaultPrim()
+    attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
+    asset = attr.Get() if attr else None
+    return asset.resolvedPath if asset is not None else ""
+
+
 @dataclass(frozen=True)
 class RelitFrame:
     """One relit image, in memory (linear RGB, row 0 at the top)."""
@@ -97,7 +106,7 @@ class RelightSession:
         scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
         self.base_lights = self.user_lights + (scaled if with_fitted else ())
         self.scene = rec.with_camera(rec.camera.limited(max_side))
-        self._source_photo = self._photo_path(stage)
+        self._source_photo = source_photo_path(stage)
         mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "")
         self.spp, self.max_depth, self.mode = spp, max_depth, mode
         self._model_path = model_path
@@ -131,14 +140,6 @@ class RelightSession:
     def cache_hit(self) -> bool | None:
         """Whether the fast renderer found its prepared data on disk (None with Mitsuba)."""
         return None if self.engine is None else self.engine.cache_hit
-
-    @staticmethod
-    def _photo_path(stage) -> str:
-        """The resolved source photo (RelightProvenanceAPI usdrelight:sourcePhoto), or ""."""
-        root = stage.GetDefaultPrim()
-        attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
-        asset = attr.Get() if attr else None
-        return asset.resolvedPath if asset is not None else ""
 
     def _photo(self) -> np.ndarray:
         """The source photo at the render resolution."""

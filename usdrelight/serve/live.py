@@ -33,7 +33,7 @@ from ..engine.renderer import CACHE_DIR
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb, read_photo, resize_image
 from ..neural.composite import MODES
-from ..neural.relight import RelightSession
+from ..neural.relight import RelightSession, source_photo_path
 from ..stage.layout import USER_LIGHTS_SCOPE
 from ..stage.validate import open_stage
 from .state import to_record
@@ -211,14 +211,11 @@ class LiveRelight:
     def photo(self) -> np.ndarray | None:
         """The source photo at the live resolution (linear), or None when the stage does not name it."""
         if self._photo is None:
-            stage = open_stage(self.stage_path)  # one-line errors for a stage that no longer composes
-            root = stage.GetDefaultPrim()
-            attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
-            asset = attr.Get() if attr else None
-            if asset is None or not asset.resolvedPath:
+            path = source_photo_path(open_stage(self.stage_path))  # one-line errors if it no longer composes
+            if not path:
                 return None
             w, h = self.resolution
-            self._photo = resize_image(read_photo(asset.resolvedPath), w, h)
+            self._photo = resize_image(read_photo(path), w, h)
         return self._photo
 
     def lights(self, ls: LightSet) -> list:
