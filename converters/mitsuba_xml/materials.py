@@ -26,6 +26,12 @@ from usdrelight.stage.create import author_lambertian, author_uv_texture, define
 from .common import Plugin, PrimNamer
 
 
+#: BSDFs that pass through material() to the one they wrap.
+WRAPPERS = ("twosided", "mask", "blendbsdf", "bumpmap", "normalmap")
+#: Mitsuba BSDFs that scatter from both sides without a ``twosided`` wrapper.
+TWO_SIDED_BY_NATURE = ("dielectric", "roughdielectric", "thindielectric", "null")
+
+
 class MaterialBuilder:
     """Defines one material per distinct BSDF object under ``root/Looks`` and binds it to prims."""
 
@@ -36,6 +42,7 @@ class MaterialBuilder:
         self.asset = asset
         self.warnings = warnings
         self.materials: dict = {}
+        self.double_sided: dict = {}
 
     def texture_input(self, mat_path, shader, input_name, tex: Plugin, output: str = "rgb"):
         from pxr import Sdf
@@ -62,13 +69,7 @@ class MaterialBuilder:
         key = bsdf.id or id(bsdf)
         if key in self.materials:
             return self.materials[key]
-        inner, mask = bsdf, None
-        while inner.type in ("twosided", "mask") and inner.children:
-            if inner.type == "mask" and mask is None:
-                mask = inner
-            inner = next((c for c in inner.children if c.tag == "bsdf"), None) or inner
-            if inner.type in ("twosided", "mask") and not inner.children:
-                break
+        inner, mask, two = self.unwrap(bsdf)
         path = self.unique(self.root + "/Looks", bsdf.id or inner.type)
         mat, sh = define_preview_material(self.stage, path)
         textures = {c.name: c for c in inner.children if c.tag == "texture"}
@@ -101,8 +102,23 @@ class MaterialBuilder:
             colour("specularColor", "specular_reflectance", (1.0, 1.0, 1.0))
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughplastic" else 0.0
             sh.CreateInput("roughness", F).Set(math.sqrt(max(alpha, 0.0)))
-            sh.CreateInput("ior", F).Set(ior_value(inner.props.get("int_ior"), 1.49) /
-                                         ior_value(inner.props.get("ext_ior"), 1.000277))
+            int_ior, ext_ior = ior_value(inner.props.get("int_ior"), 1.49), ior_value(inner.props.get("ext_ior"),
+                                                                                       1.000277)
+            sh.CreateInput("ior", F).Set(int_ior / ext_ior)
+            self.warnings[f"{t}: UsdPreviewSurface specular workflow (no internal scattering or nonlinear; the BSDF "
+                          f"kept in customData for XML export)"] += 1
+            if not textures:  # the exact plastic, for the XML export while these inputs hold
+                extra["bsdf"] = {"type": t, "int_ior": int_ior, "ext_ior": ext_ior,
+                                 "nonlinear": bool(inner.props.get("nonlinear", False))}
+                for name, default in (("diffuse_reflectance", 0.5), ("specular_reflectance", 1.0)):
+                    extra["bsdf"][name] = [float(x) for x in np.broadcast_to(
+                        np.asarray(inner.props.get(name, default), np.float64), (3,))]
+                if t == "roughplastic":
+                    extra["bsdf"]["alpha"] = alpha
+                extra["inputs"] = {"diffuse": [float(np.float32(x)) for x in extra["bsdf"]["diffuse_reflectance"]],
+                                   "specular": [float(np.float32(x)) for x in extra["bsdf"]["specular_reflectance"]],
+                                   "roughness": float(np.float32(math.sqrt(max(alpha, 0.0)))),
+                                   "ior": float(np.float32(int_ior / ext_ior))}
         elif t in ("conductor", "roughconductor"):
             f0, eta_k = self.conductor_f0(inner, textures)
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughconductor" else 0.0
@@ -133,22 +149,69 @@ class MaterialBuilder:
             spec = float(inner.props.get("specular", 0.5))
             f0 = spec * 0.08
             sh.CreateInput("ior", F).Set((1 + math.sqrt(f0)) / max(1 - math.sqrt(f0), 1e-6))
+        elif t == "null":  # no surface: presence 0
+            sh.CreateInput("opacity", F).Set(0.0)
+            sh.CreateInput("opacityThreshold", F).Set(0.5)
         else:
             self.warnings[f"BSDF '{t}' (approximated by a grey diffuse surface)"] += 1
             sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.5, 0.5, 0.5))
         dist = inner.props.get("distribution")
         if t in ("roughplastic", "roughconductor") and isinstance(dist, str):
             extra["distribution"] = dist.lower()
-        if mask is not None:  # UsdPreviewSurface opacity (opacityThreshold 0) is a coverage blend, as mask is
-            op_tex = next((c for c in mask.children if c.tag == "texture" and c.name == "opacity"), None)
-            if op_tex is not None:
-                self.texture_input(path, sh, "opacity", op_tex, output="r")
-            else:
-                sh.CreateInput("opacity", F).Set(float(np.mean(mask.props.get("opacity", 0.5))))
+        if mask is not None:
+            self.mask_opacity(path, sh, mask)
+        if not two and t not in TWO_SIDED_BY_NATURE:  # Mitsuba: black from behind; kept for the XML export
+            extra["twosided"] = False
+            self.warnings[f"one-sided BSDF '{t}' (doubleSided false: back faces black in Mitsuba, culled in USD "
+                          f"viewers)"] += 1
+        self.double_sided[path] = two or t in TWO_SIDED_BY_NATURE
         if extra:
             mat.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
         self.materials[key] = mat
         return mat
+
+    def unwrap(self, bsdf: Plugin):
+        """(the BSDF that is approximated, the first ``mask`` around it or None, whether a ``twosided`` wraps it).
+        blendbsdf: the component of larger (constant) weight; bumpmap/normalmap: the nested BSDF (both warned)."""
+        inner, mask, two = bsdf, None, False
+        while inner.type in WRAPPERS:
+            kids = [c for c in inner.children if c.tag == "bsdf"]
+            if not kids:
+                break
+            if inner.type == "mask" and mask is None:
+                mask = inner
+            elif inner.type == "twosided":
+                two = True
+                if len(kids) > 1:
+                    self.warnings["twosided with a different back BSDF (the front one used on both sides)"] += 1
+            elif inner.type == "blendbsdf":
+                w = inner.props.get("weight", 0.5)
+                kids = kids[1:] + kids[:1] if isinstance(w, (int, float)) and w >= 0.5 or \
+                    any(c.name == "weight" for c in inner.children) else kids
+                self.warnings["blendbsdf (the BSDF of larger weight used; a textured weight: the second)"] += 1
+            else:
+                self.warnings[f"{inner.type} (the perturbed normals ignored: the nested BSDF used)"] += 1
+            inner = kids[0]
+        return inner, mask, two
+
+    def mask_opacity(self, path, sh, mask: Plugin) -> None:
+        """A Mitsuba ``mask`` (presence) as UsdPreviewSurface opacity with opacityThreshold > 0 (the spec's cutout
+        mode, where opacity at or above the threshold is presence): a texture's red channel with threshold 0.5;
+        a constant c as opacity = threshold = c (presence c per the spec; viewers that only cut draw it opaque)."""
+        from pxr import Sdf
+
+        F = Sdf.ValueTypeNames.Float
+        op_tex = next((c for c in mask.children if c.tag == "texture" and c.name == "opacity"), None)
+        if op_tex is not None:
+            self.texture_input(path, sh, "opacity", op_tex, output="r")
+            sh.CreateInput("opacityThreshold", F).Set(0.5)
+            return
+        c = min(max(float(np.mean(mask.props.get("opacity", 0.5))), 0.0), 1.0)
+        sh.CreateInput("opacity", F).Set(c)
+        sh.CreateInput("opacityThreshold", F).Set(c if c > 0.0 else 0.5)
+        if 0.0 < c < 1.0:
+            self.warnings["mask with a constant fractional opacity (opacity = opacityThreshold: presence per the "
+                          "UsdPreviewSurface spec; viewers that only cut at the threshold draw it opaque)"] += 1
 
     def conductor_f0(self, inner: Plugin, textures: dict):
         """Normal-incidence Fresnel reflectance per RGB channel of a conductor: its eta/k (Mitsuba's defaults
@@ -209,6 +272,10 @@ class MaterialBuilder:
         return d
 
     def bind(self, prim, bsdf):
-        from pxr import UsdShade
+        """Bind the material of ``bsdf`` and author the gprim's doubleSided (a ``twosided`` BSDF, or one that
+        is two-sided by nature, as dielectrics)."""
+        from pxr import UsdGeom, UsdShade
 
-        UsdShade.MaterialBindingAPI.Apply(prim).Bind(self.material(bsdf))
+        mat = self.material(bsdf)
+        UsdShade.MaterialBindingAPI.Apply(prim).Bind(mat)
+        UsdGeom.Gprim(prim).CreateDoubleSidedAttr(self.double_sided.get(str(mat.GetPath()), False))

@@ -114,6 +114,7 @@ def write_to_string(stage, base_dir, spp: int = 64, max_depth: int = 3) -> tuple
     if settings_extra.get("integrator"):
         integrator = settings_extra["integrator"]
     d = scene_dict(rec, spp=spp, max_depth=max_depth, mesh_dir=base / "meshes", integrator=integrator)
+    _restore_sampling(settings_extra, d)
     _restore_extras(stage, d)
     _restore_material_extras(stage, rec, d)
     files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]
@@ -155,6 +156,16 @@ def _custom_mitsuba(stage, rec) -> dict:
     return {}
 
 
+def _restore_sampling(extra: dict, d: dict) -> None:
+    """Put back the sampler (type, sample_count, seed ...) and the film's rfilter the XML reader kept in the
+    RenderSettings' customData['mitsuba'], so that a round trip samples the image as the original did."""
+    sensor = d.get("sensor")
+    for key, where in (("sampler", sensor), ("rfilter", sensor.get("film") if isinstance(sensor, dict) else None)):
+        kept = extra.get(key)
+        if isinstance(where, dict) and isinstance(kept, dict) and TAG_OF.get(kept.get("type")) == key:
+            where[key] = {k: v for k, v in kept.items() if isinstance(v, (bool, int, float, str))}
+
+
 def _restore_extras(stage, d: dict) -> None:
     """Put back Mitsuba-only properties kept in customData['mitsuba'] by the XML reader."""
     for prim in stage.Traverse():
@@ -175,9 +186,10 @@ def _restore_extras(stage, d: dict) -> None:
 
 def _restore_material_extras(stage, rec, d: dict) -> None:
     """Put back what the XML reader kept in a Material's customData['mitsuba']: a rough BSDF's microfacet
-    ``distribution``, and a conductor's or dielectric's BSDF itself while the UsdPreviewSurface still has the
-    inputs the reader wrote (conductor: base colour, metallic, roughness; dielectric: opacity 0, ior,
-    roughness); an edited material is exported from its inputs (warned)."""
+    ``distribution``, and a conductor's, plastic's or dielectric's BSDF itself while the UsdPreviewSurface still
+    has the inputs the reader wrote (conductor: base colour, metallic, roughness; plastic: diffuse and specular
+    colours, roughness, ior; dielectric: opacity 0, ior, roughness); an edited material is exported from its
+    inputs (warned). A one-sided BSDF (customData twosided false) is left unwrapped by ``bsdf_dict`` itself."""
     for item in (*rec.meshes, *rec.shapes):
         prim = stage.GetPrimAtPath(item.material.path) if item.material.path else None
         data = prim.GetCustomDataByKey("mitsuba") if prim else None
@@ -190,12 +202,12 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
         except (TypeError, ValueError, AttributeError):
             continue
         inner = entry["bsdf"]
-        while inner.get("type") in ("mask", "twosided") and isinstance(inner.get("bsdf"), dict):
-            inner = inner["bsdf"]
+        while isinstance(inner.get("bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"), dict):
+            inner = inner["bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"]
         if isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS:
             if _unchanged(item.material, extra.get("inputs") or {}):
                 kept = {k: (_rgb(v) if isinstance(v, list) else v) for k, v in kept.items()}
-                if "conductor" in kept["type"]:  # inside the twosided wrapper, as the other opaque BSDFs
+                if "dielectric" not in kept["type"]:  # inside the twosided / mask wrappers, as other opaque BSDFs
                     inner.clear()
                     inner.update(kept)
                 else:
@@ -207,7 +219,8 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
 
 
 #: BSDFs the XML reader keeps whole in a Material's customData (UsdPreviewSurface only approximates them).
-KEPT_BSDFS = ("conductor", "roughconductor", "dielectric", "roughdielectric", "thindielectric")
+KEPT_BSDFS = ("conductor", "roughconductor", "dielectric", "roughdielectric", "thindielectric", "plastic",
+              "roughplastic")
 
 
 def _unchanged(m, inputs: dict) -> bool:

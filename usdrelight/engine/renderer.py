@@ -112,6 +112,11 @@ def scene_key(rec: SceneRecord, settings: EngineSettings) -> str:
     return h.hexdigest()[:24]
 
 
+def _opaque_lambertian(m) -> bool:
+    """Lambertian with a constant opacity of 1 (translucency and cutouts are Mitsuba's, not the fast engine's)."""
+    return m.is_lambertian and not isinstance(m.opacity, TextureRecord) and m.opacity >= 1.0
+
+
 class FastRenderer:
     """Prepare once (or load the cache), then :meth:`render` any light set of the same stage."""
 
@@ -121,10 +126,11 @@ class FastRenderer:
         mesh_lights = [light.path for light in rec.lights if light.kind == "mesh"]
         if mesh_lights:  # RelightSession then renders with Mitsuba, which does
             raise UsdRelightError(f"the fast renderer does not render mesh lights (MeshLightAPI on {mesh_lights[0]})")
-        unsupported = sorted({m.path for m in rec.meshes if not m.material.is_lambertian}
-                             | {s.path for s in rec.shapes if not s.material.is_lambertian})
+        unsupported = sorted({m.path for m in rec.meshes if not _opaque_lambertian(m.material)}
+                             | {s.path for s in rec.shapes if not _opaque_lambertian(s.material)})
         if unsupported:
-            raise UsdRelightError(f"the fast renderer handles Lambertian materials only ({unsupported[0]} is not)")
+            raise UsdRelightError(f"the fast renderer handles opaque Lambertian materials only ({unsupported[0]} is "
+                                  f"not)")
         self.settings = settings
         self.key = scene_key(rec, settings)
         self.seconds: dict = {}

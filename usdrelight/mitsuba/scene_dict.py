@@ -65,31 +65,64 @@ def _scalar(v, default: float, what: str, warnings) -> float:
     return float(v)
 
 
-def bsdf_dict(mat: MaterialRecord, warnings) -> dict:
-    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table); opacity < 1 (or textured): a
-    ``mask`` around it."""
+def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
+    """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (see README's table)."""
     if mat.is_lambertian:
-        inner = {"type": "diffuse", "reflectance": _value(mat.diffuse, warnings)}
-    else:
-        rough = min(max(_scalar(mat.roughness, 0.5, "roughness", warnings), 0.0), 1.0)
-        metal = min(max(_scalar(mat.metallic, 0.0, "metallic", warnings), 0.0), 1.0)
-        if mat.use_specular_workflow:
-            inner = {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
-                     "specular_reflectance": _value(mat.specular, warnings), "alpha": max(rough * rough, 1e-3),
-                     "int_ior": float(mat.ior), "nonlinear": False}
-        elif metal >= 1.0:
-            inner = {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
-                     "alpha": max(rough * rough, 1e-3)}
-        else:
-            f0 = ((mat.ior - 1.0) / (mat.ior + 1.0)) ** 2
-            inner = {"type": "principled", "base_color": _value(mat.diffuse, warnings), "metallic": metal,
-                     "roughness": max(rough, 1e-3), "specular": float(min(max(f0 / 0.08, 0.0), 1.0))}
-    d = {"type": "twosided", "bsdf": inner}
-    if isinstance(mat.opacity, TextureRecord):  # coverage, as UsdPreviewSurface's opacity with threshold 0
-        return {"type": "mask", "opacity": _texture(mat.opacity, Counter()), "bsdf": d}
-    if mat.opacity < 1.0:
-        return {"type": "mask", "opacity": float(max(mat.opacity, 0.0)), "bsdf": d}
-    return d
+        return {"type": "diffuse", "reflectance": _value(mat.diffuse, warnings)}
+    rough = min(max(_scalar(mat.roughness, 0.5, "roughness", warnings), 0.0), 1.0)
+    metal = min(max(_scalar(mat.metallic, 0.0, "metallic", warnings), 0.0), 1.0)
+    if mat.use_specular_workflow:
+        return {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
+                "specular_reflectance": _value(mat.specular, warnings), "alpha": max(rough * rough, 1e-3),
+                "int_ior": float(mat.ior), "nonlinear": False}
+    if metal >= 1.0:
+        return {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
+                "alpha": max(rough * rough, 1e-3)}
+    f0 = ((mat.ior - 1.0) / (mat.ior + 1.0)) ** 2
+    return {"type": "principled", "base_color": _value(mat.diffuse, warnings), "metallic": metal,
+            "roughness": max(rough, 1e-3), "specular": float(min(max(f0 / 0.08, 0.0), 1.0))}
+
+
+def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
+    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table), wrapped in ``twosided`` unless the
+    material is marked one-sided (``mat.one_sided``, from a Mitsuba XML) and the gprim is not ``doubleSided``.
+
+    Opacity follows the UsdPreviewSurface spec: with ``opacityThreshold`` > 0 it is presence, cut to 0 below the
+    threshold (a Mitsuba ``mask``; a textured opacity is used as coverage, not cut, warned); with threshold 0,
+    opacity < 1 is translucency: ``blendbsdf(weight = opacity, dielectric(int_ior = ior, ext_ior = 1), <opaque>)``
+    (opacity 0: the dielectric alone; ior within 1e-3 of 1: a ``mask``, i.e. a pass-through blend)."""
+    d = _opaque_bsdf(mat, warnings)
+    if not (mat.one_sided and not double_sided):
+        d = {"type": "twosided", "bsdf": d}
+    op = mat.opacity
+    textured = isinstance(op, TextureRecord)
+    if mat.opacity_threshold > 0.0:  # cutout: presence = opacity where opacity >= threshold, else 0
+        if textured:
+            warnings["opacityThreshold with a textured opacity (the texture used as coverage, texels below the "
+                     "threshold not cut)"] += 1
+            return {"type": "mask", "opacity": _texture(op, Counter()), "bsdf": d}
+        presence = float(op) if op >= mat.opacity_threshold else 0.0
+        return d if presence >= 1.0 else {"type": "mask", "opacity": max(presence, 0.0), "bsdf": d}
+    if not textured and op >= 1.0:
+        return d
+    weight = _texture(op, Counter()) if textured else float(max(op, 0.0))
+    ior = float(mat.ior)
+    if not math.isfinite(ior) or ior <= 0.0 or abs(ior - 1.0) < 1e-3:  # no refraction: a pass-through blend
+        return {"type": "mask", "opacity": weight, "bsdf": d}
+    rough = min(max(_scalar(mat.roughness, 0.0, "roughness", warnings), 0.0), 1.0)
+    glass = {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+    if rough > 0.0:
+        glass = {"type": "roughdielectric", "int_ior": ior, "ext_ior": 1.0, "alpha": max(rough * rough, 1e-3)}
+    if not textured and weight <= 0.0:
+        return glass
+    return {"type": "blendbsdf", "weight": weight, "bsdf_0": glass, "bsdf_1": d}
+
+
+def _cut_out(mat: MaterialRecord) -> bool:
+    """A constant opacity below opacityThreshold: no surface at all (left out: Mitsuba's shadow rays would stop
+    at a mask of opacity 0)."""
+    return mat.opacity_threshold > 0.0 and not isinstance(mat.opacity, TextureRecord) \
+        and mat.opacity < mat.opacity_threshold
 
 
 def write_ply(path: Path, pts, faces, normals, uv) -> None:
@@ -188,7 +221,7 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
                integrator: dict | None = None) -> dict:
     """The Mitsuba scene dict. ``mesh_dir``: write PLY files there (for XML) instead of in-memory meshes."""
     warnings = scene.warnings
-    warnings.pop(OPACITY_WARNING, None)  # Mitsuba renders it: a mask (bsdf_dict)
+    warnings.pop(OPACITY_WARNING, None)  # Mitsuba renders it (bsdf_dict)
     d = {"type": "scene",
          "integrator": integrator or {"type": "path", "max_depth": int(max_depth)}}
     if scene.camera is not None:
@@ -206,9 +239,11 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
     mesh_lights = {light.path: light for light in scene.lights if light.kind == "mesh"}
     emitting = set()
     for mesh in scene.meshes:
+        if _cut_out(mesh.material) and mesh.path not in mesh_lights and mesh.path.rsplit("/", 1)[0] not in mesh_lights:
+            continue
         uv = None if mesh.uv is None else np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
         k = key(safe_name(mesh.path))
-        bsdf = bsdf_dict(mesh.material, warnings)
+        bsdf = bsdf_dict(mesh.material, warnings, mesh.double_sided)
         # a MeshLightAPI mesh (or one of its GeomSubsets) emits: Mitsuba's area emitter on the same shape
         owner = mesh.path if mesh.path in mesh_lights else mesh.path.rsplit("/", 1)[0]
         light = mesh_lights.get(owner)
@@ -227,8 +262,10 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
     if set(mesh_lights) - emitting:
         warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for shape in scene.shapes:
+        if _cut_out(shape.material):
+            continue
         d[key(safe_name(shape.path))] = {"type": shape.kind, "to_world": Matrix(shape.to_world),
-                                     "bsdf": bsdf_dict(shape.material, warnings)}
+                                     "bsdf": bsdf_dict(shape.material, warnings, shape.double_sided)}
     for light in scene.lights:
         for name, e in emitter_dicts(light, warnings).items():
             d[key(name)] = e

@@ -84,6 +84,8 @@ def read_material(prim, warnings) -> MaterialRecord:
         use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings)),
         ior=d.ior if isinstance(ior, TextureRecord) else float(ior),
         opacity=_input_value(surf, "opacity", d.opacity, warnings),
+        opacity_threshold=_threshold(surf, warnings),
+        one_sided=_one_sided(mat.GetPrim()),
         emissive=_input_value(surf, "emissiveColor", d.emissive, warnings))
     for name in ("normal", "displacement", "occlusion", "clearcoat"):
         inp = surf.GetInput(name)
@@ -94,6 +96,26 @@ def read_material(prim, warnings) -> MaterialRecord:
     if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
         warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
     return rec
+
+
+def _threshold(surf, warnings) -> float:
+    """opacityThreshold as a float in [0, 1] (a connected texture: 0.5, warned)."""
+    v = _input_value(surf, "opacityThreshold", 0.0, warnings)
+    if isinstance(v, TextureRecord):
+        warnings["textured opacityThreshold (0.5 used)"] += 1
+        return 0.5
+    return min(max(float(v), 0.0), 1.0)
+
+
+def _one_sided(mat_prim) -> bool:
+    """Whether the Mitsuba XML reader marked this material one-sided (customData mitsuba.twosided false)."""
+    import json
+
+    data = mat_prim.GetCustomDataByKey("mitsuba")
+    try:
+        return isinstance(data, str) and json.loads(data).get("twosided") is False
+    except (ValueError, AttributeError):
+        return False
 
 
 # ---- meshes -----------------------------------------------------------------------------------

@@ -75,7 +75,14 @@ class MaterialRecord:
     ior: float = 1.5
     """Index of refraction of the dielectric coat (metallic workflow's F0 = ((ior - 1) / (ior + 1))^2)."""
     opacity: Scalar = 1.0
-    """1 = opaque (what the renderers support; other values are warned about)."""
+    """1 opaque, < 1 translucent, 0 transparent (still a specular response, as clear glass) while
+    ``opacity_threshold`` is 0; with a threshold > 0 the presence (coverage) of the surface, cut to 0 below it."""
+    opacity_threshold: float = 0.0
+    """UsdPreviewSurface ``opacityThreshold``: 0 = opacity is transparency (refraction by ``ior``); > 0 = a
+    cutout (opacity below it: no surface; at or above it: presence = opacity)."""
+    one_sided: bool = False
+    """The Mitsuba XML reader marked the material's BSDF one-sided (``customData["mitsuba"]["twosided"]`` false):
+    a gprim that is not ``doubleSided`` then renders black from behind in Mitsuba (USD viewers cull it)."""
     emissive: Color = (0.0, 0.0, 0.0)
     """emissiveColor, radiance in the UsdLux sense (ignored by the renderers, warned about)."""
 
@@ -118,6 +125,8 @@ class ShapeRecord:
     """4x4 unit shape -> world (radius, size and plane extents folded in)."""
     material: MaterialRecord
     """The bound material."""
+    double_sided: bool = False
+    """UsdGeom ``doubleSided``."""
 
 
 @dataclass(frozen=True)
