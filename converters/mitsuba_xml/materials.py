@@ -1,7 +1,8 @@
 """Mitsuba BSDFs -> UsdPreviewSurface materials (the closest approximation, warned about once per kind).
 
 diffuse -> Lambertian (specular workflow, black specular, roughness 1); plastic/roughplastic -> specular
-workflow with roughness sqrt(alpha) and ior int_ior / ext_ior; conductor/roughconductor -> metallic 1 with
+workflow with roughness sqrt(alpha), ior int_ior / ext_ior and specularColor = F0(ior) x specular_reflectance
+(the spec's normal-incidence colour), the BSDF kept in customData; conductor/roughconductor -> metallic 1 with
 the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (eta/k of a named
 ``material`` read from Mitsuba itself) times the specular reflectance as base colour; dielectric/
 roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
@@ -24,6 +25,12 @@ from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.stage.create import author_lambertian, author_uv_texture, define_preview_material
 
 from .common import Plugin, PrimNamer
+
+
+def plastic_f0(ior: float) -> float:
+    """Normal-incidence Fresnel reflectance of a dielectric coat of relative index ``ior``: UsdPreviewSurface's
+    specularColor = this x Mitsuba's specular_reflectance (a multiplier of the Fresnel term)."""
+    return ((ior - 1.0) / (ior + 1.0)) ** 2
 
 
 #: BSDFs that pass through material() to the one they wrap.
@@ -99,26 +106,33 @@ class MaterialBuilder:
         elif t in ("plastic", "roughplastic"):
             colour("diffuseColor", "diffuse_reflectance", (0.5, 0.5, 0.5))
             sh.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
-            colour("specularColor", "specular_reflectance", (1.0, 1.0, 1.0))
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughplastic" else 0.0
             sh.CreateInput("roughness", F).Set(math.sqrt(max(alpha, 0.0)))
             int_ior, ext_ior = ior_value(inner.props.get("int_ior"), 1.49), ior_value(inner.props.get("ext_ior"),
                                                                                        1.000277)
-            sh.CreateInput("ior", F).Set(int_ior / ext_ior)
+            ior = float(np.float32(int_ior / ext_ior))
+            sh.CreateInput("ior", F).Set(ior)
+            f0 = plastic_f0(ior)  # specularColor is the normal-incidence colour: Fresnel F0 x specular_reflectance
+            spec = np.broadcast_to(np.asarray(inner.props.get("specular_reflectance", 1.0), np.float64), (3,))
+            if "specular_reflectance" in textures:
+                tex = self.texture_input(path, sh, "specularColor", textures["specular_reflectance"])
+                if tex is not None:
+                    tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(f0, f0, f0, 1.0))
+            else:
+                sh.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*(spec * f0)))
             self.warnings[f"{t}: UsdPreviewSurface specular workflow (no internal scattering or nonlinear; the BSDF "
-                          f"kept in customData for XML export)"] += 1
+                          f"kept in customData for XML export{' unless textured' if textures else ''})"] += 1
             if not textures:  # the exact plastic, for the XML export while these inputs hold
+                diffuse = np.broadcast_to(np.asarray(inner.props.get("diffuse_reflectance", 0.5), np.float64), (3,))
                 extra["bsdf"] = {"type": t, "int_ior": int_ior, "ext_ior": ext_ior,
-                                 "nonlinear": bool(inner.props.get("nonlinear", False))}
-                for name, default in (("diffuse_reflectance", 0.5), ("specular_reflectance", 1.0)):
-                    extra["bsdf"][name] = [float(x) for x in np.broadcast_to(
-                        np.asarray(inner.props.get(name, default), np.float64), (3,))]
+                                 "nonlinear": bool(inner.props.get("nonlinear", False)),
+                                 "diffuse_reflectance": [float(x) for x in diffuse],
+                                 "specular_reflectance": [float(x) for x in spec]}
                 if t == "roughplastic":
                     extra["bsdf"]["alpha"] = alpha
-                extra["inputs"] = {"diffuse": [float(np.float32(x)) for x in extra["bsdf"]["diffuse_reflectance"]],
-                                   "specular": [float(np.float32(x)) for x in extra["bsdf"]["specular_reflectance"]],
-                                   "roughness": float(np.float32(math.sqrt(max(alpha, 0.0)))),
-                                   "ior": float(np.float32(int_ior / ext_ior))}
+                extra["inputs"] = {"diffuse": [float(np.float32(x)) for x in diffuse],
+                                   "specular": [float(np.float32(x)) for x in spec * f0],
+                                   "roughness": float(np.float32(math.sqrt(max(alpha, 0.0)))), "ior": ior}
         elif t in ("conductor", "roughconductor"):
             f0, eta_k = self.conductor_f0(inner, textures)
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughconductor" else 0.0

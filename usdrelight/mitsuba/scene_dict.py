@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +65,22 @@ def _scalar(v, default: float, what: str, warnings) -> float:
     return float(v)
 
 
+def _plastic_specular(mat: MaterialRecord, warnings) -> dict:
+    """Mitsuba roughplastic's specular_reflectance (a multiplier of the coat's Fresnel term) for UsdPreviewSurface's
+    specularColor (the normal-incidence colour): specularColor / F0(ior). A texture whose UsdUVTexture scale is
+    F0 (as the XML reader writes it) is used unscaled; another texture as it is (warned)."""
+    f0 = max(((float(mat.ior) - 1.0) / (float(mat.ior) + 1.0)) ** 2, 1e-4)
+    s = mat.specular
+    if not isinstance(s, TextureRecord):
+        return _rgb(np.asarray(s, np.float64) / f0)
+    if np.allclose(s.scale[:3], f0, rtol=1e-4) and not any(s.bias[:3]):
+        s = replace(s, scale=(1.0, 1.0, 1.0, 1.0))
+    else:
+        warnings["textured specularColor (texels used as Mitsuba's specular_reflectance, a Fresnel multiplier, "
+                 "not as the normal-incidence colour)"] += 1
+    return _texture(s, warnings)
+
+
 def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
     """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (see README's table)."""
     if mat.is_lambertian:
@@ -73,7 +89,7 @@ def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
     metal = min(max(_scalar(mat.metallic, 0.0, "metallic", warnings), 0.0), 1.0)
     if mat.use_specular_workflow:
         return {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
-                "specular_reflectance": _value(mat.specular, warnings), "alpha": max(rough * rough, 1e-3),
+                "specular_reflectance": _plastic_specular(mat, warnings), "alpha": max(rough * rough, 1e-3),
                 "int_ior": float(mat.ior), "nonlinear": False}
     if metal >= 1.0:
         return {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
@@ -145,6 +161,13 @@ def safe_name(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name).strip("_") or "mesh"
 
 
+def _unscaled(m: np.ndarray) -> np.ndarray:
+    """The rigid part of a camera's transform (Mitsuba refuses scale on a sensor; a scaled camera sees the same)."""
+    out = np.array(m, np.float64)
+    out[:3, :3] = out[:3, :3] / np.maximum(world_scale(out), 1e-300)
+    return out
+
+
 def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warnings=None) -> dict:
     cam = scene.camera
     if cam is None:
@@ -155,7 +178,7 @@ def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warning
     return {
         "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
         "principal_point_offset_x": 0.5 - k.cx / k.width, "principal_point_offset_y": 0.5 - k.cy / k.height,
-        "near_clip": cam.near, "far_clip": cam.far, "to_world": Matrix(cam.to_world @ CAMERA_FLIP),
+        "near_clip": cam.near, "far_clip": cam.far, "to_world": Matrix(_unscaled(cam.to_world) @ CAMERA_FLIP),
         "film": {"type": "hdrfilm", "width": k.width, "height": k.height, "rfilter": {"type": rfilter},
                  "pixel_format": "rgb"},
         "sampler": {"type": "independent", "sample_count": int(spp)},
