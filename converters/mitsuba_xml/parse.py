@@ -7,6 +7,7 @@ refused, so no entity is ever expanded.
 """
 from __future__ import annotations
 
+import functools
 import re
 import xml.etree.ElementTree as ET
 from collections import Counter
@@ -208,11 +209,12 @@ class XmlReader:
     def spectrum(self, val: str, in_emitter: bool):
         """A <spectrum> as the RGB Mitsuba's RGB variants use: a uniform value as it is, a sampled one
         ("400:0.1, 500:0.2 ...") integrated against the CIE curves into linear sRGB by Mitsuba itself, bounded
-        and under D65 outside emitters, unbounded inside them (as Mitsuba's parser does)."""
+        and under D65 outside emitters, unbounded inside them (as Mitsuba's parser does). A uniform value inside
+        an emitter is, as in Mitsuba's parser, that multiple of the D65 illuminant: not grey in RGB variants."""
         parts = [x for x in re.split(r"[,\s]+", val.strip()) if x]
         if all(":" not in x for x in parts):
             v = float(parts[0])
-            return (v, v, v)
+            return tuple(v * c for c in _d65_rgb()) if in_emitter else (v, v, v)
         if any(x.count(":") != 1 for x in parts):
             raise ValueError("a sampled spectrum is a list of wavelength:value pairs")
         wl = [float(x.split(":")[0]) for x in parts]
@@ -267,6 +269,16 @@ class XmlReader:
             with np.errstate(all="ignore"):  # NaN/Inf from a degenerate op: refused by value()'s finite check
                 M = np.array(T.matrix, dtype=np.float64) @ M
         return M
+
+
+@functools.lru_cache(maxsize=1)
+def _d65_rgb() -> tuple:
+    """The RGB Mitsuba's RGB variants give an emitter's ``<spectrum value="1"/>`` (D65, about 1.20, 0.95, 0.91),
+    read back from Mitsuba itself."""
+    mi = load_mitsuba()
+    scene = mi.load_string('<scene version="3.0.0"><emitter type="constant"><spectrum name="radiance" value="1"/>'
+                           '</emitter></scene>')
+    return tuple(float(c) for c in np.ravel(mi.traverse(scene.emitters()[0])["radiance.value"]))
 
 
 def attach_paths(plugins, reader: XmlReader) -> None:

@@ -49,6 +49,8 @@ class UsdBuilder:
         self.looks = MaterialBuilder(stage, ROOT, self.unique, self.asset, warnings)
         self.settings = None
         self.spp = None
+        self.sampling: dict = {}
+        self.black = Plugin("bsdf", "diffuse", None, None, {"reflectance": (0.0, 0.0, 0.0)})
 
     def asset(self, path: str) -> str:
         """An asset path for ``path``: relative to the USD file when there is one."""
@@ -118,7 +120,7 @@ class UsdBuilder:
                 pts = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
                 m.CreateFaceVertexCountsAttr([4])
                 m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-                uvs = [(0, 0), (1, 0), (1, 1), (0, 1)]
+                uvs = [(0, 1), (1, 1), (1, 0), (0, 0)]  # st = (u, 1 - v) of Mitsuba's rectangle, uv = (x + 1) / 2
             else:
                 n = 64
                 ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
@@ -138,6 +140,8 @@ class UsdBuilder:
         else:
             self.warnings[f"shape type '{p.type}' (not converted)"] += 1
             return
+        if bsdf is None and emitter is not None:  # Mitsuba's default BSDF of an emitting shape reflects nothing
+            bsdf = self.black
         self.looks.bind(prim, bsdf)
         if emitter is not None:
             self.mesh_light(prim, emitter)
@@ -302,6 +306,20 @@ class UsdBuilder:
         self.settings = author_render_settings(self.stage, str(cam.GetPath()), cw, ch, [AOVS["color"]])
         sampler = next((c for c in p.children if c.tag == "sampler"), None)
         self.spp = int(sampler.props.get("sample_count", 4)) if sampler else None
+        # how the film is sampled, as Mitsuba resolves it (defaults: independent, 4 spp; a gaussian rfilter), kept
+        # for the XML export so that the round trip renders with the same sampler, seed and pixel filter
+        rfilter = next((c for c in (film.children if film else []) if c.tag == "rfilter"), None)
+        self.sampling = {"sampler": _scalar_props(sampler, "independent"),
+                         "rfilter": _scalar_props(rfilter, "gaussian")}
+
+
+def _scalar_props(p: Plugin | None, default_type: str) -> dict:
+    """``{"type": ..., <its int/float/bool/string properties>}`` of a sampler or rfilter (Mitsuba's default type
+    when the XML has none)."""
+    if p is None:
+        return {"type": default_type}
+    props = {k: v for k, v in sorted(p.props.items()) if isinstance(v, (bool, int, float, str)) and k != "filename"}
+    return {"type": p.type, **props}
 
 
 def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
@@ -333,8 +351,9 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
             # a property of the wrong kind or shape (<boolean name="direction">, a 2-vector position ...)
             raise UsdRelightError(f"<{p.tag} type='{p.type}'{f' id={p.id!r}' if p.id else ''}>: a property has the "
                                   f"wrong type or shape ({type(exc).__name__})") from None
-    if integrator is not None and b.settings is not None:
-        b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps({"integrator": integrator}))
+    if b.settings is not None:  # no <integrator>: Mitsuba's default, path tracing without a depth limit
+        kept = {"integrator": integrator or {"type": "path"}, **b.sampling}
+        b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(kept, sort_keys=True))
     check_finite(stage, source)  # e.g. a float64 beyond float32 would be written as Inf
     for kind, n in warnings.items():
         log.warning("%s: %d", kind, n)
