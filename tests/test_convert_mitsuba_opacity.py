@@ -48,6 +48,7 @@ def _scene(tmp_path, name, shapes, z=5, dz=-1):
 def _compare(a, b, rtol=0.05):
     """Means within rtol; the message has the per-pixel relative RMSE."""
     rmse = float(np.sqrt(np.mean((a - b) ** 2)) / max(b.mean(), 1e-9))
+    print(f"means {a.mean():.4f} vs {b.mean():.4f}, rel RMSE {rmse:.3f}")
     assert a.mean() == pytest.approx(b.mean(), rel=rtol), f"means {a.mean():.4f} vs {b.mean():.4f}, rel RMSE {rmse:.3f}"
     return rmse
 
@@ -106,6 +107,24 @@ def test_translucent_opacity_is_a_blend_of_glass_and_the_opaque_surface(cli, tmp
     opaque = _render(_scene(tmp_path, "opaque", BACKDROP + SPHERE.format(bsdf=DIFFUSE)))
     lo, hi = sorted((glass[16:32, 16:32].mean(), opaque[16:32, 16:32].mean()))
     assert lo < ours < hi, (lo, ours, hi)
+
+
+def test_blend_of_glass_and_diffuse_round_trips_as_translucency(cli, tmp_path):
+    """Mitsuba blendbsdf(dielectric, diffuse, 0.3) -> USD opacity 0.3, ior 1.5, roughness 0 -> the same blend."""
+    bsdf = ('<bsdf type="blendbsdf"><float name="weight" value="0.3"/><bsdf type="dielectric"><float name="int_ior" '
+            'value="1.5"/><float name="ext_ior" value="1"/></bsdf>' + DIFFUSE + '</bsdf>')
+    src = _scene(tmp_path, "a", BACKDROP + SPHERE.format(bsdf=bsdf))
+    rc, _, err = cli("convert", src, tmp_path / "a.usda")
+    assert rc == 0 and "blendbsdf of a dielectric and an opaque BSDF" in err, err
+    stage = Usd.Stage.Open(str(tmp_path / "a.usda"))
+    sphere = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Sphere))
+    surf = UsdShade.MaterialBindingAPI(sphere).ComputeBoundMaterial()[0].ComputeSurfaceSource()[0]
+    inputs = {i.GetBaseName(): i.Get() for i in surf.GetInputs()}
+    assert inputs["opacity"] == pytest.approx(0.3) and inputs["ior"] == pytest.approx(1.5)
+    assert inputs["roughness"] == 0.0 and "opacityThreshold" not in inputs
+    assert cli("convert", tmp_path / "a.usda", tmp_path / "b.xml")[0] == 0
+    assert 'type="blendbsdf"' in (tmp_path / "b.xml").read_text()
+    assert _compare(_render(tmp_path / "b.xml"), _render(src)) < 0.3
 
 
 @pytest.mark.parametrize("opacity, visible", [(0.3, False), (0.7, True)])

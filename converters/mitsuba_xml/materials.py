@@ -35,6 +35,8 @@ def plastic_f0(ior: float) -> float:
 
 #: BSDFs that pass through material() to the one they wrap.
 WRAPPERS = ("twosided", "mask", "blendbsdf", "bumpmap", "normalmap")
+#: Dielectrics a blendbsdf may mix with an opaque BSDF (UsdPreviewSurface translucency).
+GLASSES = ("dielectric", "roughdielectric")
 #: Mitsuba BSDFs that scatter from both sides without a ``twosided`` wrapper.
 TWO_SIDED_BY_NATURE = ("dielectric", "roughdielectric", "thindielectric", "null")
 
@@ -76,7 +78,7 @@ class MaterialBuilder:
         key = bsdf.id or id(bsdf)
         if key in self.materials:
             return self.materials[key]
-        inner, mask, two = self.unwrap(bsdf)
+        inner, mask, two, glass = self.unwrap(bsdf)
         path = self.unique(self.root + "/Looks", bsdf.id or inner.type)
         mat, sh = define_preview_material(self.stage, path)
         textures = {c.name: c for c in inner.children if c.tag == "texture"}
@@ -172,6 +174,13 @@ class MaterialBuilder:
         dist = inner.props.get("distribution")
         if t in ("roughplastic", "roughconductor") and isinstance(dist, str):
             extra["distribution"] = dist.lower()
+        if glass is not None:  # translucent (opacityThreshold 0): opacity = the opaque part's weight
+            sh.CreateInput("opacity", F).Set(glass[0])
+            sh.CreateInput("ior", F).Set(ior_value(glass[1].props.get("int_ior"), 1.5046) /
+                                         ior_value(glass[1].props.get("ext_ior"), 1.000277))
+            if t == "diffuse":  # roughness is the glass's alone (a Lambertian ignores it)
+                a = float(glass[1].props.get("alpha", 0.1)) if glass[1].type == "roughdielectric" else 0.0
+                sh.GetInput("roughness").Set(math.sqrt(max(a, 0.0)))
         if mask is not None:
             self.mask_opacity(path, sh, mask)
         if not two and t not in TWO_SIDED_BY_NATURE:  # Mitsuba: black from behind; kept for the XML export
@@ -185,9 +194,10 @@ class MaterialBuilder:
         return mat
 
     def unwrap(self, bsdf: Plugin):
-        """(the BSDF that is approximated, the first ``mask`` around it or None, whether a ``twosided`` wraps it).
-        blendbsdf: the component of larger (constant) weight; bumpmap/normalmap: the nested BSDF (both warned)."""
-        inner, mask, two = bsdf, None, False
+        """(the BSDF that is approximated, the first ``mask`` around it or None, whether a ``twosided`` wraps it,
+        (opacity, dielectric) of a blendbsdf of a dielectric and an opaque BSDF or None). Another blendbsdf: the
+        component of larger (constant) weight; bumpmap/normalmap: the nested BSDF (all warned)."""
+        inner, mask, two, glass = bsdf, None, False, None
         while inner.type in WRAPPERS:
             kids = [c for c in inner.children if c.tag == "bsdf"]
             if not kids:
@@ -198,6 +208,15 @@ class MaterialBuilder:
                 two = True
                 if len(kids) > 1:
                     self.warnings["twosided with a different back BSDF (the front one used on both sides)"] += 1
+            elif inner.type == "blendbsdf" and glass is None and len(kids) == 2 and isinstance(
+                    inner.props.get("weight", 0.5), (int, float)) and not any(c.name == "weight" for c in
+                    inner.children) and [k.type in GLASSES for k in kids].count(True) == 1:
+                i = 0 if kids[0].type in GLASSES else 1  # the dielectric; the other is opaque
+                w = float(inner.props.get("weight", 0.5))
+                glass = (w if i == 0 else 1.0 - w, kids[i])
+                kids = [kids[1 - i]]
+                self.warnings["blendbsdf of a dielectric and an opaque BSDF (opacity = the opaque weight, ior the "
+                              "dielectric's)"] += 1
             elif inner.type == "blendbsdf":
                 w = inner.props.get("weight", 0.5)
                 kids = kids[1:] + kids[:1] if isinstance(w, (int, float)) and w >= 0.5 or \
@@ -206,7 +225,7 @@ class MaterialBuilder:
             else:
                 self.warnings[f"{inner.type} (the perturbed normals ignored: the nested BSDF used)"] += 1
             inner = kids[0]
-        return inner, mask, two
+        return inner, mask, two, glass
 
     def mask_opacity(self, path, sh, mask: Plugin) -> None:
         """A Mitsuba ``mask`` (presence) as UsdPreviewSurface opacity with opacityThreshold > 0 (the spec's cutout
