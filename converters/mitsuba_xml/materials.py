@@ -7,7 +7,11 @@ the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (
 ``material`` read from Mitsuba itself) times the specular reflectance as base colour; dielectric/
 roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
 itself kept in the Material's ``customData["mitsuba"]["bsdf"]`` for the XML export; principled -> metallic
-workflow; mask -> opacity (a constant or the texture's red channel); twosided is unwrapped.
+workflow; mask -> opacity with opacityThreshold > 0 (presence, the spec's cutout mode: a texture's red channel
+with threshold 0.5, a constant c as opacity = threshold = c); a blendbsdf of a dielectric and an opaque BSDF ->
+opacity (the opaque weight) + ior (translucency, threshold 0); twosided -> doubleSided true on the bound gprims,
+a bare (one-sided) BSDF -> doubleSided false + ``customData["mitsuba"]["twosided"] = false``; bumpmap/normalmap/
+other blendbsdfs -> the nested BSDF (warned).
 Bitmap textures become UsdUVTexture shaders reading the ``st`` primvar. A rough BSDF's microfacet
 ``distribution`` (UsdPreviewSurface has none) is kept in ``customData["mitsuba"]`` too.
 """
