@@ -112,6 +112,9 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
         d = {"type": "twosided", "bsdf": d}
     op = mat.opacity
     textured = isinstance(op, TextureRecord)
+    if not textured and not math.isfinite(op):
+        warnings["non-finite opacity (1 used)"] += 1
+        op = 1.0
     if mat.opacity_threshold > 0.0:  # cutout: presence = opacity where opacity >= threshold, else 0
         if textured:
             warnings["opacityThreshold with a textured opacity (the texture used as coverage, texels below the "

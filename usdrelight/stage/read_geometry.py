@@ -104,7 +104,11 @@ def _threshold(surf, warnings) -> float:
     if isinstance(v, TextureRecord):
         warnings["textured opacityThreshold (0.5 used)"] += 1
         return 0.5
-    return min(max(float(v), 0.0), 1.0)
+    v = float(v)
+    if not np.isfinite(v):
+        warnings["non-finite opacityThreshold (0 used)"] += 1
+        return 0.0
+    return min(max(v, 0.0), 1.0)
 
 
 def _one_sided(mat_prim) -> bool:
