@@ -1,0 +1,137 @@
+"""What Blender's own USD importer (bpy 5.0.1, File > Import > USD with its defaults) makes of our stages: the
+facts the README's "Native Blender import" note states. If a future Blender changes one, this fails and the
+note (and benchmarks/bench_blender_native_import.py) need updating. One Blender process imports everything;
+three tiny renders (32 x 24 px) check that the native light units render as the UsdLux closed forms say."""
+import math
+
+import numpy as np
+import pytest
+from pxr import Gf, UsdGeom, UsdLux
+
+from blender_native import native_import
+from usd_scenes import add_closed_form_light, looking_down_at_floor
+from usdrelight.converters.blender import blender_lights
+from usdrelight.imageio import read_map
+
+STARTUP_GREY = 0.0508761  # Blender's startup World colour (linear), kept by the importer
+NATIVE = {}
+
+
+def _at(light, xyz, rot_x=0.0):
+    x = UsdGeom.Xformable(light)
+    x.AddTranslateOp().Set(Gf.Vec3d(*xyz))
+    if rot_x:
+        x.AddRotateXOp().Set(rot_x)
+    return light
+
+
+def _all_lights(path):
+    """Floor + camera (32 x 24, RenderSettings) + one light of each kind, values chosen to tell factors apart."""
+    st = looking_down_at_floor(path)
+    p = _at(UsdLux.SphereLight.Define(st, "/World/Point"), (0, 1, 0))
+    p.CreateIntensityAttr(20.0), p.CreateTreatAsPointAttr(True), p.CreateRadiusAttr(0.0), p.CreateNormalizeAttr(False)
+    s = _at(UsdLux.SphereLight.Define(st, "/World/Sphere"), (2, 1, 0))
+    s.CreateIntensityAttr(5.0), s.CreateRadiusAttr(0.1)
+    sp = _at(UsdLux.SphereLight.Define(st, "/World/Spot"), (0, 2, 0), -90.0)
+    sp.CreateIntensityAttr(7.0), sp.CreateTreatAsPointAttr(True), sp.CreateExposureAttr(1.0)
+    sh = UsdLux.ShapingAPI.Apply(sp.GetPrim())
+    sh.CreateShapingConeAngleAttr(25.0), sh.CreateShapingConeSoftnessAttr(0.2)
+    r = _at(UsdLux.RectLight.Define(st, "/World/Rect"), (0, 3, 0), -90.0)
+    r.CreateIntensityAttr(3.0), r.CreateWidthAttr(0.5), r.CreateHeightAttr(0.25)
+    d = _at(UsdLux.DiskLight.Define(st, "/World/Disk"), (1, 3, 0), -90.0)
+    d.CreateIntensityAttr(3.0), d.CreateRadiusAttr(0.2), d.CreateNormalizeAttr(True)
+    sun = _at(UsdLux.DistantLight.Define(st, "/World/Sun"), (0, 0, 0), -90.0)
+    sun.CreateIntensityAttr(3.0), sun.CreateAngleAttr(1.0)
+    UsdLux.DomeLight.Define(st, "/World/Dome").CreateIntensityAttr(0.8)  # colour not authored
+    st.GetRootLayer().Save()
+    return st
+
+
+@pytest.fixture(scope="module")
+def native(tmp_path_factory):
+    """Native imports (startup file; empty file) and our converter's .blend of the same stage."""
+    from usdrelight.cli import main
+
+    d = tmp_path_factory.mktemp("native")
+    _all_lights(d / "all.usda")
+    point = looking_down_at_floor(d / "point.usda")
+    expected_point = add_closed_form_light(point, "point")
+    point.GetRootLayer().Save()
+    sun = looking_down_at_floor(d / "sun.usda")
+    expected_sun = add_closed_form_light(sun, "distant")
+    sun.GetRootLayer().Save()
+    sharp = looking_down_at_floor(d / "sharp.usda")
+    add_closed_form_light(sharp, "distant")
+    UsdLux.DistantLight(sharp.GetPrimAtPath("/World/L")).CreateAngleAttr(0.0)
+    sharp.GetRootLayer().Save()
+    black = {"world_rgb": [0.0, 0.0, 0.0]}  # no ambient light from the startup World in the renders
+    res = native_import([{"usd": d / "all.usda"}, {"usd": d / "all.usda", "empty": True},
+                         {"usd": d / "point.usda", **black, "render": [32, 24, 16], "exr": d / "point.exr"},
+                         {"usd": d / "sun.usda", **black, "render": [32, 24, 4], "exr": d / "sun.exr"},
+                         {"usd": d / "sharp.usda", **black, "render": [32, 24, 4], "exr": d / "sharp.exr"}])
+    assert main(["convert", str(d / "all.usda"), str(d / "all.blend")]) == 0
+    ours = {l["name"].rsplit("_", 1)[-1]: l for l in blender_lights(d / "all.blend")}
+    return {"startup": res[0], "empty": res[1], "lights": {l["name"]: l for l in res[0]["lights"]}, "ours": ours,
+            "point_img": read_map(d / "point.exr", 3), "point_expected": expected_point,
+            "sun_img": read_map(d / "sun.exr", 3), "sun_expected": expected_sun,
+            "sharp_img": read_map(d / "sharp.exr", 3)}
+
+
+def _centre(img):
+    h, w = img.shape[:2]
+    return float(img[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1].mean())
+
+
+def test_point_light_is_pi_i_unnormalized_and_renders_like_ours(native):
+    """Native: energy = pi I with Blender's normalize off; ours: 4 pi I normalized. Both give I W/sr in Cycles."""
+    nat, ours = native["lights"]["Point"], native["ours"]["Point"]
+    assert nat["type"] == "POINT" and nat["radius"] == 0.0
+    assert nat["energy"] == pytest.approx(math.pi * 20.0, rel=1e-6)
+    assert nat["normalize"] is False and nat["use_soft_falloff"] is True
+    assert ours["power"] == pytest.approx(4 * math.pi * 20.0, rel=1e-6)
+    # the unnormalized pi I renders as the closed form albedo/pi * I / r^2 (as our 4 pi I does, test_blender.py)
+    assert _centre(native["point_img"]) == pytest.approx(native["point_expected"], rel=0.05)
+
+
+def test_area_and_spot_lights(native):
+    L = native["lights"]
+    assert L["Sphere"]["energy"] == pytest.approx(math.pi * 5.0, rel=1e-6) and L["Sphere"]["radius"] == pytest.approx(0.1)
+    assert L["Sphere"]["normalize"] is False  # the UsdLux fallback, read as Blender's unnormalized mode
+    spot = L["Spot"]
+    assert spot["type"] == "SPOT" and spot["energy"] == pytest.approx(math.pi * 7.0, rel=1e-6)
+    assert spot["exposure"] == 1.0  # kept as Blender's light exposure (ours folds 2^exposure into the power)
+    assert native["ours"]["Spot"]["power"] == pytest.approx(4 * math.pi * 14.0, rel=1e-5)
+    assert math.degrees(spot["spot_size"]) == pytest.approx(50.0, rel=1e-5) and spot["spot_blend"] == pytest.approx(0.2)
+    rect, disk = L["Rect"], L["Disk"]
+    assert (rect["shape"], rect["size"], rect["size_y"]) == ("RECTANGLE", 0.5, 0.25)
+    assert rect["energy"] == pytest.approx(math.pi * 3.0, rel=1e-6) and rect["normalize"] is False
+    assert disk["shape"] == "DISK" and disk["size"] == pytest.approx(0.4)
+    assert disk["energy"] == pytest.approx(math.pi * 3.0, rel=1e-6) and disk["normalize"] is True
+
+
+def test_distant_light_is_4i_with_a_doubled_angle_and_unnormalized_renders_dark(native):
+    nat, ours = native["lights"]["Sun"], native["ours"]["Sun"]
+    assert nat["type"] == "SUN" and nat["energy"] == pytest.approx(12.0)  # 4 I; ours: strength = I
+    assert ours["strength"] == pytest.approx(3.0)
+    assert math.degrees(nat["angle"]) == pytest.approx(2.0, rel=1e-5)  # 2 x angle; ours: angle
+    assert math.degrees(ours["angle"]) == pytest.approx(1.0, rel=1e-5)
+    assert nat["normalize"] is False
+    # unnormalized: the 12 W/m^2 is the sun disk's radiance, not irradiance -> almost no light on the floor
+    assert _centre(native["sun_img"]) < 0.01 * native["sun_expected"]
+    # with angle 0 (what `--light sun:` and the Mitsuba XML reader write) the 4 I is irradiance: 4x too bright
+    assert _centre(native["sharp_img"]) == pytest.approx(4 * native["sun_expected"], rel=0.02)
+
+
+def test_dome_world_resolution_and_camera(native):
+    s, e = native["startup"], native["empty"]
+    bg = next(n for n in s["world"]["nodes"] if n["type"] == "ShaderNodeBackground")
+    assert bg["strength"] == pytest.approx(0.8)  # the dome's intensity ...
+    np.testing.assert_allclose(bg["color"], STARTUP_GREY, rtol=1e-4)  # ... times the startup World's grey
+    assert e["world"] is None  # an empty file has no World, and the importer makes none
+    # RenderSettings ignored: the file's 1920 x 1080 stays; the imported camera is not made active
+    assert s["resolution"][:2] == [1920, 1080] and s["scene_camera"] is None
+    cam = s["cameras"][0]
+    # focalLength / apertures read as tenths of a stage unit (metersPerUnit 1): 100 x our millimetre values
+    assert cam["sensor_fit"] == "HORIZONTAL" and cam["sensor_width"] == pytest.approx(3600.0)
+    assert cam["lens"] == pytest.approx(100 * 36.0 / (2 * math.tan(math.radians(20.0))), rel=1e-5)
+    np.testing.assert_allclose(np.array(cam["matrix"])[:3, 3], [0, 0, 1], atol=1e-6)  # Y-up -> Z-up
