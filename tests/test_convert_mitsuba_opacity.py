@@ -233,3 +233,19 @@ def test_fast_engine_refuses_translucent_materials(cli, tmp_path):
     rec = read_scene(Usd.Stage.Open(str(tmp_path / "edited.usda")))
     with pytest.raises(UsdRelightError, match="opaque Lambertian materials only"):
         FastRenderer(rec)
+
+
+def test_doublesided_edit_on_a_sphere_wraps_its_one_sided_bsdf(cli, tmp_path):
+    """Analytic gprims carry doubleSided too (ShapeRecord.double_sided): a one-sided conductor sphere is written
+    bare, and in twosided once the sphere is made doubleSided."""
+    src = _scene(tmp_path, "a", SPHERE.format(bsdf='<bsdf type="conductor"/>'))
+    assert cli("convert", src, tmp_path / "a.usda")[0] == 0
+    assert cli("convert", tmp_path / "a.usda", tmp_path / "b.xml")[0] == 0
+    assert 'type="twosided"' not in (tmp_path / "b.xml").read_text()
+    stage = Usd.Stage.Open(str(tmp_path / "a.usda"))
+    sphere = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Sphere))
+    assert UsdGeom.Gprim(sphere).GetDoubleSidedAttr().Get() is False
+    UsdGeom.Gprim(sphere).GetDoubleSidedAttr().Set(True)
+    stage.GetRootLayer().Export(str(tmp_path / "ds.usda"))
+    assert cli("convert", tmp_path / "ds.usda", tmp_path / "ds.xml")[0] == 0
+    assert 'type="twosided"' in (tmp_path / "ds.xml").read_text()

@@ -206,8 +206,8 @@ class MaterialBuilder:
             kids = [c for c in inner.children if c.tag == "bsdf"]
             if not kids:
                 break
-            if inner.type == "mask" and mask is None:
-                mask = inner
+            if inner.type == "mask":
+                mask = mask or inner
             elif inner.type == "twosided":
                 two = True
                 if len(kids) > 1:
