@@ -23,12 +23,12 @@ import numpy as np
 from usdrelight.atomic import atomic_path, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
-from usdrelight.stage.lux import set_light_rgb
+from usdrelight.stage.lux import emitted_radiance, set_light_rgb
 from usdrelight.stage.read import read_scene
-from usdrelight.stage.records import TextureRecord
+from usdrelight.stage.records import MeshRecord, TextureRecord
 from usdrelight.stage.validate import check_finite
 
-from .blender_units import Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
+from .blender_units import SOFTEST_SPOT, Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
 
 SUFFIXES = (".blend", ".py")
 TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
@@ -76,16 +76,71 @@ def _material_spec(mat, name: str) -> dict:
             "metallic": scalar(mat.metallic, 0.0), "roughness": scalar(mat.roughness, 0.5), "ior": float(mat.ior)}
 
 
+def _shape_mesh(shape, n: int = 48) -> MeshRecord:
+    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere: n x n/2 UV sphere, smooth normals;
+    its area is 0.3% short of the sphere's at n = 48)."""
+    if shape.kind == "sphere":
+        th, ph = np.meshgrid(np.linspace(0, np.pi, n // 2 + 1), np.linspace(0, 2 * np.pi, n + 1), indexing="ij")
+        unit = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+        i, j = np.meshgrid(np.arange(n // 2), np.arange(n), indexing="ij")
+        a, b = (i * (n + 1) + j).ravel(), (i * (n + 1) + j + 1).ravel()
+        c, d = a + n + 1, b + n + 1
+        faces = np.concatenate([np.stack([a, c, d], 1), np.stack([a, d, b], 1)])
+        normals = unit
+    elif shape.kind == "cube":
+        unit, faces = [], []
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                u, v = (axis + 1) % 3, (axis + 2) % 3
+                quad = np.zeros((4, 3))
+                quad[:, axis] = sign
+                quad[:, u], quad[:, v] = [-1, 1, 1, -1], [-1, -1, 1, 1]
+                k = len(unit) * 4
+                faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]] if sign > 0 else [[k, k + 2, k + 1], [k, k + 3, k + 2]]
+                unit.append(quad)
+        unit, faces, normals = np.concatenate(unit), np.asarray(faces), None
+    else:  # rectangle [-1, 1]^2 in z = 0, normal +Z
+        unit, faces, normals = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), \
+            np.array([[0, 1, 2], [0, 2, 3]]), None
+    m = shape.to_world
+    pts = unit @ m[:3, :3].T + m[:3, 3]
+    if normals is not None:
+        normals = normals @ np.linalg.inv(m[:3, :3])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if np.linalg.det(m[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), normals, None, shape.material)
+
+
+def _lux_warnings(light, warnings) -> None:
+    """What Cycles cannot show of a UsdLux light (one line per kind; README "UsdLux attributes not represented")."""
+    if light.cone_angle_deg is not None and light.kind != "sphere":
+        warnings["ShapingAPI on a disk, rect, distant, dome or mesh light in the Blender converter (ignored)"] += 1
+    elif light.cone_angle_deg is not None and light.cone_softness > SOFTEST_SPOT:
+        warnings[f"ShapingAPI coneSoftness above {SOFTEST_SPOT} (Cycles' softest spot_blend 1 used: "
+                 f"more light than UsdLux's fade, up to 1.6x at softness 1)"] += 1
+
+
 def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
     """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``."""
     rec = read_scene(stage)
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
     mats, meshes = {}, []
-    for i, m in enumerate(rec.meshes):
+    all_meshes = list(rec.meshes) + [_shape_mesh(sh) for sh in rec.shapes]
+    mesh_lights = {l.path: l for l in rec.lights if l.kind == "mesh"}
+    emitting = set()
+    for i, m in enumerate(all_meshes):
         key = m.material.path or "__default__"
+        # a MeshLightAPI mesh (or one of its GeomSubsets) emits: its own copy of the material, with emission
+        light = mesh_lights.get(m.path) or mesh_lights.get(m.path.rsplit("/", 1)[0])
+        if light is not None:
+            key = f"{key}@{light.path}"
+            emitting.add(light.path)
         if key not in mats:
             mats[key] = _material_spec(m.material, f"M{len(mats)}_{key.strip('/').replace('/', '_')}"[:60])
+            if light is not None:
+                mats[key]["emission"] = [float(x) for x in emitted_radiance(light)]
         arrays = {"points": (m.points @ conv[:3, :3].T).astype(np.float32), "faces": m.faces.astype(np.int32)}
         if m.normals is not None:
             arrays["normals"] = (m.normals @ conv[:3, :3].T).astype(np.float32)
@@ -95,8 +150,6 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
         np.savez(data_dir / fname, **arrays)
         meshes.append({"name": m.path.strip("/").replace("/", "_")[:60] or f"mesh{i}", "usd_path": m.path,
                        "file": f"{data_dir.name}/{fname}", "material": mats[key]["name"]})
-    if rec.shapes:
-        rec.warnings["UsdGeom Sphere/Cube/Plane gprims in the Blender converter (not converted)"] += len(rec.shapes)
     cam = None
     if rec.camera is not None:
         k = rec.camera.intrinsics
@@ -110,9 +163,10 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
-    if len(lights) < len(rec.lights):
-        rec.warnings["mesh lights (MeshLightAPI) in the Blender converter (geometry kept, emission not converted)"] \
-            += len(rec.lights) - len(lights)
+    if set(mesh_lights) - emitting:
+        rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
+    for l in rec.lights:
+        _lux_warnings(l, rec.warnings)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights}
