@@ -1,17 +1,25 @@
-"""Benchmark issue 15: interchange fidelity on Mitsuba scene files others wrote.
+"""Benchmark issue 15: interchange fidelity on Mitsuba scene files, XML -> USD -> XML.
 
-Every Mitsuba regression scene in ``../shared/testdata/mitsuba-data/tests/scenes/*/test_*.xml`` is converted
-XML -> USD -> XML with ``usdrelight convert`` (in-process, ``--allow-path`` the data folder) and both the original
-and the round trip are rendered by Mitsuba (llvm_ad_rgb, the same spp). Reported per scene: the image means of
-the reference EXR (``refs/``), the original and the round trip, the round trip's mean error against the
-reference and against the original, the per-pixel mean absolute difference to the original (relative to its
-mean), and the converter's warnings.
+Scenes: every Mitsuba regression scene in ``../shared/testdata/mitsuba-data/tests/scenes/*/test_*.xml`` (others
+wrote them; their reference EXRs are in ``refs/``) and, with ``--corpus`` (the default), our own small scenes in
+``tests/data/mitsuba_corpus/`` (one per feature; no references: the original's render is the reference). Each is
+converted with ``usdrelight convert`` (in-process, ``--allow-path`` the data folders) XML -> USD -> XML, and
+Mitsuba (llvm_ad_rgb) renders the original and the round trip at ``--spp`` with seeds 0 .. ``--seeds``-1 (the
+same seed for both: what the round trip reproduces exactly then renders the same paths).
+
+Reported per scene: the image means (original and round trip: mean over seeds +- its standard error), the
+reference EXR's mean, the round trip's mean error against the reference and against the original (+- the
+standard error of the paired per-seed differences), the per-pixel relative RMSE of the seed-0 round trip against
+the seed-0 original (sqrt(mean((b - a)^2)) / mean(a)), the seconds of each conversion and the converter's warnings.
 
 A scene whose own files are missing from the data set (Mitsuba cannot render it either) is reported as such;
 when the missing file is an envmap, a variant without that emitter is also measured (against Mitsuba's render
-of the same variant: no reference exists for it).
+of the same variant: no reference exists for it). Issue 15's "dielectric spheres and a point light" scene is not
+in the data set; a variant of bsdf_spheres with dielectric spheres is built and measured, and ``--noise`` adds
+how its image mean spreads over seeds at 16 .. 1024 spp (``noise`` in the JSON).
 
-    python benchmarks/bench_interchange.py [--spp 128] [--out benchmarks/results/interchange.json]
+    python benchmarks/bench_interchange.py [--spp 128] [--seeds 4] [--no-corpus] [--noise]
+                                           [--out benchmarks/results/interchange.json]
 """
 from __future__ import annotations
 
@@ -34,6 +42,7 @@ from usdrelight.mitsuba.runtime import load_mitsuba
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "testdata" / "mitsuba-data"
+CORPUS = ROOT / "tests" / "data" / "mitsuba_corpus"
 
 
 def _cli(*args) -> tuple[int, list[str]]:
@@ -52,9 +61,10 @@ def _cli(*args) -> tuple[int, list[str]]:
     return rc, lines
 
 
-def _render(path: Path, spp: int) -> np.ndarray:
+def _renders(path: Path, spp: int, seeds: int) -> list[np.ndarray]:
     mi = load_mitsuba()
-    return np.array(mi.render(mi.load_file(str(path)), spp=spp), dtype=np.float64)[..., :3]
+    scene = mi.load_file(str(path))
+    return [np.array(mi.render(scene, spp=spp, seed=s), dtype=np.float64)[..., :3] for s in range(seeds)]
 
 
 def _reference(scene: Path) -> Path | None:
@@ -71,10 +81,10 @@ def _reference(scene: Path) -> Path | None:
     return max(refs, key=lambda r: common(r.stem, scene.stem))
 
 
-def _without_missing_envmaps(scene: Path, work: Path) -> Path | None:
-    """A copy of the scene's folder with envmap emitters whose file is missing removed (None: nothing to remove)."""
-    dst = work / "variant" / scene.parent.name
-    shutil.copytree(scene.parent, dst)
+def _copy_without_missing_envmaps(scene_dir: Path, dst: Path) -> int:
+    """Copy a regression scene's folder to ``dst`` with the data set's common folder made absolute and envmap
+    emitters whose file is missing removed; returns how many were removed."""
+    shutil.copytree(scene_dir, dst)
     removed = 0
     for xml in dst.rglob("*.xml"):
         text = xml.read_text()
@@ -89,81 +99,182 @@ def _without_missing_envmaps(scene: Path, work: Path) -> Path | None:
             return m.group(0)
         text = re.sub(r'<emitter type="envmap">.*?</emitter>', drop, text, flags=re.S)
         xml.write_text(text)
-    return dst / scene.name if removed else None
+    return removed
 
 
-def measure(scene: Path, work: Path, spp: int, ref: Path | None, label: str) -> dict:
-    row = {"scene": label, "spp": spp}
+def dielectric_variant(work: Path) -> Path | None:
+    """Issue 15's unstable scene rebuilt from bsdf_spheres: its four roughplastic spheres become two smooth
+    dielectrics (bk7 / air) and two roughdielectrics (alpha 0.1, 0.4), lit by its area light on an obj quad and
+    its point light (its missing envmap removed)."""
+    src = DATA / "tests" / "scenes" / "bsdf_spheres"
+    if not src.exists():
+        return None
+    dst = work / "dielectric_variant" / "bsdf_spheres"
+    _copy_without_missing_envmaps(src, dst)
+    text = (dst / "test_roughplastic_linear_path.xml").read_text()
+    bsdfs = ['<bsdf type="dielectric"><string name="int_ior" value="bk7"/><string name="ext_ior" value="air"/>'
+             '</bsdf>'] * 2 + [f'<bsdf type="roughdielectric"><float name="alpha" value="{a}"/>'
+                               f'<string name="int_ior" value="bk7"/></bsdf>' for a in (0.1, 0.4)]
+    parts = re.split(r'<bsdf type="roughplastic">.*?</bsdf>', text, flags=re.S)
+    if len(parts) != 5:
+        return None
+    out = dst / "test_dielectric_point_light.xml"
+    out.write_text(parts[0] + "".join(b + p for b, p in zip(bsdfs, parts[1:])))
+    return out
+
+
+def _mean_se(x) -> tuple[float, float]:
+    x = np.asarray(x, np.float64)
+    return float(x.mean()), float(x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else 0.0
+
+
+def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, label: str, allow: list) -> dict:
+    row = {"scene": label, "spp": spp, "seeds": seeds}
+    if ref is not None:
+        row.update(reference=str(ref.relative_to(DATA)),
+                   mean_reference=float(np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3].mean()))
+    allow_args = [a for d in allow for a in ("--allow-path", d)]
     t = time.perf_counter()
     try:
-        original = _render(scene, spp)
+        original = _renders(scene, spp, seeds)
     except Exception as exc:  # Mitsuba itself cannot render it (a file missing from the data set)
         row.update(status="original does not render",
                    error=str(exc).splitlines()[-1].replace(str(DATA) + "/", "")[:400])
         return row
-    row["seconds_original"] = round(time.perf_counter() - t, 2)
+    row["seconds_render_original"] = round(time.perf_counter() - t, 2)
     usd, back = work / f"{label}.usda", work / "back" / label / "scene.xml"
-    rc, err = _cli("convert", scene, usd, "--allow-path", DATA)
+    t = time.perf_counter()
+    rc, err = _cli("convert", scene, usd, *allow_args)
+    row["seconds_to_usd"] = round(time.perf_counter() - t, 3)
     row["warnings_to_usd"] = [e for e in err if "error" not in e]
     if rc != 0:
         row.update(status="XML -> USD failed", error=err[-1] if err else "")
         return row
-    rc, err = _cli("convert", usd, back, "--allow-path", DATA)
+    t = time.perf_counter()
+    rc, err = _cli("convert", usd, back, *allow_args)
+    row["seconds_to_xml"] = round(time.perf_counter() - t, 3)
     row["warnings_to_xml"] = [e for e in err if "error" not in e]
     if rc != 0:
         row.update(status="USD -> XML failed", error=err[-1] if err else "")
         return row
     t = time.perf_counter()
-    ours = _render(back, spp)
-    row["seconds_round_trip"] = round(time.perf_counter() - t, 2)
-    m_orig, m_ours = float(original.mean()), float(ours.mean())
-    row.update(status="ok", mean_original=m_orig, mean_round_trip=m_ours,
-               round_trip_vs_original=m_ours / m_orig - 1 if m_orig > 0 else None,
-               pixel_mad_vs_original=float(np.abs(ours - original).mean() / m_orig) if m_orig > 0 else None)
+    ours = _renders(back, spp, seeds)
+    row["seconds_render_round_trip"] = round(time.perf_counter() - t, 2)
+    mo = np.array([a.mean() for a in original])
+    mr = np.array([b.mean() for b in ours])
+    (m_orig, se_orig), (m_ours, se_ours) = _mean_se(mo), _mean_se(mr)
+    row.update(status="ok", mean_original=m_orig, se_original=se_orig, mean_round_trip=m_ours, se_round_trip=se_ours)
+    if m_orig > 0 and original[0].shape == ours[0].shape:
+        diff = _mean_se(mr - mo)
+        row.update(round_trip_vs_original=m_ours / m_orig - 1, se_round_trip_vs_original=diff[1] / m_orig,
+                   pixel_rel_rmse_vs_original=float(np.sqrt(np.mean((ours[0] - original[0]) ** 2)) / mo[0]))
     if ref is not None:
-        mi = load_mitsuba()
-        r = np.array(mi.Bitmap(str(ref)), dtype=np.float64)[..., :3]
-        m_ref = float(r.mean())
-        row.update(reference=str(ref.relative_to(DATA)), mean_reference=m_ref,
-                   original_vs_reference=m_orig / m_ref - 1, round_trip_vs_reference=m_ours / m_ref - 1,
-                   pixel_mad_round_trip_vs_reference=float(np.abs(ours - r).mean() / m_ref)
-                   if ours.shape == r.shape else None)
+        r = np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3]
+        m_ref = row["mean_reference"]
+        row.update(original_vs_reference=m_orig / m_ref - 1, round_trip_vs_reference=m_ours / m_ref - 1,
+                   se_round_trip_vs_reference=se_ours / m_ref,
+                   pixel_rel_rmse_round_trip_vs_reference=float(np.sqrt(np.mean((ours[0] - r) ** 2)) / m_ref)
+                   if ours[0].shape == r.shape else None)
     return row
 
 
-def _pct(v) -> str:
-    return "-" if v is None else f"{100 * v:+.1f}%"
+def noise_study(scene: Path, seeds: int = 8, spps=(16, 64, 256, 1024)) -> list[dict]:
+    """How the image mean of ``scene`` spreads over seeds: per spp, the relative standard deviation of one
+    render's mean, and the range of relative differences between two renders with different seeds (what a
+    comparison sees when the round trip's paths are not the original's)."""
+    rows = []
+    for spp in spps:
+        m = np.array([im.mean() for im in _renders(scene, spp, seeds)])
+        other = m / np.roll(m, 1) - 1
+        rows.append({"spp": spp, "seeds": seeds, "mean": float(m.mean()),
+                     "rel_std_of_one_render": float(m.std(ddof=1) / m.mean()),
+                     "rel_se_of_the_mean": float(m.std(ddof=1) / np.sqrt(seeds) / m.mean()),
+                     "other_seed_difference_min": float(other.min()), "other_seed_difference_max": float(other.max())})
+    return rows
+
+
+def _pct(v, se=None) -> str:
+    if v is None:
+        return "-"
+    return f"{100 * v:+.1f}%" + (f" ± {100 * se:.1f}" if se is not None and se >= 0.0005 else "")
+
+
+def _mean(r, key) -> str:
+    if key not in r:
+        return "-"
+    se = r.get(key.replace("mean_", "se_"))
+    return f"{r[key]:.4f}" + (f" ± {se:.4f}" if se is not None and se >= 0.00005 else "")
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| scene | reference mean | original mean | round-trip mean | error vs reference | error vs original "
+             "| pixel rel. RMSE | convert s (to USD + to XML) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["status"] != "ok":
+            lines.append(f"| {r['scene']} | {_mean(r, 'mean_reference')} | {r['status']} | - | - | - | - | - |")
+            continue
+        rmse = r.get("pixel_rel_rmse_vs_original")
+        lines.append(
+            f"| {r['scene']} | {_mean(r, 'mean_reference')} | {_mean(r, 'mean_original')} | "
+            f"{_mean(r, 'mean_round_trip')} | "
+            f"{_pct(r.get('round_trip_vs_reference'), r.get('se_round_trip_vs_reference'))} | "
+            f"{_pct(r.get('round_trip_vs_original'), r.get('se_round_trip_vs_original'))} | "
+            f"{'-' if rmse is None else f'{rmse:.3f}'} | {r['seconds_to_usd']:.2f} + {r['seconds_to_xml']:.2f} |")
+    return "\n".join(lines)
 
 
 def main_bench(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spp", type=int, default=128)
+    ap.add_argument("--seeds", type=int, default=4, help="renders per image (seeds 0 .. N-1) for mean +- s.e.")
     ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--corpus", action=argparse.BooleanOptionalAction, default=True,
+                    help="also our own scenes in tests/data/mitsuba_corpus (default on)")
+    ap.add_argument("--noise", action="store_true", help="seed spread of the dielectric + point light scene")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "interchange.json")
     args = ap.parse_args(argv)
-    scenes = sorted(args.data.glob("tests/scenes/*/test_*.xml"))
-    rows = []
+    mi = load_mitsuba()
+    mi.set_log_level(mi.LogLevel.Error)  # e.g. the stratified sampler rounding 128 spp to 144, on stdout
+    rows, noise = [], None
     with tempfile.TemporaryDirectory() as td:
-        for scene in scenes:
-            work = Path(td) / scene.stem
+        jobs = []
+        for scene in sorted(args.data.glob("tests/scenes/*/test_*.xml")):
+            jobs.append((scene, _reference(scene), scene.stem, [args.data]))
+        variant = dielectric_variant(Path(td))
+        if variant is not None:
+            jobs.append((variant, None, "bsdf_spheres with dielectric spheres + point light (issue 15)",
+                         [args.data, variant.parent]))
+        if args.corpus:
+            jobs += [(s, None, f"corpus/{s.stem}", [CORPUS]) for s in sorted(CORPUS.glob("*.xml"))]
+        for i, (scene, ref, label, allow) in enumerate(jobs):
+            work = Path(td) / f"job{i}"
             work.mkdir()
-            row = measure(scene, work, args.spp, _reference(scene), scene.stem)
+            row = measure(scene, work, args.spp, args.seeds, ref, label, allow)
             rows.append(row)
-            if row["status"] != "ok":
-                variant = _without_missing_envmaps(scene, work)
-                if variant is not None:
-                    rows.append(measure(variant, work, args.spp, None, scene.stem + " (missing envmap removed)"))
-    doc = {"spp": args.spp, "data": str(args.data), "scenes": rows,
-           "note": "relative errors of image means; pixel_mad = mean |difference| / mean of the other image"}
+            if row["status"] != "ok" and label == scene.stem:
+                dst = work / "variant" / scene.parent.name
+                if _copy_without_missing_envmaps(scene.parent, dst):
+                    rows.append(measure(dst / scene.name, work, args.spp, args.seeds, None,
+                                        scene.stem + " (missing envmap removed)", [args.data]))
+            print(f"{label}: {row['status']}", file=sys.stderr, flush=True)
+        if args.noise and variant is not None:
+            noise = noise_study(variant)
+    doc = {"spp": args.spp, "seeds": args.seeds, "data": str(args.data), "scenes": rows,
+           "note": "means over seeds 0..seeds-1 (+- standard error); errors are relative errors of image means "
+                   "(+- the standard error of the paired per-seed differences); pixel_rel_rmse = "
+                   "sqrt(mean((b - a)^2)) / mean(a) of the seed-0 renders"}
+    if noise is not None:
+        doc["noise"] = {"scene": "bsdf_spheres with dielectric spheres + point light (issue 15)", "rows": noise}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
-    print("| scene | status | reference mean | original vs ref. | round trip vs ref. | round trip vs original "
-          "| pixel MAD vs original |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['scene']} | {r['status']} | {r.get('mean_reference', float('nan')):.4f} | "
-              f"{_pct(r.get('original_vs_reference'))} | {_pct(r.get('round_trip_vs_reference'))} | "
-              f"{_pct(r.get('round_trip_vs_original'))} | {_pct(r.get('pixel_mad_vs_original'))} |")
+    print(table(rows))
+    if noise is not None:
+        print("\n| spp | mean | rel. std of one render | difference between two seeds (min .. max) |")
+        print("|---|---|---|---|")
+        for n in noise:
+            print(f"| {n['spp']} | {n['mean']:.5f} | {100 * n['rel_std_of_one_render']:.1f}% | "
+                  f"{_pct(n['other_seed_difference_min'])} .. {_pct(n['other_seed_difference_max'])} |")
     return 0
 
 

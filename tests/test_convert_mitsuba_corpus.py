@@ -3,8 +3,8 @@ use, through XML -> USD -> XML: Mitsuba renders the original and the round trip 
 the image means must agree within 5% (the per-pixel relative RMSE, sqrt(mean((b - a)^2)) / mean(a), is in the
 message; 0.000 where the round trip reproduces the scene exactly, as the same seed then draws the same paths).
 
-The round trip must also keep how the image is sampled (integrator, sampler and its seed, the film's rfilter,
-Mitsuba's defaults where the XML names none), and the conversion must be byte-deterministic: two processes with
+The round trip must also keep how the image is sampled (integrator, sampler and its seed, the film's rfilter;
+Mitsuba's default sampler and rfilter where the XML names none), and the conversion must be byte-deterministic: two processes with
 different PYTHONHASHSEED write identical USD, XML and PLY files (issue 15's unstable dielectric scene).
 Each scene's first comment says what it exercises; `benchmarks/bench_interchange.py` measures them at more spp.
 """
@@ -90,20 +90,23 @@ def test_round_trip_renders_like_the_original(cli, tmp_path, name):
 _CONVERT = """
 import sys
 from usdrelight.cli import main
-src, out = sys.argv[1], sys.argv[2]
-assert main(["convert", src, out + "/usd/scene.usda"]) == 0
-assert main(["convert", out + "/usd/scene.usda", out + "/xml/scene.xml", "--allow-path", sys.argv[3]]) == 0
+corpus, out = sys.argv[1], sys.argv[2]
+for name in sys.argv[3:]:
+    usd, xml = f"{out}/{name}/usd/scene.usda", f"{out}/{name}/xml/scene.xml"
+    assert main(["convert", f"{corpus}/{name}.xml", usd]) == 0
+    assert main(["convert", usd, xml, "--allow-path", corpus]) == 0
 """
 
 
 def test_conversion_is_byte_deterministic(tmp_path):
     """Issue 15's +17% / +2% dielectric scene: not the conversion (identical bytes whatever the hash seed)."""
+    names = ["dielectric_point_light", "sphere_grid", "emitter_envmap", "mesh_emitter_ply", "bsdf_mask"]
     outs = []
     for seed in ("1", "2"):
         out = tmp_path / f"run{seed}"
         env = {**os.environ, "PYTHONHASHSEED": seed}
-        subprocess.run([sys.executable, "-c", _CONVERT, str(CORPUS / "dielectric_point_light.xml"), str(out),
-                        str(CORPUS)], check=True, env=env, capture_output=True, cwd=tmp_path)
+        subprocess.run([sys.executable, "-c", _CONVERT, str(CORPUS), str(out), *names], check=True, env=env,
+                       capture_output=True, cwd=tmp_path)
         outs.append({p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()})
-    assert len(outs[0]) >= 4 and outs[0].keys() == outs[1].keys()
+    assert len(outs[0]) >= 4 * len(names) and outs[0].keys() == outs[1].keys()
     assert [k for k in outs[0] if outs[0][k] != outs[1][k]] == []

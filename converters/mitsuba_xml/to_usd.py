@@ -351,8 +351,8 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
             # a property of the wrong kind or shape (<boolean name="direction">, a 2-vector position ...)
             raise UsdRelightError(f"<{p.tag} type='{p.type}'{f' id={p.id!r}' if p.id else ''}>: a property has the "
                                   f"wrong type or shape ({type(exc).__name__})") from None
-    if b.settings is not None:  # no <integrator>: Mitsuba's default, path tracing without a depth limit
-        kept = {"integrator": integrator or {"type": "path"}, **b.sampling}
+    if b.settings is not None:  # (Mitsuba 3.9 has no default integrator: the XML writer then writes its own)
+        kept = {**({"integrator": integrator} if integrator is not None else {}), **b.sampling}
         b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(kept, sort_keys=True))
     check_finite(stage, source)  # e.g. a float64 beyond float32 would be written as Inf
     for kind, n in warnings.items():
