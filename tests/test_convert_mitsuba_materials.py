@@ -181,3 +181,29 @@ def test_plastic_is_kept_exactly_and_approximated_through_usd_alone(cli, tmp_pat
     print(name, plain.mean(), original.mean(), rmse)
     if name == "plastic":
         assert plain.mean() == pytest.approx(original.mean(), rel=0.05), (plain.mean(), original.mean(), rmse)
+
+
+def test_textured_eta_is_baked_into_an_f0_texture(cli, tmp_path):
+    """A conductor with a bitmap eta (an sRGB PNG, halves 0.2 and 0.8 once decoded) and k 3: F0 per texel written next to the USD
+    file and connected to diffuseColor; a quad facing the camera (normal incidence, where F0 is exact) renders
+    alike from the original and through USD."""
+    from usdrelight.imageio import read_photo, write_image
+
+    eta = np.full((8, 8, 3), 0.2, np.float32)
+    eta[:, 4:] = 0.8
+    write_image(tmp_path / "eta.png", eta, "uint8", srgb=True)  # decoded by Mitsuba: 0.2 and 0.8 again
+    bsdf = ('<bsdf type="conductor"><texture type="bitmap" name="eta"><string name="filename" value="eta.png"/>'
+            '</texture><rgb name="k" value="3"/></bsdf>')
+    (tmp_path / "a.xml").write_text(SCENE.format(bsdf=bsdf).replace('type="sphere">', 'type="rectangle">'))
+    rc, _, err = cli("convert", tmp_path / "a.xml", tmp_path / "usd" / "a.usda")
+    assert rc == 0 and "normal-incidence F0 baked" in err and "constants used" not in err, err
+    baked = list((tmp_path / "usd" / "textures").glob("*_f0.exr"))
+    assert len(baked) == 1
+    f0 = read_photo(baked[0])[..., :3]
+    want = lambda e: ((e - 1) ** 2 + 9) / ((e + 1) ** 2 + 9)  # noqa: E731
+    np.testing.assert_allclose(f0[:, :4], want(0.2), rtol=3e-3)  # 8-bit sRGB quantisation
+    np.testing.assert_allclose(f0[:, 4:], want(0.8), rtol=3e-3)
+    assert cli("convert", tmp_path / "usd" / "a.usda", tmp_path / "b.xml")[0] == 0
+    m0, m1 = _render(tmp_path / "a.xml", spp=64).mean(), _render(tmp_path / "b.xml", spp=64).mean()
+    print("baked eta", m0, m1)
+    assert m1 == pytest.approx(m0, rel=0.05)

@@ -4,7 +4,8 @@ diffuse -> Lambertian (specular workflow, black specular, roughness 1); plastic/
 workflow with roughness sqrt(alpha), ior int_ior / ext_ior and specularColor = F0(ior) x specular_reflectance
 (the spec's normal-incidence colour), the BSDF kept in customData; conductor/roughconductor -> metallic 1 with
 the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (eta/k of a named
-``material`` read from Mitsuba itself) times the specular reflectance as base colour; dielectric/
+``material`` read from Mitsuba itself) times the specular reflectance as base colour (bitmap eta/k: F0 per texel
+baked into ``textures/<material>_f0.exr`` next to the USD file, the only file this reader writes); dielectric/
 roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
 itself kept in the Material's ``customData["mitsuba"]["bsdf"]`` for the XML export; principled -> metallic
 workflow; mask -> opacity with opacityThreshold > 0 (presence, the spec's cutout mode: a texture's red channel
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
+from usdrelight.imageio import write_image
 from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.stage.create import author_lambertian, author_uv_texture, define_preview_material
 
@@ -140,24 +142,25 @@ class MaterialBuilder:
                                    "specular": [float(np.float32(x)) for x in spec * f0],
                                    "roughness": float(np.float32(math.sqrt(max(alpha, 0.0)))), "ior": ior}
         elif t in ("conductor", "roughconductor"):
-            f0, eta_k = self.conductor_f0(inner, textures)
             alpha = float(inner.props.get("alpha", 0.1)) if t == "roughconductor" else 0.0
             sh.CreateInput("metallic", F).Set(1.0)
             sh.CreateInput("roughness", F).Set(math.sqrt(max(alpha, 0.0)))
-            if "specular_reflectance" in textures:
-                tex = self.texture_input(path, sh, "diffuseColor", textures["specular_reflectance"])
-                if tex is not None and not np.allclose(f0, 1.0):
-                    tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, f0), 1.0))
-            else:
-                spec = np.broadcast_to(np.asarray(inner.props.get("specular_reflectance", 1.0), np.float64), (3,))
-                base = [float(x) for x in f0 * spec]
-                sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*base))
-                if eta_k is not None:  # the exact conductor, for the XML export while these inputs hold
-                    extra["bsdf"] = {"type": t, **eta_k, "specular_reflectance": [float(x) for x in spec]}
-                    if t == "roughconductor":
-                        extra["bsdf"]["alpha"] = alpha
-                    extra["inputs"] = {"metallic": 1.0, "roughness": math.sqrt(max(alpha, 0.0)),
-                                       "diffuse": [float(np.float32(x)) for x in base]}
+            if not ("eta" in textures or "k" in textures) or not self.bake_f0(path, sh, inner, textures):
+                f0, eta_k = self.conductor_f0(inner, textures)
+                if "specular_reflectance" in textures:
+                    tex = self.texture_input(path, sh, "diffuseColor", textures["specular_reflectance"])
+                    if tex is not None and not np.allclose(f0, 1.0):
+                        tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, f0), 1.0))
+                else:
+                    spec = np.broadcast_to(np.asarray(inner.props.get("specular_reflectance", 1.0), np.float64), (3,))
+                    base = [float(x) for x in f0 * spec]
+                    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*base))
+                    if eta_k is not None:  # the exact conductor, for the XML export while these inputs hold
+                        extra["bsdf"] = {"type": t, **eta_k, "specular_reflectance": [float(x) for x in spec]}
+                        if t == "roughconductor":
+                            extra["bsdf"]["alpha"] = alpha
+                        extra["inputs"] = {"metallic": 1.0, "roughness": math.sqrt(max(alpha, 0.0)),
+                                           "diffuse": [float(np.float32(x)) for x in base]}
         elif t in ("dielectric", "roughdielectric", "thindielectric"):
             extra["bsdf"] = self.dielectric(inner, textures, sh, ior_value)
             extra["inputs"] = {"opacity": 0.0, "ior": extra["bsdf"]["int_ior"] / extra["bsdf"]["ext_ior"],
@@ -249,6 +252,55 @@ class MaterialBuilder:
         if 0.0 < c < 1.0:
             self.warnings["mask with a constant fractional opacity (opacity = opacityThreshold: presence per the "
                           "UsdPreviewSurface spec; viewers that only cut at the threshold draw it opaque)"] += 1
+
+    def bake_f0(self, path: str, sh, inner: Plugin, textures: dict) -> bool:
+        """A conductor with a bitmap eta and/or k: its normal-incidence Fresnel colour F0 per texel (texels as
+        Mitsuba loads them: sRGB decoded unless ``raw``) x a constant specular_reflectance, written as a float
+        OpenEXR into ``textures/`` next to the USD file and connected to diffuseColor. False (constants used,
+        warned by :meth:`conductor_f0`) for a stage in memory, a non-bitmap or textured specular_reflectance,
+        or eta and k maps of different sizes."""
+        layer = self.stage.GetRootLayer()
+        if layer.anonymous or not layer.realPath or "specular_reflectance" in textures:
+            return False
+        mi = load_mitsuba()
+        maps = {}
+        for name, default in (("eta", 0.0), ("k", 1.0)):
+            tex = textures.get(name)
+            if tex is None:
+                maps[name] = np.broadcast_to(np.asarray(inner.props.get(name, default), np.float64).reshape(-1),
+                                             (3,)).reshape(1, 1, 3)
+                continue
+            if tex.type != "bitmap" or not tex.resolved:
+                return False
+            maps[name] = self.texels(mi, tex)
+        try:
+            eta, k = np.broadcast_arrays(maps["eta"], maps["k"])
+        except ValueError:
+            return False
+        spec = np.broadcast_to(np.asarray(inner.props.get("specular_reflectance", 1.0), np.float64), (3,))
+        with np.errstate(all="ignore"):
+            f0 = ((eta - 1) ** 2 + k ** 2) / ((eta + 1) ** 2 + k ** 2) * spec
+        if not np.all(np.isfinite(f0)) or np.any(eta < 0) or np.any(k < 0):
+            return False
+        dst = Path(layer.realPath).parent / "textures" / f"{path.rsplit('/', 1)[-1]}_f0.exr"
+        write_image(dst, f0.astype(np.float32), "float")
+        author_uv_texture(self.stage, sh, "diffuseColor", self.asset(str(dst)), "raw",
+                          self.unique(path, "diffuseColorTexture"), self.unique(path, "StReader"))
+        self.warnings[f"{inner.type}: textured eta/k (normal-incidence F0 baked into textures/*_f0.exr next to the "
+                      f"USD file)"] += 1
+        return True
+
+    @staticmethod
+    def texels(mi, tex: Plugin) -> np.ndarray:
+        """(H, W, 3) values of a bitmap texture as Mitsuba evaluates them (sRGB decoded unless ``raw``), read
+        at the texel centres (Mitsuba's v = 0 is the top row)."""
+        bmp = mi.load_dict({"type": "bitmap", "filename": tex.resolved, "raw": bool(tex.props.get("raw", False)),
+                            "filter_type": "nearest"})
+        h, w = np.array(mi.traverse(bmp)["data"]).shape[:2]
+        v, u = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(w) + 0.5) / w, indexing="ij")
+        si = mi.SurfaceInteraction3f()
+        si.uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
+        return np.array(bmp.eval(si), np.float64).reshape(3, -1).T.reshape(h, w, 3)  # Color3f: (3, N)
 
     def conductor_f0(self, inner: Plugin, textures: dict):
         """Normal-incidence Fresnel reflectance per RGB channel of a conductor: its eta/k (Mitsuba's defaults
