@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import usdrelight  # noqa: E402,F401  (configures drjit's libLLVM before Mitsuba is imported)
-from blender_native import native_import  # noqa: E402
+from blender_native import all_lights_stage, native_import  # noqa: E402
 from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
 from usd_scenes import add_closed_form_light, asymmetric_latlong, dome_view_stage, looking_down_at_floor  # noqa: E402
 from usdrelight.cli import main  # noqa: E402
@@ -170,6 +170,9 @@ CASES = {"point": case_point, "point_exposure": case_point_exposure, "sphere": c
 BLACK_WORLD = {"point", "point_exposure", "sphere", "sphere_normalized", "spot", "rect", "rect_normalized", "disk",
                "distant", "distant_normalized", "distant_sharp"}
 
+#: Sphere lights with a radius: Blender's default soft falloff (on after a native import) changes them.
+SOFT_FALLOFF_OFF = {"sphere", "sphere_normalized"}
+
 
 def _resolution(stage) -> tuple[int, int]:
     path = stage.GetMetadata("renderSettingsPrimPath") or "/Render/Settings"
@@ -231,12 +234,15 @@ def run(names, spp: int, max_width: int, extra: list[Path]) -> dict:
             blend = Path(td) / f"{c['name']}.blend"
             assert main(["convert", c["usd"], str(blend)]) == 0, f"convert failed for {c['name']}"
             world = {"world_rgb": [0.0, 0.0, 0.0]} if c["name"] in BLACK_WORLD else {}
+            if c["name"] in SOFT_FALLOFF_OFF:  # also natively imported with soft falloff off, as our converter sets
+                jobs.append({"usd": c["usd"], "render": [*c["size"], spp], **world, "soft_falloff": False,
+                             "exr": str(Path(td) / f"{c['name']}_nosoft.exr")})
             jobs += [{"usd": c["usd"], "render": [*c["size"], spp], **world,
                       "exr": str(Path(td) / f"{c['name']}_native.exr")},
                      {"usd": str(blend), "blend": True, "render": [*c["size"], spp],
                       "exr": str(Path(td) / f"{c['name']}_ours.exr")}]
         t0 = time.perf_counter()
-        results = native_import(jobs)
+        results = [r for j, r in zip(jobs, native_import(jobs)) if "soft_falloff" not in j]
         render_s = time.perf_counter() - t0
         for i, c in enumerate(cases):
             name, usd, usd_value, expected, res, size = (c[k] for k in ("name", "usd", "value", "expected", "res", "size"))
@@ -263,15 +269,43 @@ def run(names, spp: int, max_width: int, extra: list[Path]) -> dict:
                                            "native_at_its_resolution": vfov(cam["sensor_width"], cam["lens"], rh / rw)}
             if expected is not None:
                 row["closed_form_centre"] = float(np.mean(expected))
+            if name in SOFT_FALLOFF_OFF:
+                row["ratio_native_soft_falloff_off_to_ours"] = float(
+                    read_map(Path(td) / f"{name}_nosoft.exr", 3).mean() / b.mean())
             if name == "dome_texture":
                 from usd_scenes import expected_dome_view
                 exp = expected_dome_view(Path(usd), asymmetric_latlong())
                 row["dome_mean_abs_error_native"] = float(np.abs(a - exp).mean())
                 row["dome_mean_abs_error_ours"] = float(np.abs(b - exp).mean())
             rows.append(row)
+        back = roundtrip(Path(td))
     return {"blender": "bpy 5.0.1 (.venv-blender), Cycles CPU", "spp": spp, "render_seconds": render_s,
             "machine": platform.platform(), "importer": "bpy.ops.wm.usd_import defaults into the startup file "
-            "(default objects deleted, World kept)", "cases": rows}
+            "(default objects deleted, World kept)", "cases": rows,
+            "roundtrip_native_blend_to_usd": back}
+
+
+def roundtrip(td: Path) -> list[dict]:
+    """USD -> native import -> saved .blend -> `usdrelight convert x.blend lights.usda` -> USD: the emitted
+    radiance (:func:`usdrelight.stage.lux.emitted_radiance`, peak channel) of each light before and after."""
+    from usdrelight.stage.lux import emitted_radiance
+    from usdrelight.stage.read import read_scene
+    from usdrelight.stage.validate import open_stage
+
+    all_lights_stage(td / "all.usda")
+    native_import([{"usd": td / "all.usda", "save": str(td / "native.blend")}])
+    assert main(["convert", str(td / "native.blend"), str(td / "back.usda")]) == 0
+    before = {l.path.rsplit("/", 1)[-1]: l for l in read_scene(open_stage(td / "all.usda")).lights}
+    after = {l.path.rsplit("/", 1)[-1]: l for l in read_scene(open_stage(td / "back.usda")).lights}
+    rows = []
+    for name, l in before.items():
+        if name not in after:
+            rows.append({"light": name, "kind": l.kind, "came_back": False})
+            continue
+        a, b = float(np.max(emitted_radiance(l))), float(np.max(emitted_radiance(after[name])))
+        rows.append({"light": name, "kind": l.kind, "came_back": True, "radiance_before": a, "radiance_after": b,
+                     "ratio": b / a, "angle_before": l.angle_deg, "angle_after": after[name].angle_deg})
+    return rows
 
 
 def print_table(res: dict) -> None:
@@ -286,6 +320,9 @@ def print_table(res: dict) -> None:
     r = res["cases"][0]
     print(f"startup render settings kept by the native import: {r['native_render_settings']}; "
           f"convert: {r['ours_render_settings']}")
+    print("native import -> .blend -> `usdrelight convert x.blend` -> USD, emitted radiance after / before: " +
+          ", ".join(f"{b['light']} {b['ratio']:.3g}" if b["came_back"] else f"{b['light']} (not a light)"
+                    for b in res["roundtrip_native_blend_to_usd"]))
     print(f"resolution: stage {r['stage_resolution']}, native import {r['native_resolution']} (startup file's), "
           f"convert {r['ours_resolution']}; active camera after native import: {r['native_active_camera']}")
 

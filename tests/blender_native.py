@@ -14,7 +14,11 @@ import json
 import tempfile
 from pathlib import Path
 
+from pxr import Gf, UsdGeom, UsdLux
+
+from usd_scenes import looking_down_at_floor
 from usdrelight.converters.blender import run_blender
+
 
 SCRIPT = r'''
 import json, sys
@@ -139,6 +143,8 @@ for job in jobs:
         for ob in scene.objects:
             if ob.type == "LIGHT" and hasattr(ob.data, "use_soft_falloff"):
                 ob.data.use_soft_falloff = job["soft_falloff"]
+    if job.get("save"):
+        bpy.ops.wm.save_as_mainfile(filepath=job["save"])
     if job.get("render"):
         if scene.camera is None:
             cams = [o for o in scene.objects if o.type == "CAMERA"]
@@ -158,10 +164,11 @@ json.dump(results, open(args[1], "w"), indent=1)
 def native_import(jobs: list[dict]) -> list[dict]:
     """Run Blender's USD importer on each job (one Blender process for all).
 
-    A job: ``{"usd": path, "blend": bool (open this .blend instead of importing a stage), "empty": bool (factory empty file instead of the startup file minus its objects),
-    "world_rgb": the startup World's colour
-    before the import (default: the startup file's grey), "soft_falloff": set on every imported light,
-    "options": {usd_import keyword: value}, "render": (width, height, spp), "exr": path}``.
+    A job: ``{"usd": path, "render": (width, height, spp), "exr": path}`` plus, optionally, "blend": True (open
+    this .blend instead of importing a stage), "empty": True (the factory empty file, which has no World, instead
+    of the startup file minus its objects), "world_rgb": the startup World's colour before the import (default:
+    its grey), "soft_falloff": set on every imported light, "save": write the imported scene to this .blend,
+    "options": {usd_import keyword: value}.
     Returns one record per job (see the module docstring)."""
     with tempfile.TemporaryDirectory() as td:
         script, jobs_json, out = Path(td) / "native.py", Path(td) / "jobs.json", Path(td) / "out.json"
@@ -171,3 +178,34 @@ def native_import(jobs: list[dict]) -> list[dict]:
                                          for j in jobs]))
         run_blender(script, str(jobs_json), str(out), timeout=1800)
         return json.loads(out.read_text())
+
+
+def _at(light, xyz, rot_x=0.0):
+    """Translate a light to ``xyz`` (stage frame, metres), then turn it by ``rot_x`` degrees about X."""
+    x = UsdGeom.Xformable(light)
+    x.AddTranslateOp().Set(Gf.Vec3d(*xyz))
+    if rot_x:
+        x.AddRotateXOp().Set(rot_x)
+    return light
+
+
+def all_lights_stage(path):
+    """Floor + camera (32 x 24, RenderSettings) + one light of each kind, values chosen to tell factors apart."""
+    st = looking_down_at_floor(path)
+    p = _at(UsdLux.SphereLight.Define(st, "/World/Point"), (0, 1, 0))
+    p.CreateIntensityAttr(20.0), p.CreateTreatAsPointAttr(True), p.CreateRadiusAttr(0.0), p.CreateNormalizeAttr(False)
+    s = _at(UsdLux.SphereLight.Define(st, "/World/Sphere"), (2, 1, 0))
+    s.CreateIntensityAttr(5.0), s.CreateRadiusAttr(0.1)
+    sp = _at(UsdLux.SphereLight.Define(st, "/World/Spot"), (0, 2, 0), -90.0)
+    sp.CreateIntensityAttr(7.0), sp.CreateTreatAsPointAttr(True), sp.CreateExposureAttr(1.0)
+    sh = UsdLux.ShapingAPI.Apply(sp.GetPrim())
+    sh.CreateShapingConeAngleAttr(25.0), sh.CreateShapingConeSoftnessAttr(0.2)
+    r = _at(UsdLux.RectLight.Define(st, "/World/Rect"), (0, 3, 0), -90.0)
+    r.CreateIntensityAttr(3.0), r.CreateWidthAttr(0.5), r.CreateHeightAttr(0.25)
+    d = _at(UsdLux.DiskLight.Define(st, "/World/Disk"), (1, 3, 0), -90.0)
+    d.CreateIntensityAttr(3.0), d.CreateRadiusAttr(0.2), d.CreateNormalizeAttr(True)
+    sun = _at(UsdLux.DistantLight.Define(st, "/World/Sun"), (0, 0, 0), -90.0)
+    sun.CreateIntensityAttr(3.0), sun.CreateAngleAttr(1.0)
+    UsdLux.DomeLight.Define(st, "/World/Dome").CreateIntensityAttr(0.8)  # colour not authored
+    st.GetRootLayer().Save()
+    return st

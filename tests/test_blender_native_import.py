@@ -6,45 +6,14 @@ import math
 
 import numpy as np
 import pytest
-from pxr import Gf, UsdGeom, UsdLux
+from pxr import UsdLux
 
-from blender_native import native_import
+from blender_native import all_lights_stage, native_import
 from usd_scenes import add_closed_form_light, looking_down_at_floor
 from usdrelight.converters.blender import blender_lights
 from usdrelight.imageio import read_map
 
 STARTUP_GREY = 0.0508761  # Blender's startup World colour (linear), kept by the importer
-NATIVE = {}
-
-
-def _at(light, xyz, rot_x=0.0):
-    x = UsdGeom.Xformable(light)
-    x.AddTranslateOp().Set(Gf.Vec3d(*xyz))
-    if rot_x:
-        x.AddRotateXOp().Set(rot_x)
-    return light
-
-
-def _all_lights(path):
-    """Floor + camera (32 x 24, RenderSettings) + one light of each kind, values chosen to tell factors apart."""
-    st = looking_down_at_floor(path)
-    p = _at(UsdLux.SphereLight.Define(st, "/World/Point"), (0, 1, 0))
-    p.CreateIntensityAttr(20.0), p.CreateTreatAsPointAttr(True), p.CreateRadiusAttr(0.0), p.CreateNormalizeAttr(False)
-    s = _at(UsdLux.SphereLight.Define(st, "/World/Sphere"), (2, 1, 0))
-    s.CreateIntensityAttr(5.0), s.CreateRadiusAttr(0.1)
-    sp = _at(UsdLux.SphereLight.Define(st, "/World/Spot"), (0, 2, 0), -90.0)
-    sp.CreateIntensityAttr(7.0), sp.CreateTreatAsPointAttr(True), sp.CreateExposureAttr(1.0)
-    sh = UsdLux.ShapingAPI.Apply(sp.GetPrim())
-    sh.CreateShapingConeAngleAttr(25.0), sh.CreateShapingConeSoftnessAttr(0.2)
-    r = _at(UsdLux.RectLight.Define(st, "/World/Rect"), (0, 3, 0), -90.0)
-    r.CreateIntensityAttr(3.0), r.CreateWidthAttr(0.5), r.CreateHeightAttr(0.25)
-    d = _at(UsdLux.DiskLight.Define(st, "/World/Disk"), (1, 3, 0), -90.0)
-    d.CreateIntensityAttr(3.0), d.CreateRadiusAttr(0.2), d.CreateNormalizeAttr(True)
-    sun = _at(UsdLux.DistantLight.Define(st, "/World/Sun"), (0, 0, 0), -90.0)
-    sun.CreateIntensityAttr(3.0), sun.CreateAngleAttr(1.0)
-    UsdLux.DomeLight.Define(st, "/World/Dome").CreateIntensityAttr(0.8)  # colour not authored
-    st.GetRootLayer().Save()
-    return st
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +22,7 @@ def native(tmp_path_factory):
     from usdrelight.cli import main
 
     d = tmp_path_factory.mktemp("native")
-    _all_lights(d / "all.usda")
+    all_lights_stage(d / "all.usda")
     point = looking_down_at_floor(d / "point.usda")
     expected_point = add_closed_form_light(point, "point")
     point.GetRootLayer().Save()
