@@ -114,6 +114,9 @@ def _shape_mesh(shape, n: int = 48) -> MeshRecord:
 
 def _lux_warnings(light, warnings) -> None:
     """What Cycles cannot show of a UsdLux light (one line per kind; README "UsdLux attributes not represented")."""
+    sc = np.linalg.norm(light.to_world[:3, :3], axis=0)
+    if light.kind == "sphere" and not light.treat_as_point and np.ptp(sc) > 1e-6 * sc.max():
+        warnings["SphereLight under a non-uniform scale (Cycles: a sphere of the geometric-mean radius)"] += 1
     if light.cone_angle_deg is not None and light.kind != "sphere":
         warnings["ShapingAPI on a disk, rect, distant, dome or mesh light in the Blender converter (ignored)"] += 1
     elif light.cone_angle_deg is not None and light.cone_softness > SOFTEST_SPOT:

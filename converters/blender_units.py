@@ -6,7 +6,7 @@
 | SphereLight treatAsPoint / radius 0 | POINT, radius 0 | power P = 4 pi I (I = L W/sr) | point, intensity I |
 | + ShapingAPI | SPOT | P = 4 pi I, spot_size = 2 coneAngle, spot_blend = softness | spot |
 | SphereLight radius r | POINT, radius r | P = 4 pi^2 r^2 L | sphere + area, radiance L |
-| DiskLight radius r | AREA DISK, size 2r | P = pi L (pi r^2) | disk + area |
+| DiskLight radius r | AREA DISK, size 2r (ELLIPSE 2r sx x 2r sy under a non-uniform scale) | P = pi L (pi r^2 sx sy) | disk + area |
 | RectLight w x h | AREA RECTANGLE w x h | P = pi L w h | rectangle + area |
 | DistantLight | SUN, angle = angle | strength E = L (W/m^2) | directional, irradiance L |
 | DomeLight | World Background | colour L, or env texture x L | constant / envmap |
@@ -110,6 +110,8 @@ def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
     elif light.kind == "disk":
         r = light.radius * float(np.sqrt(s[0] * s[1]))
         d.update(type="AREA", shape="DISK", size=2 * r, power=math.pi * peak * math.pi * r * r)
+        if not math.isclose(s[0], s[1], rel_tol=1e-6):  # a non-uniformly scaled disk: an ellipse
+            d.update(shape="ELLIPSE", size=2 * light.radius * s[0], size_y=2 * light.radius * s[1])
     elif light.kind == "rect":
         w, h = light.width * s[0], light.height * s[1]
         d.update(type="AREA", shape="RECTANGLE", size=w, size_y=h, power=math.pi * peak * w * h)
@@ -145,8 +147,9 @@ def blender_light_to_usd(b: dict) -> dict:
             out["coneAngle"] = math.degrees(b["spot_size"]) / 2
             out["coneSoftness"] = cone_softness(b["spot_size"] / 2, float(b.get("spot_blend", 0.0)))
     elif t == "AREA":
-        if b.get("shape") in ("DISK", "ELLIPSE"):
-            r = b["size"] / 2 * float(np.sqrt(s[0] * s[1]))
+        if b.get("shape") in ("DISK", "ELLIPSE"):  # an ellipse: the disk of the same area
+            across = b.get("size_y", b["size"]) if b.get("shape") == "ELLIPSE" else b["size"]
+            r = math.sqrt(b["size"] * across) / 2 * float(np.sqrt(s[0] * s[1]))
             out = {"kind": "DiskLight", "radius": r, "intensity": b["power"] / (math.pi * math.pi * r * r)}
         else:
             w = b["size"] * s[0]
