@@ -85,7 +85,10 @@ def test_distant_light_is_4i_with_a_doubled_angle_and_unnormalized_renders_dark(
     assert math.degrees(nat["angle"]) == pytest.approx(2.0, rel=1e-5)  # 2 x angle; ours: angle
     assert math.degrees(ours["angle"]) == pytest.approx(1.0, rel=1e-5)
     assert nat["normalize"] is False
-    # unnormalized: the 12 W/m^2 is the sun disk's radiance, not irradiance -> almost no light on the floor
+    # unnormalized: the 12 is the radiance of a sun disk 2 x 0.53 deg wide (the angle's fallback, doubled), not
+    # an irradiance: the floor gets albedo/pi * 12 * (the disk's solid angle), 1/1000 of the UsdLux closed form
+    solid_angle = 2 * math.pi * (1 - math.cos(math.radians(0.53)))
+    assert _centre(native["sun_img"]) == pytest.approx(0.5 / math.pi * 12.0 * solid_angle, rel=0.02)
     assert _centre(native["sun_img"]) < 0.01 * native["sun_expected"]
     # with angle 0 (what `--light sun:` and the Mitsuba XML reader write) the 4 I is irradiance: 4x too bright
     assert _centre(native["sharp_img"]) == pytest.approx(4 * native["sun_expected"], rel=0.02)
