@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import usdrelight  # noqa: E402,F401  (configures drjit's libLLVM before Mitsuba is imported)
-from blender_native import all_lights_stage, native_import  # noqa: E402
+from blender_native import all_lights_stage, native_import, zup_cm_point_stage  # noqa: E402
 from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
 from usd_scenes import add_closed_form_light, asymmetric_latlong, dome_view_stage, looking_down_at_floor  # noqa: E402
 from usdrelight.cli import main  # noqa: E402
@@ -58,6 +58,11 @@ def case_point(d):
     l = _at(UsdLux.SphereLight.Define(st, "/World/L"), (0, 1, 0))  # as fitted lights are written (lights_layer.py)
     l.CreateIntensityAttr(20.0), l.CreateTreatAsPointAttr(True), l.CreateRadiusAttr(0.0), l.CreateNormalizeAttr(False)
     return st, "SphereLight treatAsPoint, intensity 20, normalize 0", 0.5 * 20 / math.pi
+
+
+def case_point_zup_cm(d):
+    st = zup_cm_point_stage(d / "s.usda")
+    return st, "SphereLight treatAsPoint, intensity 20, 100 units up; Z-up, metersPerUnit 0.01", 0.5 * 20 / math.pi
 
 
 def case_point_exposure(d):
@@ -160,14 +165,14 @@ def case_build(d):
     return Usd.Stage.Open(str(d / "scene.usda")), "`build` stage + fitted lights (2 points + latlong dome)", None
 
 
-CASES = {"point": case_point, "point_exposure": case_point_exposure, "sphere": case_sphere,
+CASES = {"point": case_point, "point_zup_cm": case_point_zup_cm, "point_exposure": case_point_exposure, "sphere": case_sphere,
          "sphere_normalized": lambda d: case_sphere(d, True), "spot": case_spot, "rect": case_rect,
          "rect_normalized": lambda d: case_rect(d, True), "disk": case_disk, "distant": case_distant,
          "distant_normalized": case_distant_normalized, "distant_sharp": case_distant_sharp, "no_light": case_no_light, "dome": case_dome,
          "dome_color": case_dome_color, "dome_texture": case_dome_texture, "build_stage": case_build}
 
 #: Cases whose light is compared with Blender's startup World made black (its grey would add ambient light).
-BLACK_WORLD = {"point", "point_exposure", "sphere", "sphere_normalized", "spot", "rect", "rect_normalized", "disk",
+BLACK_WORLD = {"point", "point_zup_cm", "point_exposure", "sphere", "sphere_normalized", "spot", "rect", "rect_normalized", "disk",
                "distant", "distant_normalized", "distant_sharp"}
 
 #: Sphere lights with a radius: Blender's default soft falloff (on after a native import) changes them.

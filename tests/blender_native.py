@@ -209,3 +209,28 @@ def all_lights_stage(path):
     UsdLux.DomeLight.Define(st, "/World/Dome").CreateIntensityAttr(0.8)  # colour not authored
     st.GetRootLayer().Save()
     return st
+
+
+def zup_cm_point_stage(path, width=64, height=48):
+    """A Z-up stage in centimetres (metersPerUnit 0.01): a grey floor at z = 0, the camera 100 cm above it looking
+    down (-Z), a treatAsPoint SphereLight of intensity 20 beside the camera (1 m from the floor's centre)."""
+    from pxr import Usd, UsdShade
+
+    from usd_scenes import camera, diffuse_material
+    from usdrelight.intrinsics import Intrinsics
+
+    st = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(st, "Z")
+    UsdGeom.SetStageMetersPerUnit(st, 0.01)
+    st.SetDefaultPrim(UsdGeom.Xform.Define(st, "/World").GetPrim())
+    m = UsdGeom.Mesh.Define(st, "/World/Floor")
+    m.CreatePointsAttr([(-5000, -5000, 0), (5000, -5000, 0), (5000, 5000, 0), (-5000, 5000, 0)])
+    m.CreateFaceVertexCountsAttr([4])
+    m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    UsdShade.MaterialBindingAPI.Apply(m.GetPrim()).Bind(diffuse_material(st, "/World/Looks/Grey"))
+    camera(st, Intrinsics.from_fov_x(40.0, width, height), translate=(0, 0, 100))
+    light = _at(UsdLux.SphereLight.Define(st, "/World/L"), (0, 0, 100))
+    light.CreateIntensityAttr(20.0)
+    light.CreateTreatAsPointAttr(True)
+    st.GetRootLayer().Save()
+    return st

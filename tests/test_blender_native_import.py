@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pxr import UsdLux
 
-from blender_native import all_lights_stage, native_import
+from blender_native import all_lights_stage, native_import, zup_cm_point_stage
 from usd_scenes import add_closed_form_light, looking_down_at_floor
 from usdrelight.converters.blender import blender_lights
 from usdrelight.imageio import read_map
@@ -33,17 +33,19 @@ def native(tmp_path_factory):
     add_closed_form_light(sharp, "distant")
     UsdLux.DistantLight(sharp.GetPrimAtPath("/World/L")).CreateAngleAttr(0.0)
     sharp.GetRootLayer().Save()
+    zup_cm_point_stage(d / "cm.usda", 32, 24)
     black = {"world_rgb": [0.0, 0.0, 0.0]}  # no ambient light from the startup World in the renders
     res = native_import([{"usd": d / "all.usda"}, {"usd": d / "all.usda", "empty": True},
                          {"usd": d / "point.usda", **black, "render": [32, 24, 16], "exr": d / "point.exr"},
                          {"usd": d / "sun.usda", **black, "render": [32, 24, 4], "exr": d / "sun.exr"},
-                         {"usd": d / "sharp.usda", **black, "render": [32, 24, 4], "exr": d / "sharp.exr"}])
+                         {"usd": d / "sharp.usda", **black, "render": [32, 24, 4], "exr": d / "sharp.exr"},
+                         {"usd": d / "cm.usda", **black, "render": [32, 24, 16], "exr": d / "cm.exr"}])
     assert main(["convert", str(d / "all.usda"), str(d / "all.blend")]) == 0
     ours = {l["name"].rsplit("_", 1)[-1]: l for l in blender_lights(d / "all.blend")}
     return {"startup": res[0], "empty": res[1], "lights": {l["name"]: l for l in res[0]["lights"]}, "ours": ours,
             "point_img": read_map(d / "point.exr", 3), "point_expected": expected_point,
             "sun_img": read_map(d / "sun.exr", 3), "sun_expected": expected_sun,
-            "sharp_img": read_map(d / "sharp.exr", 3)}
+            "sharp_img": read_map(d / "sharp.exr", 3), "cm": res[5], "cm_img": read_map(d / "cm.exr", 3)}
 
 
 def _centre(img):
@@ -107,3 +109,13 @@ def test_dome_world_resolution_and_camera(native):
     assert cam["sensor_fit"] == "HORIZONTAL" and cam["sensor_width"] == pytest.approx(3600.0)
     assert cam["lens"] == pytest.approx(100 * 36.0 / (2 * math.tan(math.radians(20.0))), rel=1e-5)
     np.testing.assert_allclose(np.array(cam["matrix"])[:3, 3], [0, 0, 1], atol=1e-6)  # Y-up -> Z-up
+
+
+def test_centimetre_z_up_stage_is_scaled_to_metres(native):
+    """metersPerUnit 0.01, Z-up: objects scaled by 0.01 (camera 1 m up), lens in mm (focalLength is in tenths of a
+    stage unit), and the point light 100 cm above the floor lights it as at 1 m: the closed form albedo/pi I/1^2."""
+    cam = native["cm"]["cameras"][0]
+    assert cam["lens"] == pytest.approx(36.0 / (2 * math.tan(math.radians(20.0))), rel=1e-5)
+    np.testing.assert_allclose(np.array(cam["matrix"])[:3, 3], [0, 0, 1], atol=1e-6)
+    assert np.array(cam["matrix"])[0, 0] == pytest.approx(0.01)
+    assert _centre(native["cm_img"]) == pytest.approx(0.5 * 20 / math.pi, rel=0.05)
