@@ -91,6 +91,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float) -> LightRecord | 
             warnings["ShapingAPI focus (ignored)"] += 1
         if sh.GetShapingIesFileAttr().Get() and sh.GetShapingIesFileAttr().Get().path:
             warnings["ShapingAPI IES profile (ignored)"] += 1
+    _ignored_lux(prim, warnings)
     t = prim.GetTypeName()
     if prim.IsA(UsdGeom.Mesh):
         return LightRecord(kind="mesh", area=area, **common)
@@ -128,6 +129,26 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float) -> LightRecord | 
         return LightRecord(kind="dome", texture=tex, **common)
     warnings[f"light type {t} (not converted)"] += 1
     return None
+
+
+def _ignored_lux(prim, warnings) -> None:
+    """UsdLux controls no renderer here represents: diffuse/specular multipliers, ShadowAPI, light/shadow
+    linking (one warning line per kind; README "UsdLux attributes not represented")."""
+    from pxr import UsdLux
+
+    api = UsdLux.LightAPI(prim)
+    if any(a.HasAuthoredValue() and float(a.Get()) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
+        warnings["UsdLux diffuse/specular multipliers (ignored: 1 used)"] += 1
+    if prim.HasAPI(UsdLux.ShadowAPI):
+        sh = UsdLux.ShadowAPI(prim)
+        if sh.GetShadowEnableAttr().Get() is False or any(sh.GetShadowColorAttr().Get() or (0, 0, 0)):
+            warnings["ShadowAPI shadow:enable off or shadow:color (ignored: black shadows cast)"] += 1
+    for coll in (api.GetLightLinkCollectionAPI(), api.GetShadowLinkCollectionAPI()):
+        expr = coll.GetMembershipExpressionAttr().Get()
+        if coll.GetIncludeRootAttr().Get() is False or coll.GetIncludesRel().GetTargets() or \
+                coll.GetExcludesRel().GetTargets() or (expr is not None and not expr.IsEmpty()):
+            warnings["UsdLux light/shadow linking (ignored: every light lights and shadows everything)"] += 1
+            break
 
 
 def _rot_x(deg: float) -> np.ndarray:
@@ -196,12 +217,13 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
     from pxr import UsdGeom
 
     name = str(prim.GetPath())
+    ds = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(t))
     if prim.IsA(UsdGeom.Sphere):
         r = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t))
-        return ShapeRecord(name, "sphere", xf @ np.diag([r, r, r, 1.0]), mat)
+        return ShapeRecord(name, "sphere", xf @ np.diag([r, r, r, 1.0]), mat, ds)
     if prim.IsA(UsdGeom.Cube):
         h = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) / 2
-        return ShapeRecord(name, "cube", xf @ np.diag([h, h, h, 1.0]), mat)
+        return ShapeRecord(name, "cube", xf @ np.diag([h, h, h, 1.0]), mat, ds)
     if prim.IsA(UsdGeom.Plane):
         p = UsdGeom.Plane(prim)
         w, l = float(p.GetWidthAttr().Get(t)) / 2, float(p.GetLengthAttr().Get(t)) / 2
@@ -209,7 +231,7 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
         # Plane: width along the first in-plane axis, length along the second; normal along `axis`.
         basis = {"Z": np.eye(4), "X": np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]]),
                  "Y": np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])}[axis]
-        return ShapeRecord(name, "rectangle", xf @ basis @ np.diag([w, l, 1.0, 1.0]), mat)
+        return ShapeRecord(name, "rectangle", xf @ basis @ np.diag([w, l, 1.0, 1.0]), mat, ds)
     return None
 
 
