@@ -10,7 +10,9 @@ same seed for both: what the round trip reproduces exactly then renders the same
 Reported per scene: the image means (original and round trip: mean over seeds +- its standard error), the
 reference EXR's mean, the round trip's mean error against the reference and against the original (+- the
 standard error of the paired per-seed differences), the per-pixel relative RMSE of the seed-0 round trip against
-the seed-0 original (sqrt(mean((b - a)^2)) / mean(a)), the seconds of each conversion and the converter's warnings.
+the seed-0 original (sqrt(mean((b - a)^2)) / mean(a)), "USD alone": the error when the Mitsuba-only data the
+XML reader kept in materials' and lights' customData is dropped before the XML export (what another USD tool
+sees: UsdPreviewSurface and UsdLux approximations only), the seconds of each conversion and the converter's warnings.
 
 A scene whose own files are missing from the data set (Mitsuba cannot render it either) is reported as such;
 when the missing file is an envmap, a variant without that emitter is also measured (against Mitsuba's render
@@ -123,6 +125,24 @@ def dielectric_variant(work: Path) -> Path | None:
     return out
 
 
+def strip_kept_mitsuba(usd: Path) -> tuple[Path, int]:
+    """A copy of ``usd`` (same folder, so relative asset paths hold) without the Mitsuba BSDFs, emitter textures
+    and microfacet distributions the XML reader kept in materials' and lights' ``customData["mitsuba"]``: what
+    another USD tool sees. The RenderSettings' kept integrator and sampler stay, so that only the
+    UsdPreviewSurface / UsdLux approximations differ. Returns (path, prims stripped)."""
+    from pxr import Usd, UsdRender
+
+    stage = Usd.Stage.Open(str(usd))
+    n = 0
+    for prim in stage.Traverse():
+        if "mitsuba" in prim.GetCustomData() and not prim.IsA(UsdRender.SettingsBase):
+            prim.ClearCustomDataByKey("mitsuba")
+            n += 1
+    out = usd.with_name(usd.stem + "_usd_only.usda")
+    stage.GetRootLayer().Export(str(out))
+    return out, n
+
+
 def _mean_se(x) -> tuple[float, float]:
     x = np.asarray(x, np.float64)
     return float(x.mean()), float(x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else 0.0
@@ -160,6 +180,12 @@ def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, lab
     t = time.perf_counter()
     ours = _renders(back, spp, seeds)
     row["seconds_render_round_trip"] = round(time.perf_counter() - t, 2)
+    usd_only, stripped = strip_kept_mitsuba(usd)
+    row["prims_with_kept_mitsuba_data"] = stripped
+    if stripped:
+        rc, _ = _cli("convert", usd_only, work / "usd_only" / label / "scene.xml", *allow_args)
+        if rc == 0:
+            alone = np.array([b.mean() for b in _renders(work / "usd_only" / label / "scene.xml", spp, seeds)])
     mo = np.array([a.mean() for a in original])
     mr = np.array([b.mean() for b in ours])
     (m_orig, se_orig), (m_ours, se_ours) = _mean_se(mo), _mean_se(mr)
@@ -168,6 +194,11 @@ def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, lab
         diff = _mean_se(mr - mo)
         row.update(round_trip_vs_original=m_ours / m_orig - 1, se_round_trip_vs_original=diff[1] / m_orig,
                    pixel_rel_rmse_vs_original=float(np.sqrt(np.mean((ours[0] - original[0]) ** 2)) / mo[0]))
+        if not stripped:  # nothing kept: USD alone is the round trip
+            row.update(usd_alone_vs_original=row["round_trip_vs_original"])
+        elif rc == 0:
+            row.update(usd_alone_vs_original=float(alone.mean()) / m_orig - 1,
+                       se_usd_alone_vs_original=_mean_se(alone - mo)[1] / m_orig)
     if ref is not None:
         r = np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3]
         m_ref = row["mean_reference"]
@@ -208,11 +239,11 @@ def _mean(r, key) -> str:
 
 def table(rows: list[dict]) -> str:
     lines = ["| scene | reference mean | original mean | round-trip mean | error vs reference | error vs original "
-             "| pixel rel. RMSE | convert s (to USD + to XML) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| pixel rel. RMSE | USD alone vs original | convert s (to USD + to XML) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r["status"] != "ok":
-            lines.append(f"| {r['scene']} | {_mean(r, 'mean_reference')} | {r['status']} | - | - | - | - | - |")
+            lines.append(f"| {r['scene']} | {_mean(r, 'mean_reference')} | {r['status']} | - | - | - | - | - | - |")
             continue
         rmse = r.get("pixel_rel_rmse_vs_original")
         lines.append(
@@ -220,7 +251,8 @@ def table(rows: list[dict]) -> str:
             f"{_mean(r, 'mean_round_trip')} | "
             f"{_pct(r.get('round_trip_vs_reference'), r.get('se_round_trip_vs_reference'))} | "
             f"{_pct(r.get('round_trip_vs_original'), r.get('se_round_trip_vs_original'))} | "
-            f"{'-' if rmse is None else f'{rmse:.3f}'} | {r['seconds_to_usd']:.2f} + {r['seconds_to_xml']:.2f} |")
+            f"{'-' if rmse is None else f'{rmse:.3f}'} | "
+            f"{_pct(r.get('usd_alone_vs_original'), r.get('se_usd_alone_vs_original'))} | {r['seconds_to_usd']:.2f} + {r['seconds_to_xml']:.2f} |")
     return "\n".join(lines)
 
 

@@ -1,6 +1,8 @@
 """USD <-> Mitsuba XML: real Mitsuba scene files, round trips, bad input."""
+import json
 import math
 import shutil
+
 
 import numpy as np
 import pytest
@@ -32,7 +34,12 @@ def test_real_spot_scene_round_trips_through_usd(cli, tmp_path):
     stage = open_stage(tmp_path / "spot.usda")
     assert errors_only(validate_stage(stage)) == []
     light = UsdLux.SphereLight(stage.GetPrimAtPath("/World/light_1"))
-    assert light.GetTreatAsPointAttr().Get() and light.GetIntensityAttr().Get() == pytest.approx(5.0)
+    assert light.GetTreatAsPointAttr().Get()
+    # UsdLux has no projected texture: intensity x colour is the texture's mean over the cone (intensity 5 x mean)
+    rgb = light.GetIntensityAttr().Get() * np.array(light.GetColorAttr().Get())
+    kept = json.loads(light.GetPrim().GetCustomDataByKey("mitsuba"))
+    np.testing.assert_allclose(rgb, 5.0 * np.array(kept["texture_mean"]), rtol=1e-5)
+    assert 0.1 < min(kept["texture_mean"]) and max(kept["texture_mean"]) < 0.9
     assert UsdLux.ShapingAPI(light).GetShapingConeAngleAttr().Get() == pytest.approx(20.0)
     assert cli("convert", tmp_path / "spot.usda", tmp_path / "spot.xml")[0] == 0
     original, ours = _render_xml(SPOT), _render_xml(tmp_path / "spot.xml")
@@ -40,6 +47,12 @@ def test_real_spot_scene_round_trips_through_usd(cli, tmp_path):
     assert ours.mean() == pytest.approx(original.mean(), rel=0.05)
     assert ours.mean() == pytest.approx(ref.mean(), rel=0.05)
     assert np.abs(ours - original).mean() < 0.02 * original.mean()  # per pixel, not only on average
+    # What another USD tool sees (the kept texture dropped): an untextured spot of the same power
+    light.GetPrim().ClearCustomDataByKey("mitsuba")
+    stage.GetRootLayer().Export(str(tmp_path / "spot_usd_only.usda"))
+    assert cli("convert", tmp_path / "spot_usd_only.usda", tmp_path / "alone" / "spot.xml")[0] == 0
+    alone = _render_xml(tmp_path / "alone" / "spot.xml")
+    assert alone.mean() == pytest.approx(original.mean(), rel=0.03)
 
 
 def test_missing_referenced_file_is_a_clear_error(cli, tmp_path):

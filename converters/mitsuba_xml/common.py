@@ -13,6 +13,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from usdrelight.errors import UsdRelightError
 
 #: Mitsuba plugin type -> the XML tag it is declared with.
@@ -133,3 +135,27 @@ def horizontal_fov(props: dict, width: int, height: int) -> tuple[float, float |
     if not 0 < result < 180:
         raise UsdRelightError(f"<sensor> horizontal field of view must be between 0 and 180 degrees, got {result:g}")
     return result, focal_mm
+
+
+def spot_texture_mean(path: str, cutoff_deg: float, beam_deg: float, raw: bool) -> np.ndarray:
+    """The RGB mean of a Mitsuba ``spot``'s projected texture, weighted as the spot emits it: texel (u, v) lies
+    at the tangent-plane point ((2u - 1), (2v - 1)) tan(cutoff) (the cone's edge touches the texture's edges),
+    weighted by its solid angle (cos^3 theta per unit tangent-plane area) and Mitsuba's falloff (1 inside
+    beam_width, linear in angle to 0 at cutoff_angle). The texture is read by Mitsuba itself (8-bit sRGB
+    decoded to linear unless ``raw``). A UsdLux spot of this colour x intensity emits the textured spot's power."""
+    from usdrelight.mitsuba.runtime import load_mitsuba
+
+    mi = load_mitsuba()
+    bmp = mi.Bitmap(path)
+    linear = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
+                         srgb_gamma=bmp.srgb_gamma() if raw else False)  # raw: the stored values as they are
+    img = np.array(linear, dtype=np.float64).reshape(bmp.height(), bmp.width(), 3)
+    h, w = img.shape[:2]
+    t = math.tan(math.radians(min(max(cutoff_deg, 1e-3), 89.9)))
+    y, x = np.meshgrid((2 * (np.arange(h) + 0.5) / h - 1) * t, (2 * (np.arange(w) + 0.5) / w - 1) * t, indexing="ij")
+    theta = np.degrees(np.arctan(np.hypot(x, y)))
+    width = max(cutoff_deg - beam_deg, 1e-9)
+    weight = np.clip((cutoff_deg - theta) / width, 0.0, 1.0) * np.cos(np.radians(theta)) ** 3
+    if weight.sum() <= 0 or not np.all(np.isfinite(img)):
+        raise UsdRelightError(f"spot texture {Path(path).name}: no finite texels inside the cone")
+    return np.maximum((img * weight[..., None]).sum((0, 1)) / weight.sum(), 0.0)

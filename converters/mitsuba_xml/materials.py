@@ -179,8 +179,8 @@ class MaterialBuilder:
             self.warnings[f"BSDF '{t}' (approximated by a grey diffuse surface)"] += 1
             sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.5, 0.5, 0.5))
         dist = inner.props.get("distribution")
-        if t in ("roughplastic", "roughconductor") and isinstance(dist, str):
-            extra["distribution"] = dist.lower()
+        if t in ("roughplastic", "roughconductor"):  # Mitsuba's default Beckmann; the USD export's default is GGX
+            extra["distribution"] = dist.lower() if isinstance(dist, str) else "beckmann"
         if glass is not None:  # translucent (opacityThreshold 0): opacity = the opaque part's weight
             sh.CreateInput("opacity", F).Set(glass[0])
             sh.CreateInput("ior", F).Set(ior_value(glass[1].props.get("int_ior"), 1.5046) /

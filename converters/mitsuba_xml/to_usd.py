@@ -27,7 +27,7 @@ from usdrelight.stage.create import author_render_settings, create_stage
 from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
 from usdrelight.stage.validate import check_finite
 
-from .common import Plugin, PrimNamer, horizontal_fov, rel_path
+from .common import Plugin, PrimNamer, horizontal_fov, rel_path, spot_texture_mean
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
 
@@ -244,7 +244,7 @@ class UsdBuilder:
             if "position" in p.props:
                 R = np.eye(4)
                 R[:3, 3] = p.props["position"]
-            extra = None
+            extra, tex = None, None
             if p.type == "spot":
                 sh = UsdLux.ShapingAPI.Apply(light.GetPrim())
                 cutoff = float(p.props.get("cutoff_angle", 20.0))
@@ -253,11 +253,16 @@ class UsdBuilder:
                 sh.CreateShapingConeSoftnessAttr(float(min(max(1 - beam / cutoff, 0.0), 1.0)))
                 R = R @ FLIP_Z
                 tex = next((c for c in p.children if c.tag == "texture" and c.type == "bitmap"), None)
-                if tex is not None:
-                    self.warnings["spot emitter texture (not in UsdLux; kept in customData for XML export)"] += 1
-                    extra = {"texture": self.asset(tex.resolved) if self.dir is None else tex.resolved}
+            intensity = np.broadcast_to(np.asarray(p.props.get("intensity", 1.0), np.float64), (3,))
+            if p.type == "spot" and tex is not None:
+                self.warnings["spot emitter texture (not in UsdLux: the light's colour is the texture's mean over "
+                              "the cone; the texture kept in customData for XML export)"] += 1
+                mean = spot_texture_mean(tex.resolved, cutoff, beam, bool(tex.props.get("raw", False)))
+                extra = {"texture": self.asset(tex.resolved) if self.dir is None else tex.resolved,
+                         "texture_mean": [float(x) for x in mean]}
+                intensity = intensity * mean
             self.set_xform(light.GetPrim(), R)
-            self._light_common(light, p.props.get("intensity", (1.0, 1.0, 1.0)), extra)
+            self._light_common(light, intensity, extra)
         elif p.type == "directional":
             light = UsdLux.DistantLight.Define(self.stage, path)
             light.CreateAngleAttr(0.0)

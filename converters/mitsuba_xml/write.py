@@ -178,10 +178,15 @@ def _restore_extras(stage, d: dict) -> None:
             continue
         key = safe_name(str(prim.GetPath()))
         if key in d and isinstance(d[key], dict):
+            mean = extra.pop("texture_mean", None)
             for k, v in extra.items():
                 if k == "texture" and isinstance(v, str):
                     v = {"type": "bitmap", "filename": v}
                 d[key][k] = v
+            if "texture" in extra and isinstance(mean, list) and len(mean) == 3 and \
+                    isinstance(d[key].get("intensity"), dict):  # the UsdLux colour was the texture's mean
+                value = np.asarray(d[key]["intensity"]["value"], np.float64)
+                d[key]["intensity"]["value"] = [float(v / m) if m > 0 else 0.0 for v, m in zip(value, mean)]
 
 
 def _restore_material_extras(stage, rec, d: dict) -> None:

@@ -82,7 +82,9 @@ def _plastic_specular(mat: MaterialRecord, warnings) -> dict:
 
 
 def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
-    """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (see README's table)."""
+    """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (see README's table). Rough lobes use GGX
+    with alpha = roughness^2, the microfacet model of UsdPreviewSurface's reference implementation (Storm's
+    previewSurface.glslfx; Mitsuba's own default is Beckmann)."""
     if mat.is_lambertian:
         return {"type": "diffuse", "reflectance": _value(mat.diffuse, warnings)}
     rough = min(max(_scalar(mat.roughness, 0.5, "roughness", warnings), 0.0), 1.0)
@@ -90,10 +92,10 @@ def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
     if mat.use_specular_workflow:
         return {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
                 "specular_reflectance": _plastic_specular(mat, warnings), "alpha": max(rough * rough, 1e-3),
-                "int_ior": float(mat.ior), "nonlinear": False}
+                "distribution": "ggx", "int_ior": float(mat.ior), "nonlinear": False}
     if metal >= 1.0:
         return {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
-                "alpha": max(rough * rough, 1e-3)}
+                "alpha": max(rough * rough, 1e-3), "distribution": "ggx"}
     f0 = ((mat.ior - 1.0) / (mat.ior + 1.0)) ** 2
     return {"type": "principled", "base_color": _value(mat.diffuse, warnings), "metallic": metal,
             "roughness": max(rough, 1e-3), "specular": float(min(max(f0 / 0.08, 0.0), 1.0))}
@@ -131,7 +133,8 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
     rough = min(max(_scalar(mat.roughness, 0.0, "roughness", warnings), 0.0), 1.0)
     glass = {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
     if rough > 0.0:
-        glass = {"type": "roughdielectric", "int_ior": ior, "ext_ior": 1.0, "alpha": max(rough * rough, 1e-3)}
+        glass = {"type": "roughdielectric", "int_ior": ior, "ext_ior": 1.0, "alpha": max(rough * rough, 1e-3),
+                 "distribution": "ggx"}
     if not textured and weight <= 0.0:
         return glass
     return {"type": "blendbsdf", "weight": weight, "bsdf_0": glass, "bsdf_1": d}
