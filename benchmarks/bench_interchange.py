@@ -185,7 +185,9 @@ def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, lab
     if stripped:
         rc, _ = _cli("convert", usd_only, work / "usd_only" / label / "scene.xml", *allow_args)
         if rc == 0:
-            alone = np.array([b.mean() for b in _renders(work / "usd_only" / label / "scene.xml", spp, seeds)])
+            alone_renders = _renders(work / "usd_only" / label / "scene.xml", spp, seeds)
+            alone, alone_img = np.array([b.mean() for b in alone_renders]), alone_renders[0]
+    row["_images"] = (original[0], ours[0], alone_img if stripped and rc == 0 else ours[0])
     mo = np.array([a.mean() for a in original])
     mr = np.array([b.mean() for b in ours])
     (m_orig, se_orig), (m_ours, se_ours) = _mean_se(mo), _mean_se(mr)
@@ -256,6 +258,33 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def contact_sheet(rows: list[dict], path: Path, per_row: int = 2) -> None:
+    """Seed-0 renders, scene by scene: original | round trip | USD alone (each scene tone-mapped with its
+    original's 99.5th percentile), for a person to look at."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from usdrelight.neural.contact_sheet import tonemapped
+
+    shown = [r for r in rows if "_images" in r]
+    n_rows = -(-len(shown) // per_row)
+    fig, axes = plt.subplots(n_rows, 3 * per_row, figsize=(3 * per_row * 1.9, n_rows * 2.1), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, r in enumerate(shown):
+        ref = r["_images"][0]
+        for j, (what, img) in enumerate(zip(("original", "round trip", "USD alone"), r["_images"])):
+            ax = axes[i // per_row, 3 * (i % per_row) + j]
+            ax.imshow(tonemapped(img, ref), interpolation="nearest")
+            ax.set_title(f"{r['scene'].replace('corpus/', '')[:28]}\n{what}" if j == 0 else f"\n{what}", fontsize=6)
+    fig.tight_layout(pad=0.2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main_bench(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spp", type=int, default=128)
@@ -265,6 +294,8 @@ def main_bench(argv=None) -> int:
                     help="also our own scenes in tests/data/mitsuba_corpus (default on)")
     ap.add_argument("--noise", action="store_true", help="seed spread of the dielectric + point light scene")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "interchange.json")
+    ap.add_argument("--contact-sheet", type=Path, default=None,
+                    help="PNG of every scene's seed-0 renders: original | round trip | USD alone")
     args = ap.parse_args(argv)
     mi = load_mitsuba()
     mi.set_log_level(mi.LogLevel.Error)  # e.g. the stratified sampler rounding 128 spp to 144, on stdout
@@ -292,6 +323,10 @@ def main_bench(argv=None) -> int:
             print(f"{label}: {row['status']}", file=sys.stderr, flush=True)
         if args.noise and variant is not None:
             noise = noise_study(variant)
+    if args.contact_sheet is not None:
+        contact_sheet(rows, args.contact_sheet)
+    for r in rows:
+        r.pop("_images", None)
     doc = {"spp": args.spp, "seeds": args.seeds, "data": str(args.data), "scenes": rows,
            "note": "means over seeds 0..seeds-1 (+- standard error); errors are relative errors of image means "
                    "(+- the standard error of the paired per-seed differences); pixel_rel_rmse = "
