@@ -1,5 +1,5 @@
 """Cross-renderer agreement on UsdLux scenes in the style of OpenUSD's own UsdLux test scenes: every light kind
-with shaping, exposure, normalize and colour temperature, a Y-up and a Z-up stage (metersPerUnit 0.01), lights
+with shaping, exposure, normalize and colour temperature, a Y-up and a Z-up stage (in centimetres), lights
 under scaled transforms, Cube/Sphere gprims and a floor, a MeshLightAPI panel, and one scene with every light.
 
 For each stage: ``usdrelight convert s.usda s.xml`` rendered by Mitsuba and ``usdrelight convert s.usda s.blend``
@@ -48,18 +48,15 @@ def _place(prim, translate=(0, 0, 0), rotate_xyz=None, scale=None):
     return prim
 
 
-def base_stage(path, up="Y", cm=False):
+def base_stage(path, up="Y"):
     """Floor (albedo 0.5), a box and a ball (Cube/Sphere gprims), a camera looking down at them at 35 degrees.
-    Authored Y-up in metres under /World; ``up='Z'`` turns /World by +90 degrees about X on a Z-up stage, ``cm``
-    scales it by 100 on a stage of metersPerUnit 0.01 (light intensities are the caller's)."""
+    Authored Y-up in metres under /World; ``up='Z'`` turns /World by +90 degrees about X on a Z-up stage
+    (:func:`in_centimetres` then rewrites it in centimetres)."""
     stage = new_stage(path)
     UsdGeom.SetStageUpAxis(stage, up)
     world = UsdGeom.Xformable(stage.GetPrimAtPath("/World"))
     if up == "Z":
         world.AddRotateXOp().Set(90.0)
-    if cm:
-        UsdGeom.SetStageMetersPerUnit(stage, 0.01)
-        world.AddScaleOp().Set(Gf.Vec3f(100, 100, 100))
     floor_quad(stage, half=6.0, material=diffuse_material(stage, "/World/Looks/Floor", (0.5, 0.5, 0.5)))
     box = _place(UsdGeom.Cube.Define(stage, "/World/Box").GetPrim(), (-0.5, 0.25, 0.2), (0, 30, 0))
     UsdGeom.Cube(box).CreateSizeAttr(0.5)
@@ -69,6 +66,23 @@ def base_stage(path, up="Y", cm=False):
         UsdShade.MaterialBindingAPI.Apply(prim).Bind(diffuse_material(stage, f"{prim.GetPath()}Mat", albedo))
     camera(stage, Intrinsics.from_fov_x(55.0, W, H), translate=(0, 2.2, 3.2), rotate_x_deg=-35.0)
     UsdGeom.Xform.Define(stage, "/World/Lights")
+    return stage
+
+
+def in_centimetres(stage):
+    """Rewrite a stage authored in metres in plain centimetres: metersPerUnit 0.01 and every length x 100
+    (translations, mesh points and extents, Cube size, Sphere radius, light radius/width/height, the camera's
+    clipping range); scales, angles and light intensities as they are (the renderers work in metres)."""
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    lengths = ("points", "extent", "size", "radius", "inputs:radius", "inputs:width", "inputs:height",
+               "clippingRange")
+    for prim in stage.Traverse():
+        for attr in prim.GetAttributes():
+            name = attr.GetName()
+            if (name in lengths or name.startswith("xformOp:translate")) and attr.HasAuthoredValue():
+                v = attr.Get()
+                attr.Set(type(v)([x * 100 for x in v]) if hasattr(v, "__len__") and not hasattr(v, "GetLength")
+                         else v * 100)
     return stage
 
 
@@ -192,23 +206,25 @@ def test_each_light_alone_agrees(cli, tmp_path, kind):
 
 
 def test_every_light_on_a_z_up_stage_in_centimetres(cli, tmp_path):
-    """All kinds at once (untextured dome), on a Z-up stage of metersPerUnit 0.01 (/World scaled by 100):
-    point-like and normalized lights x 1e4 (inverse square law, areas in cm^2), the others unchanged."""
-    stage = base_stage(tmp_path / "all.usda", up="Z", cm=True)
+    """All kinds at once (untextured dome), on a Z-up stage in plain centimetres (metersPerUnit 0.01, every
+    length authored x 100): the same intensities as in metres, since both converters work in metres."""
+    stage = base_stage(tmp_path / "all.usda", up="Z")
     for kind, fn in SCENES.items():
-        fn(stage, k=1e4) if kind in ("point", "spot", "sphere", "rect", "mesh") else fn(stage)
+        fn(stage)
     # light shapes are geometry in Mitsuba (they shadow the sun and the sky), not in Cycles: the rect and the
     # disk go behind the camera, where neither they nor their shadows are seen (README, not represented)
     for path, t, r in (("/World/Lights/Softbox", (0.0, 2.7, 4.3), (-35, 0, 0)),
                        ("/World/Lights/Rig/Disk", (0.6, 1.3, 2.2), (-35, 0, 0))):
         stage.GetPrimAtPath(path).GetAttribute("xformOp:translate").Set(Gf.Vec3d(*t))
         stage.GetPrimAtPath(path).GetAttribute("xformOp:rotateXYZ").Set(Gf.Vec3f(*r))
+    in_centimetres(stage)
     stage.GetRootLayer().Save()
     from usdrelight.stage.read import read_scene
     from usdrelight.stage.validate import open_stage
 
     rec = read_scene(open_stage(tmp_path / "all.usda"))
     assert rec.up_axis == "Z" and rec.meters_per_unit == pytest.approx(0.01) and len(rec.lights) == 8
+    np.testing.assert_allclose(rec.camera.to_world[:3, 3], [0, -3.2, 2.2], atol=1e-9)  # metres, Z-up
     m, c, _, _ = render_both(cli, tmp_path / "all.usda")
     assert_agree(m, c, "all lights, Z-up, cm")
 

@@ -154,7 +154,9 @@ def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=Non
     peak = float(prob.target.max())
     render_psnr = psnr(render_mse, peak) if img is not None else None
     stage_dir = Path(stage_path).resolve().parent
-    write_fitted_lights(stage_dir, list(res.lights), res.env, res.provenance())
+    mpu = prob.scene.meters_per_unit  # the fit works in metres (read_scene); the layer is in stage units
+    write_fitted_lights(stage_dir, [PointLightValue(l.position / mpu, l.rgb) for l in res.lights], res.env,
+                        res.provenance())
     report = FitReport(res.method, float(res.mse), float(res.psnr_db), float(res.seconds), int(res.iterations),
                        render_mse, render_psnr, time.perf_counter() - t, len(res.lights),
                        res.env is not None, [res.width, res.height], prob.n_pixels, peak, res.curve,

@@ -148,6 +148,10 @@ def check_servable(stage, path) -> None:
     if missing:
         raise UsdRelightError(f"{path} has no {' and no '.join(missing)}: usdrelight serve needs a stage with a "
                               f"camera and a mesh (as `usdrelight build` writes)")
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    if mpu != 1.0:  # the app edits light positions in the records' metres and writes them back as they are
+        raise UsdRelightError(f"{path} has metersPerUnit {mpu:g}: usdrelight serve edits lights in a stage in "
+                              f"metres (metersPerUnit 1, as `usdrelight build` writes)")
 
 
 class LiveRelight:

@@ -1,8 +1,12 @@
 """Read a USD stage into plain, renderer-neutral records (what the converters and renderers consume).
 
 All matrices are numpy 4x4 in the column-vector convention (``p_world = M @ [p, 1]``); USD's
-``Gf.Matrix4d`` (row-vector convention) is transposed on the way in. Positions are in the stage's
-units, in world space. Nothing here imports a renderer.
+``Gf.Matrix4d`` (row-vector convention) is transposed on the way in. Positions are in metres, in world
+space: the stage's ``metersPerUnit`` (UsdGeom linear units) is applied here, once, as a root scale on every
+world matrix (so mesh points, gprim and light frames, camera position, clipping range and the world areas that
+UsdLux ``normalize`` divides by are metres and m^2 for every renderer and converter; a treatAsPoint light's
+intensity [W/sr] then lights a surface 1 m away with I / 1 m^2). A stage in metres (metersPerUnit 1, as
+usdrelight writes) is read exactly as before. Nothing here imports a renderer.
 
 Supported: Mesh and UsdPreviewSurface (see :mod:`usdrelight.stage.read_geometry`), Sphere, Cube, Plane
 gprims; Camera (through RenderSettings); RenderProducts and RenderVars;
@@ -54,12 +58,26 @@ def light_radiance(prim) -> np.ndarray:
     return L
 
 
-def _finite_xform(m, prim) -> np.ndarray:
-    """A prim's local-to-world matrix (numpy, column vectors); NaN/Inf entries are an error."""
+def _finite_xform(m, prim, mpu: float = 1.0) -> np.ndarray:
+    """A prim's local-to-world matrix (numpy, column vectors) in metres: the stage's world matrix ``m`` with
+    its output scaled by ``mpu`` (metersPerUnit; 1 leaves it untouched, bit for bit). NaN/Inf entries are an
+    error."""
     xf = gf_to_np(m)
+    if mpu != 1.0:
+        xf[:3, :] *= mpu
     if not np.all(np.isfinite(xf)):
         raise UsdRelightError(f"{prim.GetPath()} has a non-finite transform")
     return xf
+
+
+def stage_meters_per_unit(stage) -> float:
+    """The stage's metersPerUnit (UsdGeom linear units; 0.01 = centimetres); not finite and positive: an error."""
+    from pxr import UsdGeom
+
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not (math.isfinite(mpu) and mpu > 0):
+        raise UsdRelightError(f"the stage's metersPerUnit must be finite and positive (got {mpu:g})")
+    return mpu
 
 
 def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0) -> LightRecord | None:
@@ -189,7 +207,7 @@ def _read_products(stage, settings) -> tuple[ProductRecord, ...]:
     return tuple(products)
 
 
-def _read_camera(cam_prim, resolution, xcache, t, warnings) -> tuple[CameraRecord, tuple]:
+def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0) -> tuple[CameraRecord, tuple]:
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(cam_prim)
@@ -209,7 +227,9 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings) -> tuple[CameraRecor
     if not all(np.isfinite([intr.fx, intr.fy, intr.cx, intr.cy])) or intr.fx <= 0 or intr.fy <= 0:
         raise UsdRelightError(f"camera {cam_prim.GetPath()}: focal length and apertures must give a finite, "
                               f"positive focal length in pixels")
-    xf = _finite_xform(xcache.GetLocalToWorldTransform(cam_prim), cam_prim)
+    xf = _finite_xform(xcache.GetLocalToWorldTransform(cam_prim), cam_prim, mpu)
+    if mpu != 1.0:  # clipping distances in metres too (intrinsics are in pixels: no unit)
+        near, far = float(near) * mpu, float(far) * mpu
     return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far)), resolution
 
 
@@ -236,10 +256,12 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
 
 
 def read_scene(stage, time=None) -> SceneRecord:
-    """Collect everything a renderer needs from ``stage`` into a :class:`SceneRecord`."""
+    """Collect everything a renderer needs from ``stage`` into a :class:`SceneRecord`, in metres (the stage's
+    metersPerUnit applied; see the module docstring)."""
     from pxr import Usd, UsdGeom, UsdLux
 
     t = Usd.TimeCode.Default() if time is None else time
+    mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter()
     meshes, shapes, lights = [], [], []
     xcache = UsdGeom.XformCache(t)
@@ -252,7 +274,7 @@ def read_scene(stage, time=None) -> SceneRecord:
         is_light = prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or \
             prim.IsA(UsdLux.NonboundableLightBase)
         if is_light and not prim.IsA(UsdGeom.Mesh):  # a mesh light (MeshLightAPI) is read as a mesh too, below
-            light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim), warnings)
+            light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu), warnings)
             if light is not None:
                 lights.append(light)
             continue
@@ -260,7 +282,7 @@ def read_scene(stage, time=None) -> SceneRecord:
             if prim.IsA(UsdGeom.PointInstancer):
                 warnings["PointInstancer (not converted)"] += 1
             continue
-        xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim)
+        xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         mat = read_material(prim, warnings)
         if prim.IsA(UsdGeom.Mesh):
             records = read_mesh(prim, xf, mat, warnings)
@@ -289,6 +311,6 @@ def read_scene(stage, time=None) -> SceneRecord:
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
     camera = None
     if cam_prim is not None and cam_prim.IsA(UsdGeom.Camera):
-        camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings)
+        camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings, mpu)
     return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
-                       float(UsdGeom.GetStageMetersPerUnit(stage)), str(UsdGeom.GetStageUpAxis(stage)), warnings)
+                       mpu, str(UsdGeom.GetStageUpAxis(stage)), warnings)

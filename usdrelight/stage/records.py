@@ -5,8 +5,10 @@ converters. Conventions for every record:
 
 * Matrices are numpy 4x4 in the column-vector convention (``p_world = M @ [p, 1]``); USD's
   ``Gf.Matrix4d`` (row-vector convention) is transposed on the way in.
-* Positions and lengths are in the stage's units (``SceneRecord.meters_per_unit``), in world space
-  unless a field says otherwise.
+* Positions and lengths are in metres, in world space unless a field says otherwise: the reader applies the
+  stage's metersPerUnit (``SceneRecord.meters_per_unit``) once, as a root scale on every world matrix, so no
+  renderer or converter scales again. Sizes given "in the light's frame" (radius, width, height) are stage
+  values scaled by ``to_world``; world areas (``normalize``, ``LightRecord.area``) are m^2.
 * Colours are linear RGB (Rec.709). Radiometric units follow :mod:`usdrelight.stage.lux`.
 
 Records are frozen: a stage that needs other lights or another camera makes a new record with
@@ -100,7 +102,7 @@ class MeshRecord:
     path: str
     """Prim path of the Mesh (or of the GeomSubset that carries its own material)."""
     points: np.ndarray
-    """(N, 3) float64 vertex positions, world space."""
+    """(N, 3) float64 vertex positions, world space, metres."""
     faces: np.ndarray
     """(F, 3) int64 vertex indices, counter-clockwise (right-handed) seen from the front, world space."""
     normals: np.ndarray | None
@@ -161,7 +163,7 @@ class LightRecord:
     cone_softness: float = 0.0
     """ShapingAPI cone softness in [0, 1]."""
     area: float = 0.0
-    """Mesh light: world-space area of its mesh (what ``normalize`` divides by); 0 for the other kinds."""
+    """Mesh light: world-space area of its mesh in m^2 (what ``normalize`` divides by); 0 for the other kinds."""
 
 
 @dataclass(frozen=True)
@@ -175,9 +177,9 @@ class CameraRecord:
     to_world: np.ndarray
     """4x4 USD camera frame (looks down -Z, +Y up) -> world."""
     near: float
-    """Near clipping distance, scene units."""
+    """Near clipping distance, metres."""
     far: float
-    """Far clipping distance, scene units."""
+    """Far clipping distance, metres."""
 
     def limited(self, max_side: int | None) -> "CameraRecord":
         """The same camera rendering at most ``max_side`` pixels on the longer side (see Intrinsics.limited)."""
@@ -227,7 +229,8 @@ class SceneRecord:
     resolution: tuple | None = None
     """RenderSettings resolution (width, height) in pixels."""
     meters_per_unit: float = 1.0
-    """Stage metadata metersPerUnit."""
+    """Stage metadata metersPerUnit, already applied to every matrix and point of this record (a writer that
+    puts positions back into that stage divides by it)."""
     up_axis: str = "Y"
     """Stage metadata upAxis."""
     warnings: Counter = field(default_factory=Counter)
@@ -248,7 +251,7 @@ class PointLightValue:
     """A fitted point light as the fitted-lights layer stores it (a treatAsPoint SphereLight)."""
 
     position: np.ndarray
-    """(3,) world position, scene units."""
+    """(3,) world position, metres (as the records; the fitted-lights layer stores it in stage units)."""
     rgb: np.ndarray
     """(3,) radiant intensity I in W/sr per channel (UsdLux intensity * color), >= 0."""
 
