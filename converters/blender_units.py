@@ -127,8 +127,36 @@ def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
     return d
 
 
+def blender_emission(b: dict, area: float) -> float:
+    """What a Blender light record emits, in the UsdLux unit of the light it becomes (Cycles, bpy 5.0.1, measured).
+
+    ``area``: the light's world-space emitting area in m^2 (pi r^2 for a point/spot of radius r, 0 for radius 0).
+    Power P (W) or Sun strength S is scaled by 2^exposure (``Light.exposure``), then, with ``Light.normalize`` on
+    (Blender's default; what our writer sets): a point/spot of radius 0 has I = P / (4 pi) W/sr, one of radius r
+    radiance L = P / (4 pi^2 r^2), an area light L = P / (pi A), a Sun irradiance E = S W/m^2. With Normalize off the
+    power is not divided by the area: point/spot of radius 0 I = P / pi, of radius r L = P / pi, area light
+    L = P / pi, and a Sun of angle a > 0 has radiance S over its disk, so E = S pi sin^2(a / 2) (the cosine-weighted
+    solid angle of the disk; at a = 0 a Sun is E = S either way). Records without the two keys (older Blender)
+    read as normalized, exposure 0.
+    """
+    gain = 2.0 ** float(b.get("exposure", 0.0))
+    norm = bool(b.get("normalize", True))
+    t = b["type"]
+    if t == "SUN":
+        angle = float(b.get("angle", 0.0))
+        cone = 1.0 if norm or angle <= 0 else math.pi * math.sin(min(angle, math.pi) / 2) ** 2
+        return float(b["strength"]) * gain * cone
+    P = float(b["power"]) * gain
+    if t in ("POINT", "SPOT"):
+        if area <= 0:
+            return P / (4 * math.pi) if norm else P / math.pi
+        return P / (4 * math.pi * area) if norm else P / math.pi
+    return P / (math.pi * area) if norm else P / math.pi
+
+
 def blender_light_to_usd(b: dict) -> dict:
-    """Inverse of :func:`light_to_blender` for lights edited in Blender (see converters.blender)."""
+    """Inverse of :func:`light_to_blender` for lights edited in Blender (see converters.blender): a UsdLux light
+    (normalize off) emitting what the Blender light renders in Cycles (:func:`blender_emission`)."""
     m = Z_UP_TO_Y_UP @ np.asarray(b["matrix"], np.float64)
     s = np.linalg.norm(m[:3, :3], axis=0)
     rot = m.copy()
@@ -138,11 +166,10 @@ def blender_light_to_usd(b: dict) -> dict:
     if t in ("POINT", "SPOT"):
         r = float(b.get("radius", 0.0)) * float(np.cbrt(np.prod(s)))
         if r <= 0:
-            out = {"kind": "SphereLight", "treatAsPoint": True, "radius": 0.0,
-                   "intensity": b["power"] / (4 * math.pi)}
+            out = {"kind": "SphereLight", "treatAsPoint": True, "radius": 0.0, "intensity": blender_emission(b, 0.0)}
         else:
             out = {"kind": "SphereLight", "treatAsPoint": False, "radius": r,
-                   "intensity": b["power"] / (4 * math.pi ** 2 * r * r)}
+                   "intensity": blender_emission(b, math.pi * r * r)}
         if t == "SPOT":
             out["coneAngle"] = math.degrees(b["spot_size"]) / 2
             out["coneSoftness"] = cone_softness(b["spot_size"] / 2, float(b.get("spot_blend", 0.0)))
@@ -150,13 +177,13 @@ def blender_light_to_usd(b: dict) -> dict:
         if b.get("shape") in ("DISK", "ELLIPSE"):  # an ellipse: the disk of the same area
             across = b.get("size_y", b["size"]) if b.get("shape") == "ELLIPSE" else b["size"]
             r = math.sqrt(b["size"] * across) / 2 * float(np.sqrt(s[0] * s[1]))
-            out = {"kind": "DiskLight", "radius": r, "intensity": b["power"] / (math.pi * math.pi * r * r)}
+            out = {"kind": "DiskLight", "radius": r, "intensity": blender_emission(b, math.pi * r * r)}
         else:
             w = b["size"] * s[0]
             h = (b.get("size_y", b["size"]) if b.get("shape") == "RECTANGLE" else b["size"]) * s[1]
-            out = {"kind": "RectLight", "width": w, "height": h, "intensity": b["power"] / (math.pi * w * h)}
+            out = {"kind": "RectLight", "width": w, "height": h, "intensity": blender_emission(b, w * h)}
     elif t == "SUN":
-        out = {"kind": "DistantLight", "angle": math.degrees(b.get("angle", 0.0)), "intensity": b["strength"]}
+        out = {"kind": "DistantLight", "angle": math.degrees(b.get("angle", 0.0)), "intensity": blender_emission(b, 0.0)}
     else:
         raise ValueError(f"unsupported Blender light type {t}")
     out.update(color=color, matrix=rot.tolist(), name=b["name"])

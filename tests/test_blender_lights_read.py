@@ -1,0 +1,187 @@
+""".blend lights -> UsdLux (``usdrelight convert scene.blend lights.usda``) with Blender 5's per-light Normalize
+and Exposure (bpy 5.0.1 in .venv-blender).
+
+Expected values are written out here by hand from what Cycles renders (measured over a diffuse floor, 0.1% on
+the centre's closed forms; README "Blender"): 2^exposure times, with Normalize on, I = P / 4 pi (point/spot),
+L = P / (4 pi^2 r^2) (radius r), L = P / (pi A) (area), E = S (sun); with Normalize off I = P / pi, L = P / pi,
+L = P / pi and, for a sun of angle a > 0, E = S pi sin^2(a / 2). One Blender process builds the .blend files
+(and renders one), one imports a stage natively; one Mitsuba render (32 x 24 px) closes the loop.
+"""
+import json
+import math
+
+import numpy as np
+import pytest
+from pxr import Sdf
+
+from blender_native import all_lights_stage, native_import
+from usd_scenes import looking_down_at_floor
+from usdrelight.converters.blender import run_blender
+from usdrelight.imageio import read_map
+from usdrelight.stage.lux import emitted_radiance, light_direction
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.validate import open_stage
+
+BUILD = r'''
+import bpy, json, math, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+for job in json.load(open(args[0])):
+    bpy.ops.wm.open_mainfile(filepath=job["base"])
+    scene = bpy.context.scene
+    for s in job["lights"]:
+        l = bpy.data.lights.new(s["name"], s["type"])
+        l.energy, l.normalize, l.exposure = s["energy"], s["normalize"], s["exposure"]
+        l.color = s.get("color", (1, 1, 1))
+        if "temperature" in s:
+            l.use_temperature, l.temperature = True, s["temperature"]
+        if s["type"] in ("POINT", "SPOT"):
+            l.shadow_soft_size, l.use_soft_falloff = s.get("radius", 0.0), False
+        if s["type"] == "SPOT":
+            l.spot_size, l.spot_blend = math.radians(s["spot_deg"]), 0.0
+        if s["type"] == "AREA":
+            l.shape, l.size, l.size_y = s["shape"], s["size"], s.get("size_y", s["size"])
+        if s["type"] == "SUN":
+            l.angle = math.radians(s["angle_deg"])
+        ob = bpy.data.objects.new(s["name"], l)
+        ob.location = s.get("at", (0, 0, 1))
+        ob.rotation_euler = [math.radians(a) for a in s.get("rot_deg", (0, 0, 0))]  # default: facing down (-Z)
+        ob.visible_camera = False
+        scene.collection.objects.link(ob)
+    bpy.ops.wm.save_as_mainfile(filepath=job["save"])
+    if job.get("exr"):
+        scene.cycles.samples = job["spp"]
+        scene.render.image_settings.file_format = "OPEN_EXR"
+        scene.render.image_settings.color_depth = "32"
+        scene.render.filepath = job["exr"]
+        bpy.ops.render.render(write_still=True)
+'''
+
+P, S, pi = 10.0, 2.0, math.pi
+# name: (Blender light, UsdLux kind, expected emitted radiance: I [W/sr], L [W/(m^2 sr)] or E [W/m^2])
+N, U = {"normalize": True}, {"normalize": False}
+CASES = {
+    "PointN": ({"type": "POINT", **N, "exposure": 0.0}, "sphere", P / (4 * pi)),
+    "PointU1": ({"type": "POINT", **U, "exposure": 1.0}, "sphere", 2 * P / pi),
+    "SphereN1": ({"type": "POINT", **N, "exposure": 1.0, "radius": 0.1}, "sphere", 2 * P / (4 * pi ** 2 * 0.01)),
+    "SphereU": ({"type": "POINT", **U, "exposure": 0.0, "radius": 0.1}, "sphere", P / pi),
+    "SpotN": ({"type": "SPOT", **N, "exposure": 0.0, "spot_deg": 50.0}, "sphere", P / (4 * pi)),
+    "SpotU1": ({"type": "SPOT", **U, "exposure": 1.0, "spot_deg": 50.0}, "sphere", 2 * P / pi),
+    "RectN1": ({"type": "AREA", **N, "exposure": 1.0, "shape": "RECTANGLE", "size": 0.5, "size_y": 0.25}, "rect",
+               2 * P / (pi * 0.125)),
+    "RectU": ({"type": "AREA", **U, "exposure": 0.0, "shape": "RECTANGLE", "size": 0.5, "size_y": 0.25}, "rect",
+              P / pi),
+    "SquareU1": ({"type": "AREA", **U, "exposure": 1.0, "shape": "SQUARE", "size": 0.4}, "rect", 2 * P / pi),
+    "DiskN": ({"type": "AREA", **N, "exposure": 0.0, "shape": "DISK", "size": 0.4}, "disk", P / (pi * pi * 0.04)),
+    "DiskU1": ({"type": "AREA", **U, "exposure": 1.0, "shape": "DISK", "size": 0.4}, "disk", 2 * P / pi),
+    "EllipseN": ({"type": "AREA", **N, "exposure": 0.0, "shape": "ELLIPSE", "size": 0.5, "size_y": 0.2}, "disk",
+                 P / (pi * pi * 0.25 * 0.1)),  # area pi (0.5/2)(0.2/2)
+    "SunN0": ({"type": "SUN", **N, "exposure": 0.0, "angle_deg": 0.0}, "distant", S),
+    "SunU0": ({"type": "SUN", **U, "exposure": 1.0, "angle_deg": 0.0}, "distant", 2 * S),
+    "SunN1": ({"type": "SUN", **N, "exposure": 1.0, "angle_deg": 10.0}, "distant", 2 * S),
+    "SunU": ({"type": "SUN", **U, "exposure": 0.0, "angle_deg": 10.0}, "distant",
+             S * pi * math.sin(math.radians(5.0)) ** 2),
+}
+# lights of the rendered .blend: out of the camera's view (it looks down from 1 m), all kinds, Normalize off/on;
+# placed so that no Mitsuba emitter shape (sphere, disk, rectangle: geometry there) shadows the sun in view
+RENDERED = [
+    {"name": "Pt", "type": "POINT", **U, "exposure": 1.0, "energy": 2.0, "at": (0.3, 0.2, 1.0),
+     "temperature": 3000.0},
+    {"name": "Sph", "type": "POINT", **U, "exposure": 0.0, "energy": 20.0, "radius": 0.1, "at": (-0.6, 0.0, 0.9)},
+    {"name": "Spot", "type": "SPOT", **U, "exposure": -1.0, "energy": 6.0, "spot_deg": 60.0, "at": (0.0, -0.5, 1.0),
+     "rot_deg": (-20.0, 0.0, 0.0), "color": (1.0, 0.6, 0.3)},
+    {"name": "Rect", "type": "AREA", **U, "exposure": 1.0, "energy": 1.0, "shape": "RECTANGLE", "size": 0.4,
+     "size_y": 0.2, "at": (0.0, 0.6, 1.0), "rot_deg": (30.0, 0.0, 0.0)},
+    {"name": "Disk", "type": "AREA", **N, "exposure": 1.0, "energy": 5.0, "shape": "DISK", "size": 0.3,
+     "at": (-0.7, -0.3, 1.0)},
+    {"name": "Sun", "type": "SUN", **U, "exposure": 2.0, "energy": 3.0, "angle_deg": 20.0,
+     "rot_deg": (0.0, 25.0, 0.0), "color": (0.3, 0.5, 1.0)},
+]
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    from usdrelight.cli import main
+
+    d = tmp_path_factory.mktemp("blendread")
+    floor = looking_down_at_floor(d / "floor.usda")
+    floor.GetRootLayer().Save()
+    assert main(["convert", str(d / "floor.usda"), str(d / "floor.blend")]) == 0
+    cases = [{**spec, "name": name, "energy": S if spec["type"] == "SUN" else P,
+              "at": (0.0, 3.0 * i, 2.0), "color": (1.0, 0.5, 0.25) if name == "PointU1" else (1, 1, 1)}
+             for i, (name, (spec, _, _)) in enumerate(CASES.items())]
+    jobs = [{"base": str(d / "floor.blend"), "save": str(d / "cases.blend"), "lights": cases},
+            {"base": str(d / "floor.blend"), "save": str(d / "lit.blend"), "lights": RENDERED,
+             "exr": str(d / "cycles.exr"), "spp": 128}]
+    (d / "jobs.json").write_text(json.dumps(jobs))
+    (d / "build.py").write_text(BUILD)
+    run_blender(d / "build.py", str(d / "jobs.json"))
+    return d
+
+
+def _lights(path):
+    return {l.path.rsplit("/", 1)[-1]: l for l in read_scene(open_stage(path)).lights}
+
+
+def test_every_kind_normalize_and_exposure(cli, built):
+    rc, _, err = cli("convert", built / "cases.blend", built / "cases.usda")
+    assert rc == 0, err
+    got = _lights(built / "cases.usda")
+    assert sorted(got) == sorted(CASES)
+    for name, (spec, kind, expected) in CASES.items():
+        rec = got[name]
+        assert rec.kind == kind, name
+        colour = np.array([1.0, 0.5, 0.25]) if name == "PointU1" else np.ones(3)
+        np.testing.assert_allclose(emitted_radiance(rec), expected * colour, rtol=1e-5, err_msg=name)
+        assert rec.treat_as_point == (kind == "sphere" and spec.get("radius", 0.0) == 0.0), name
+    assert got["SphereU"].radius == pytest.approx(0.1, rel=1e-6)
+    assert got["SpotU1"].cone_angle_deg == pytest.approx(25.0, rel=1e-5)
+    assert (got["RectU"].width, got["RectU"].height) == pytest.approx((0.5, 0.25), rel=1e-6)
+    assert got["EllipseN"].radius == pytest.approx(math.sqrt(0.5 * 0.2) / 2, rel=1e-6)  # the disk of equal area
+    assert got["SunU"].angle_deg == pytest.approx(10.0, rel=1e-5)
+
+
+def test_cycles_of_the_blend_matches_mitsuba_of_the_lights_read_back(cli, built):
+    """Cycles renders lit.blend (Normalize off, exposure -1..2, a 3000 K temperature); the lights read back from
+    it, over the same floor and camera (floor.usda), rendered by Mitsuba: the same mean per channel (5%)."""
+    from usdrelight.mitsuba.render import render_stage
+
+    assert cli("convert", built / "lit.blend", built / "lit_lights.usda")[0] == 0
+    st = open_stage(built / "floor.usda")
+    layer = Sdf.Layer.CreateNew(str(built / "composed.usda"))
+    layer.TransferContent(st.GetRootLayer())
+    layer.subLayerPaths.append("lit_lights.usda")
+    layer.Save()
+    composed = open_stage(built / "composed.usda")
+    assert len(read_scene(composed).lights) == len(RENDERED)
+    mitsuba = read_map(render_stage(built / "composed.usda", built / "m", spp=128).files["color"], 3)
+    cycles = read_map(built / "cycles.exr", 3)
+    assert cycles.shape == mitsuba.shape
+    m, c = mitsuba.mean((0, 1)), cycles.mean((0, 1))
+    print("Cycles", c, "Mitsuba", m)
+    np.testing.assert_allclose(c, m, rtol=0.02)  # measured within 0.15% per channel
+    assert c[2] < 0.9 * c[0]  # the warm 3000 K and orange lights show: read back as colour, not dropped
+
+
+def test_native_import_comes_back_with_the_stage_intensities(cli, built):
+    """all_lights_stage imported by Blender's own USD importer (energy pi I, Normalize = UsdLux normalize, exposure
+    kept, soft falloff on) and saved; converted back: the original emitted radiance of every light (1e-4),
+    position and direction. The Sun comes back as what Blender renders: the importer wrote 4 x intensity, twice
+    the angle and Normalize off, i.e. radiance 4 E over a 2 deg disk: E' = 4 E pi sin^2(1 deg)."""
+    all_lights_stage(built / "all.usda")
+    native_import([{"usd": built / "all.usda", "save": str(built / "native.blend")}])
+    rc, _, err = cli("convert", built / "native.blend", built / "native_lights.usda")
+    assert rc == 0, err
+    assert "soft falloff" in err and " ".join(err.split()).count("): 1") == 1  # the sphere's, one line
+    a = _lights(built / "all.usda")
+    b = _lights(built / "native_lights.usda")
+    assert sorted(b) == sorted(k for k in a if k != "Dome")
+    for k in b:
+        want = emitted_radiance(a[k])
+        if k == "Sun":
+            want = want * 4 * math.pi * math.sin(math.radians(1.0)) ** 2
+            assert b[k].angle_deg == pytest.approx(2.0, rel=1e-5)
+        np.testing.assert_allclose(emitted_radiance(b[k]), want, rtol=1e-4, err_msg=k)
+        np.testing.assert_allclose(b[k].to_world[:3, 3], a[k].to_world[:3, 3], atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(light_direction(b[k]), light_direction(a[k]), atol=1e-5, err_msg=k)
+    assert b["Spot"].cone_angle_deg == pytest.approx(25.0, rel=1e-5)
+    assert b["Sphere"].radius == pytest.approx(0.1, rel=1e-5) and b["Point"].treat_as_point
