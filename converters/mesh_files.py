@@ -1,6 +1,6 @@
 """USD stage <-> mesh files for tools that do not read USD: glTF binary (.glb), PLY and OBJ, through trimesh.
 
-``write_to_file(stage, "X.glb")``: every mesh of the stage in world space (stage units; Y up, as glTF
+``write_to_file(stage, "X.glb")``: every mesh of the stage in world space (metres; Y up, as glTF
 wants), with its normals, UVs and material as glTF PBR: metallic, roughness and the base colour, a factor
 or the albedo texture embedded as an sRGB 8-bit PNG (a Lambertian UsdPreviewSurface becomes metallic 0,
 roughness 1). ``.ply`` / ``.obj`` carry geometry, normals and UVs only (the material is named in a warning).

@@ -51,7 +51,7 @@ class FitProblem:
     center: np.ndarray
     """(3,) centre of the hit points' bounding box."""
     extent: float
-    """Diagonal of that box, scene units (the scale of every relative tolerance)."""
+    """Diagonal of that box, metres (the scale of every relative tolerance)."""
     mi_scene: object
     """Geometry-only Mitsuba scene, for visibility rays."""
 

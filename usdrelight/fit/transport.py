@@ -87,9 +87,9 @@ class Transport:
     P: sp.csr_matrix
     """(N, N) indirect gather: row x has weight 1/M at the pixel each of its M bounce rays lands on."""
     r_min: float
-    """Distances to point lights are clamped to this, scene units."""
+    """Distances to point lights are clamped to this, metres (the records' units)."""
     eps: float
-    """Secondary-ray origin offset, scene units."""
+    """Secondary-ray origin offset, metres (the records' units)."""
     _blocks: tuple | None = field(default=None, init=False, repr=False)
     """Cached environment blocks (see :meth:`env_blocks`)."""
 

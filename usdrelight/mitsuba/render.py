@@ -5,7 +5,7 @@
 * Geometric AOVs come from one ray through each pixel centre (noise-free; nudged by 1/64 px so it
   never passes exactly through a vertex of a pixel mesh):
   ``albedo`` (diffuse reflectance of the hit BSDF), ``valid`` (1 = hit), ``depth`` (camera-space
-  z-depth in scene units, 0 = no hit), ``normal`` (world-space shading normal).
+  z-depth in metres (stage units x metersPerUnit), 0 = no hit), ``normal`` (world-space shading normal).
 * Only the AOVs asked for are computed; each product is written as a linear float EXR at
   ``<out_dir>/<productName>`` (out_dir defaults to the stage's folder), atomically.
 

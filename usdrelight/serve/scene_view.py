@@ -22,7 +22,7 @@ OPENCV_FROM_USD_CAMERA = np.diag([1.0, -1.0, -1.0])
 
 
 def scene_size(scene: SceneRecord) -> tuple[np.ndarray, float]:
-    """(centre of the meshes' points, median camera distance), scene units."""
+    """(centre of the meshes' points, median camera distance), metres (the records' units)."""
     pts = np.concatenate([m.points for m in scene.meshes])
     cam = scene.camera.to_world[:3, 3]
     return np.median(pts, axis=0), float(np.median(np.linalg.norm(pts - cam, axis=1)))
