@@ -277,7 +277,7 @@ UNREAD = {"transmission_factor": "Blender light transmission factor other than 1
           "volume_factor": "Blender light volume factor other than 1 (read as 1)",
           "node_tree": "Blender light with an emission node tree (read as its colour and power alone)",
           "use_soft_falloff": "Blender point/spot light of radius > 0 with soft falloff (read as a sphere light "
-                              "without it: +1.4% light 1 m from a 0.1 m sphere, measured)",
+                              "without it: +1% light 1 m below a 0.1 m sphere, measured)",
           "use_square": "Blender square spot (read as a round cone)",
           "spread": "Blender area light spread below 180 deg (read as a Lambertian emitter)"}
 

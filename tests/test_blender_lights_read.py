@@ -48,6 +48,16 @@ for job in json.load(open(args[0])):
         ob.visible_camera = False
         scene.collection.objects.link(ob)
     bpy.ops.wm.save_as_mainfile(filepath=job["save"])
+    lights = [ob for ob in scene.objects if ob.type == "LIGHT"]
+    for ob in lights if job.get("each") else ():  # each light alone, 1 m above the floor's centre, facing down
+        for other in lights:
+            other.hide_render = other is not ob
+        ob.location, ob.rotation_euler = (0, 0, 1), (0, 0, 0)
+        scene.cycles.samples = 32
+        scene.render.image_settings.file_format = "OPEN_EXR"
+        scene.render.image_settings.color_depth = "32"
+        scene.render.filepath = job["each"] + ob.name + ".exr"
+        bpy.ops.render.render(write_still=True)
     if job.get("exr"):
         scene.cycles.samples = job["spp"]
         scene.render.image_settings.file_format = "OPEN_EXR"
@@ -109,7 +119,7 @@ def built(tmp_path_factory):
     cases = [{**spec, "name": name, "energy": S if spec["type"] == "SUN" else P,
               "at": (0.0, 3.0 * i, 2.0), "color": (1.0, 0.5, 0.25) if name == "PointU1" else (1, 1, 1)}
              for i, (name, (spec, _, _)) in enumerate(CASES.items())]
-    jobs = [{"base": str(d / "floor.blend"), "save": str(d / "cases.blend"), "lights": cases},
+    jobs = [{"base": str(d / "floor.blend"), "save": str(d / "cases.blend"), "lights": cases, "each": str(d / "c_")},
             {"base": str(d / "floor.blend"), "save": str(d / "lit.blend"), "lights": RENDERED,
              "exr": str(d / "cycles.exr"), "spp": 128}]
     (d / "jobs.json").write_text(json.dumps(jobs))
@@ -138,6 +148,35 @@ def test_every_kind_normalize_and_exposure(cli, built):
     assert (got["RectU"].width, got["RectU"].height) == pytest.approx((0.5, 0.25), rel=1e-6)
     assert got["EllipseN"].radius == pytest.approx(math.sqrt(0.5 * 0.2) / 2, rel=1e-6)  # the disk of equal area
     assert got["SunU"].angle_deg == pytest.approx(10.0, rel=1e-5)
+
+
+def _centre_irradiance(rec, h=1.0):
+    """Irradiance at the floor point h below the light record (facing it), from its UsdLux values alone."""
+    L = float(emitted_radiance(rec)[0])
+    if rec.kind == "sphere":
+        return L / h ** 2 if rec.treat_as_point else pi * L * rec.radius ** 2 / h ** 2
+    if rec.kind == "disk":
+        return pi * L * rec.radius ** 2 / (h ** 2 + rec.radius ** 2)
+    if rec.kind == "rect":  # four corner rectangles' form factors
+        x, y = rec.width / 2 / h, rec.height / 2 / h
+        f = (x / math.hypot(1, x) * math.atan(y / math.hypot(1, x)) + y / math.hypot(1, y) * math.atan(x / math.hypot(1, y)))
+        return 2 * L * f
+    return L  # distant: irradiance
+
+
+def test_each_light_renders_in_cycles_as_the_usdlux_light_read_back(cli, built):
+    """Every case alone 1 m above the floor in Cycles (32 spp): the centre is albedo / pi x the irradiance of the
+    UsdLux light read back (closed forms; the ellipse read as the disk of its area: 1.1% brighter at 1 m)."""
+    assert cli("convert", built / "cases.blend", built / "each.usda")[0] == 0
+    got = _lights(built / "each.usda")
+    for name in CASES:
+        img = read_map(built / f"c_{name}.exr", 3)[..., 1]
+        h, w = img.shape
+        centre = float(img[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1].mean())
+        colour = 0.5 if name == "PointU1" else 1.0  # its green
+        expected = 0.5 / pi * _centre_irradiance(got[name]) * colour
+        print(f"{name}: Cycles / closed form {centre / expected:.4f}")
+        assert centre == pytest.approx(expected, rel=0.02 if name == "EllipseN" else 0.005), name
 
 
 def test_cycles_of_the_blend_matches_mitsuba_of_the_lights_read_back(cli, built):
