@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
+from usdrelight.mitsuba.runtime import load_mitsuba
 
 #: Mitsuba plugin type -> the XML tag it is declared with.
 TAG_OF: dict[str, str] = {}
@@ -143,8 +144,6 @@ def spot_texture_mean(path: str, cutoff_deg: float, beam_deg: float, raw: bool) 
     weighted by its solid angle (cos^3 theta per unit tangent-plane area) and Mitsuba's falloff (1 inside
     beam_width, linear in angle to 0 at cutoff_angle). The texture is read by Mitsuba itself (8-bit sRGB
     decoded to linear unless ``raw``). A UsdLux spot of this colour x intensity emits the textured spot's power."""
-    from usdrelight.mitsuba.runtime import load_mitsuba
-
     mi = load_mitsuba()
     bmp = mi.Bitmap(path)
     linear = bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32,
