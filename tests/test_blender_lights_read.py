@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from pxr import Sdf
+from pxr import Sdf, UsdLux
 
 from blender_native import all_lights_stage, native_import
 from usd_scenes import looking_down_at_floor
@@ -42,6 +42,9 @@ for job in json.load(open(args[0])):
             l.shape, l.size, l.size_y = s["shape"], s["size"], s.get("size_y", s["size"])
         if s["type"] == "SUN":
             l.angle = math.radians(s["angle_deg"])
+        for key in ("spread", "use_square", "diffuse_factor", "specular_factor", "volume_factor"):
+            if key in s:
+                setattr(l, key, s[key])
         ob = bpy.data.objects.new(s["name"], l)
         ob.location = s.get("at", (0, 0, 1))
         ob.rotation_euler = [math.radians(a) for a in s.get("rot_deg", (0, 0, 0))]  # default: facing down (-Z)
@@ -107,6 +110,12 @@ RENDERED = [
      "rot_deg": (0.0, 25.0, 0.0), "color": (0.3, 0.5, 1.0)},
 ]
 
+# what UsdLux has a place for (diffuse / specular multipliers) and what it has not (warned)
+EXTRA = [{"name": "Narrow", "type": "AREA", **N, "exposure": 0.0, "energy": 1.0, "shape": "SQUARE", "size": 0.2,
+          "spread": 1.0, "diffuse_factor": 0.5, "specular_factor": 2.0},
+         {"name": "Square", "type": "SPOT", **N, "exposure": 0.0, "energy": 1.0, "spot_deg": 40.0, "use_square": True,
+          "volume_factor": 0.0}]
+
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
@@ -121,7 +130,8 @@ def built(tmp_path_factory):
              for i, (name, (spec, _, _)) in enumerate(CASES.items())]
     jobs = [{"base": str(d / "floor.blend"), "save": str(d / "cases.blend"), "lights": cases, "each": str(d / "c_")},
             {"base": str(d / "floor.blend"), "save": str(d / "lit.blend"), "lights": RENDERED,
-             "exr": str(d / "cycles.exr"), "spp": 128}]
+             "exr": str(d / "cycles.exr"), "spp": 128},
+            {"base": str(d / "floor.blend"), "save": str(d / "extra.blend"), "lights": EXTRA}]
     (d / "jobs.json").write_text(json.dumps(jobs))
     (d / "build.py").write_text(BUILD)
     run_blender(d / "build.py", str(d / "jobs.json"))
@@ -224,3 +234,14 @@ def test_native_import_comes_back_with_the_stage_intensities(cli, built):
         np.testing.assert_allclose(light_direction(b[k]), light_direction(a[k]), atol=1e-5, err_msg=k)
     assert b["Spot"].cone_angle_deg == pytest.approx(25.0, rel=1e-5)
     assert b["Sphere"].radius == pytest.approx(0.1, rel=1e-5) and b["Point"].treat_as_point
+
+
+def test_multipliers_kept_and_the_rest_warned(cli, built):
+    rc, _, err = cli("convert", built / "extra.blend", built / "extra.usda")
+    assert rc == 0, err
+    st = open_stage(built / "extra.usda")
+    narrow = UsdLux.RectLight(st.GetPrimAtPath("/Scene/Lights/User/Narrow"))
+    assert narrow.GetDiffuseAttr().Get() == pytest.approx(0.5) and narrow.GetSpecularAttr().Get() == pytest.approx(2.0)
+    text = " ".join(err.split())
+    for kind in ("spread below 180 deg", "square spot", "volume factor"):
+        assert kind in text, kind
