@@ -4,8 +4,9 @@ and Exposure (bpy 5.0.1 in .venv-blender).
 Expected values are written out here by hand from what Cycles renders (measured over a diffuse floor, 0.1% on
 the centre's closed forms; README "Blender"): 2^exposure times, with Normalize on, I = P / 4 pi (point/spot),
 L = P / (4 pi^2 r^2) (radius r), L = P / (pi A) (area), E = S (sun); with Normalize off I = P / pi, L = P / pi,
-L = P / pi and, for a sun of angle a > 0, E = S pi sin^2(a / 2). One Blender process builds the .blend files
-(and renders one), one imports a stage natively; one Mitsuba render (32 x 24 px) closes the loop.
+L = P / pi and, for a sun of angle a > 0, E = S pi sin^2(a / 2). One Blender process builds the .blend files and
+renders (32 x 24 px: each case alone against the closed forms, six lights together against Mitsuba), one imports
+a stage natively; one Mitsuba render closes the loop (~8 s in all).
 """
 import json
 import math
