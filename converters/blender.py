@@ -215,8 +215,23 @@ import bpy, json, sys
 args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
 bpy.ops.wm.open_mainfile(filepath=args[0])
 out = []
-for obj in bpy.data.objects:
+shown = set()  # collections that render: not excluded from the view layer, not hidden from render, nor a parent
+
+
+def walk(lc, hidden):
+    hidden = hidden or lc.exclude or lc.collection.hide_render
+    if not hidden:
+        shown.add(lc.collection.name)
+    for child in lc.children:
+        walk(child, hidden)
+
+
+walk(bpy.context.view_layer.layer_collection, False)
+for obj in bpy.context.scene.objects:
     if obj.type != "LIGHT":
+        continue
+    if obj.hide_render or not any(c.name in shown for c in obj.users_collection):
+        out.append({"name": obj.name, "hidden": True})
         continue
     l = obj.data
     d = {"name": obj.name, "usd_path": obj.get("usd_path", ""), "type": l.type,
@@ -250,6 +265,9 @@ with open(args[1], "w") as f:
 
 
 def blender_lights(path) -> list[dict]:
+    """The lights of the .blend's active scene as plain records (Blender units, Z-up world matrix); a light that
+    does not render (hidden from render, or in a collection excluded or hidden from render) is only
+    ``{"name", "hidden": True}``."""
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
@@ -295,11 +313,14 @@ def read_from_file(path, usd_path=None):
     warnings = Counter()
     # upAxis Y, metersPerUnit 1 (Blender's Z-up metres, turned Y-up; unauthored, USD's fallback is centimetres)
     stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {Path(path).name} by usdrelight.")
-    if lights:
+    if any(not b.get("hidden") for b in lights):
         UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
     used = set()
     for b in lights:
+        if b.get("hidden"):
+            warnings["Blender light hidden from render (not read)"] += 1
+            continue
         try:
             with np.errstate(all="ignore"):  # a zero size gives Inf: refused by _check_light below
                 u = blender_light_to_usd(b)

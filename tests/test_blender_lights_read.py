@@ -49,7 +49,7 @@ for job in json.load(open(args[0])):
         ob = bpy.data.objects.new(s["name"], l)
         ob.location = s.get("at", (0, 0, 1))
         ob.rotation_euler = [math.radians(a) for a in s.get("rot_deg", (0, 0, 0))]  # default: facing down (-Z)
-        ob.visible_camera = False
+        ob.visible_camera, ob.hide_render = False, s.get("hide_render", False)
         scene.collection.objects.link(ob)
     bpy.ops.wm.save_as_mainfile(filepath=job["save"])
     lights = [ob for ob in scene.objects if ob.type == "LIGHT"]
@@ -115,7 +115,8 @@ RENDERED = [
 EXTRA = [{"name": "Narrow", "type": "AREA", **N, "exposure": 0.0, "energy": 1.0, "shape": "SQUARE", "size": 0.2,
           "spread": 1.0, "diffuse_factor": 0.5, "specular_factor": 2.0},
          {"name": "Square", "type": "SPOT", **N, "exposure": 0.0, "energy": 1.0, "spot_deg": 40.0, "use_square": True,
-          "volume_factor": 0.0}]
+          "volume_factor": 0.0},
+         {"name": "Hidden", "type": "POINT", **N, "exposure": 0.0, "energy": 1.0, "hide_render": True}]
 
 
 @pytest.fixture(scope="module")
@@ -243,6 +244,7 @@ def test_multipliers_kept_and_the_rest_warned(cli, built):
     st = open_stage(built / "extra.usda")
     narrow = UsdLux.RectLight(st.GetPrimAtPath("/Scene/Lights/User/Narrow"))
     assert narrow.GetDiffuseAttr().Get() == pytest.approx(0.5) and narrow.GetSpecularAttr().Get() == pytest.approx(2.0)
+    assert sorted(_lights(built / "extra.usda")) == ["Narrow", "Square"]  # not the light hidden from render
     text = " ".join(err.split())
-    for kind in ("spread below 180 deg", "square spot", "volume factor"):
+    for kind in ("spread below 180 deg", "square spot", "volume factor", "hidden from render"):
         assert kind in text, kind
