@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import usdrelight  # noqa: E402,F401  (configures drjit's libLLVM before Mitsuba is imported)
-from blender_native import all_lights_stage, native_import, zup_cm_point_stage  # noqa: E402
+from blender_native import all_lights_stage, native_import, place_light, zup_cm_point_stage  # noqa: E402
 from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
 from usd_scenes import add_closed_form_light, asymmetric_latlong, dome_view_stage, looking_down_at_floor  # noqa: E402
 from usdrelight.cli import main  # noqa: E402
@@ -44,18 +44,9 @@ def _floor(d: Path, w=64, h=48):
     return looking_down_at_floor(d / "s.usda", width=w, height=h)
 
 
-def _at(light, xyz=(0.3, 0.8, 0.0), rot_x=0.0):
-    """Place a light beside the camera (which sits at (0, 1, 0) looking down) and out of its view."""
-    x = UsdGeom.Xformable(light)
-    x.AddTranslateOp().Set(Gf.Vec3d(*xyz))
-    if rot_x:
-        x.AddRotateXOp().Set(rot_x)
-    return light
-
-
 def case_point(d):
     st = _floor(d)
-    l = _at(UsdLux.SphereLight.Define(st, "/World/L"), (0, 1, 0))  # as fitted lights are written (lights_layer.py)
+    l = place_light(UsdLux.SphereLight.Define(st, "/World/L"), (0, 1, 0))  # as fitted lights are written (lights_layer.py)
     l.CreateIntensityAttr(20.0), l.CreateTreatAsPointAttr(True), l.CreateRadiusAttr(0.0), l.CreateNormalizeAttr(False)
     return st, "SphereLight treatAsPoint, intensity 20, normalize 0", 0.5 * 20 / math.pi
 
@@ -67,21 +58,21 @@ def case_point_zup_cm(d):
 
 def case_point_exposure(d):
     st = _floor(d)
-    l = _at(UsdLux.SphereLight.Define(st, "/World/L"), (0, 1, 0))
+    l = place_light(UsdLux.SphereLight.Define(st, "/World/L"), (0, 1, 0))
     l.CreateIntensityAttr(5.0), l.CreateExposureAttr(2.0), l.CreateTreatAsPointAttr(True)
     return st, "SphereLight treatAsPoint, intensity 5, exposure 2", 0.5 * 20 / math.pi
 
 
 def case_sphere(d, normalize=False):
     st = _floor(d)
-    l = _at(UsdLux.SphereLight.Define(st, "/World/L"))
+    l = place_light(UsdLux.SphereLight.Define(st, "/World/L"))
     l.CreateIntensityAttr(20.0), l.CreateRadiusAttr(0.1), l.CreateNormalizeAttr(normalize)
     return st, f"SphereLight radius 0.1 m, intensity 20, normalize {int(normalize)}", None
 
 
 def case_spot(d):
     st = _floor(d)
-    l = _at(UsdLux.SphereLight.Define(st, "/World/L"), rot_x=-90.0)  # -Z -> down
+    l = place_light(UsdLux.SphereLight.Define(st, "/World/L"), rot_x=-90.0)  # -Z -> down
     l.CreateIntensityAttr(20.0), l.CreateTreatAsPointAttr(True)
     sh = UsdLux.ShapingAPI.Apply(l.GetPrim())
     sh.CreateShapingConeAngleAttr(30.0), sh.CreateShapingConeSoftnessAttr(0.0)
@@ -90,14 +81,14 @@ def case_spot(d):
 
 def case_rect(d, normalize=False):
     st = _floor(d)
-    l = _at(UsdLux.RectLight.Define(st, "/World/L"), rot_x=-90.0)
+    l = place_light(UsdLux.RectLight.Define(st, "/World/L"), rot_x=-90.0)
     l.CreateIntensityAttr(10.0), l.CreateWidthAttr(0.5), l.CreateHeightAttr(0.5), l.CreateNormalizeAttr(normalize)
     return st, f"RectLight 0.5 x 0.5 m, intensity 10, normalize {int(normalize)}", None
 
 
 def case_disk(d):
     st = _floor(d)
-    l = _at(UsdLux.DiskLight.Define(st, "/World/L"), rot_x=-90.0)
+    l = place_light(UsdLux.DiskLight.Define(st, "/World/L"), rot_x=-90.0)
     l.CreateIntensityAttr(10.0), l.CreateRadiusAttr(0.25)
     return st, "DiskLight radius 0.25 m, intensity 10", None
 

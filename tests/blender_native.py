@@ -180,8 +180,9 @@ def native_import(jobs: list[dict]) -> list[dict]:
         return json.loads(out.read_text())
 
 
-def _at(light, xyz, rot_x=0.0):
-    """Translate a light to ``xyz`` (stage frame, metres), then turn it by ``rot_x`` degrees about X."""
+def place_light(light, xyz=(0.3, 0.8, 0.0), rot_x=0.0):
+    """Translate a light to ``xyz`` (stage frame, metres; the default is beside a camera at (0, 1, 0) looking
+    down, out of its view), then turn it by ``rot_x`` degrees about X."""
     x = UsdGeom.Xformable(light)
     x.AddTranslateOp().Set(Gf.Vec3d(*xyz))
     if rot_x:
@@ -192,19 +193,19 @@ def _at(light, xyz, rot_x=0.0):
 def all_lights_stage(path):
     """Floor + camera (32 x 24, RenderSettings) + one light of each kind, values chosen to tell factors apart."""
     st = looking_down_at_floor(path)
-    p = _at(UsdLux.SphereLight.Define(st, "/World/Point"), (0, 1, 0))
+    p = place_light(UsdLux.SphereLight.Define(st, "/World/Point"), (0, 1, 0))
     p.CreateIntensityAttr(20.0), p.CreateTreatAsPointAttr(True), p.CreateRadiusAttr(0.0), p.CreateNormalizeAttr(False)
-    s = _at(UsdLux.SphereLight.Define(st, "/World/Sphere"), (2, 1, 0))
+    s = place_light(UsdLux.SphereLight.Define(st, "/World/Sphere"), (2, 1, 0))
     s.CreateIntensityAttr(5.0), s.CreateRadiusAttr(0.1)
-    sp = _at(UsdLux.SphereLight.Define(st, "/World/Spot"), (0, 2, 0), -90.0)
+    sp = place_light(UsdLux.SphereLight.Define(st, "/World/Spot"), (0, 2, 0), -90.0)
     sp.CreateIntensityAttr(7.0), sp.CreateTreatAsPointAttr(True), sp.CreateExposureAttr(1.0)
     sh = UsdLux.ShapingAPI.Apply(sp.GetPrim())
     sh.CreateShapingConeAngleAttr(25.0), sh.CreateShapingConeSoftnessAttr(0.2)
-    r = _at(UsdLux.RectLight.Define(st, "/World/Rect"), (0, 3, 0), -90.0)
+    r = place_light(UsdLux.RectLight.Define(st, "/World/Rect"), (0, 3, 0), -90.0)
     r.CreateIntensityAttr(3.0), r.CreateWidthAttr(0.5), r.CreateHeightAttr(0.25)
-    d = _at(UsdLux.DiskLight.Define(st, "/World/Disk"), (1, 3, 0), -90.0)
+    d = place_light(UsdLux.DiskLight.Define(st, "/World/Disk"), (1, 3, 0), -90.0)
     d.CreateIntensityAttr(3.0), d.CreateRadiusAttr(0.2), d.CreateNormalizeAttr(True)
-    sun = _at(UsdLux.DistantLight.Define(st, "/World/Sun"), (0, 0, 0), -90.0)
+    sun = place_light(UsdLux.DistantLight.Define(st, "/World/Sun"), (0, 0, 0), -90.0)
     sun.CreateIntensityAttr(3.0), sun.CreateAngleAttr(1.0)
     UsdLux.DomeLight.Define(st, "/World/Dome").CreateIntensityAttr(0.8)  # colour not authored
     st.GetRootLayer().Save()
@@ -229,7 +230,7 @@ def zup_cm_point_stage(path, width=64, height=48):
     m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
     UsdShade.MaterialBindingAPI.Apply(m.GetPrim()).Bind(diffuse_material(st, "/World/Looks/Grey"))
     camera(st, Intrinsics.from_fov_x(40.0, width, height), translate=(0, 0, 100))
-    light = _at(UsdLux.SphereLight.Define(st, "/World/L"), (0, 0, 100))
+    light = place_light(UsdLux.SphereLight.Define(st, "/World/L"), (0, 0, 100))
     light.CreateIntensityAttr(20.0)
     light.CreateTreatAsPointAttr(True)
     st.GetRootLayer().Save()
