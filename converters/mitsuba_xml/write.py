@@ -2,7 +2,9 @@
 
 Meshes are written as binary PLY into ``meshes/`` next to the XML; textures inside the XML's folder are
 referenced relatively, the others (and those inside a ``.usdz`` package) are copied into ``textures/`` first,
-so the XML reads only inside its own folder tree (see :mod:`usdrelight.safe_paths`); units
+so the XML reads only inside its own folder tree (see :mod:`usdrelight.safe_paths`); an opacity texture with an
+opacityThreshold is baked instead, thresholded (:mod:`usdrelight.mitsuba.cutout`), into
+``textures/<name>_cutout_<hash>.exr`` (the source is not copied); units
 and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
 XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator, a rough BSDF's microfacet
 distribution) are put back.
@@ -21,6 +23,7 @@ import numpy as np
 from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
+from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import Matrix, _rgb, safe_name, scene_dict
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
@@ -99,6 +102,14 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
         write_image(dst, read_photo(src) * np.asarray(d["tint"], np.float32), "float")
         files.append(str(dst))
         d = {**{k: v for k, v in d.items() if k != "tint"}, "filename": str(dst)}
+    if ptype == "bitmap" and "cutout" in d:  # a thresholded opacity texture (UsdPreviewSurface opacityThreshold)
+        tag = hashlib.sha1(json.dumps([d["filename"], d["cutout"]], sort_keys=True).encode()).hexdigest()[:8]
+        name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
+        dst = base / "textures" / f"{name.stem}_cutout_{tag}.exr"
+        if str(dst) not in files:
+            write_image(dst, presence_map(d), "float")
+            files.append(str(dst))
+        d = {**{k: v for k, v in d.items() if k != "cutout"}, "filename": str(dst)}
     for k, v in d.items():
         if k == "type" or v is None:
             continue

@@ -26,6 +26,7 @@ from ..errors import UsdRelightError
 from ..stage.lux import emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
+from .cutout import cutout_spec, presence_map
 from .runtime import load_mitsuba
 
 log = logging.getLogger(__name__)
@@ -106,7 +107,7 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
     material is marked one-sided (``mat.one_sided``, from a Mitsuba XML) and the gprim is not ``doubleSided``.
 
     Opacity follows the UsdPreviewSurface spec: with ``opacityThreshold`` > 0 it is presence, cut to 0 below the
-    threshold (a Mitsuba ``mask``; a textured opacity is used as coverage, not cut, warned); with threshold 0,
+    threshold (a Mitsuba ``mask``; a textured opacity: a baked presence map, :mod:`.cutout`); with threshold 0,
     opacity < 1 is translucency: ``blendbsdf(weight = opacity, dielectric(int_ior = ior, ext_ior = 1), <opaque>)``
     (opacity 0: the dielectric alone; ior within 1e-3 of 1: a ``mask``, i.e. a pass-through blend)."""
     d = _opaque_bsdf(mat, warnings)
@@ -119,9 +120,9 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
         op = 1.0
     if mat.opacity_threshold > 0.0:  # cutout: presence = opacity where opacity >= threshold, else 0
         if textured:
-            warnings["opacityThreshold with a textured opacity (the texture used as coverage, texels below the "
-                     "threshold not cut)"] += 1
-            return {"type": "mask", "opacity": _texture(op, Counter()), "bsdf": d}
+            if op.channel == "rgb":
+                warnings["UsdUVTexture output 'rgb' feeding opacity (red used)"] += 1
+            return {"type": "mask", "opacity": cutout_spec(op, mat.opacity_threshold), "bsdf": d}
         presence = float(op) if op >= mat.opacity_threshold else 0.0
         return d if presence >= 1.0 else {"type": "mask", "opacity": max(presence, 0.0), "bsdf": d}
     if not textured and op >= 1.0:
@@ -337,5 +338,8 @@ def to_mitsuba(d, mi=None, name: str = "root"):
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}
             out["bitmap"] = mi.Bitmap((bmp * np.asarray(d["tint"], np.float32)).astype(np.float32))
             return out
+        if d.get("type") == "bitmap" and "cutout" in d:  # a thresholded opacity texture: baked in memory
+            out = {k: v for k, v in d.items() if k not in ("cutout", "filename")}
+            return {**out, "bitmap": mi.Bitmap(presence_map(d))}
         return {k: to_mitsuba(v, mi, k) for k, v in d.items()}
     return d
