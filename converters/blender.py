@@ -28,9 +28,11 @@ from usdrelight.stage.create import create_stage
 from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import emitted_radiance, set_light_rgb
 from usdrelight.stage.read import read_scene
-from usdrelight.stage.records import MeshRecord, TextureRecord
+from usdrelight.stage.read_geometry import OPACITY_WARNING
+from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.validate import check_finite
 
+from .blender_materials import EMISSIVE_WARNING, material_spec
 from .blender_units import SOFTEST_SPOT, Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
 
 SUFFIXES = (".blend", ".py")
@@ -66,20 +68,6 @@ def run_blender(script: Path, *args: str, timeout: float = 1800) -> subprocess.C
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
-def _material_spec(mat, name: str) -> dict:
-    def colour(v):
-        if isinstance(v, TextureRecord):
-            return {"path": v.path, "linear": bool(v.linear)}
-        return [float(x) for x in np.broadcast_to(np.asarray(v, np.float64), (3,))]
-
-    def scalar(v, default):
-        return default if isinstance(v, TextureRecord) else float(v)
-
-    kind = "diffuse" if mat.is_lambertian else "principled"
-    return {"name": name, "kind": kind, "diffuse": colour(mat.diffuse),
-            "metallic": scalar(mat.metallic, 0.0), "roughness": scalar(mat.roughness, 0.5), "ior": float(mat.ior)}
-
-
 def _shape_mesh(shape, n: int = 48) -> MeshRecord:
     """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere: n x n/2 UV sphere, smooth normals;
     its area is 0.3% short of the sphere's at n = 48)."""
@@ -145,7 +133,8 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
             key = f"{key}@{light.path}"
             emitting.add(light.path)
         if key not in mats:
-            mats[key] = _material_spec(m.material, f"M{len(mats)}_{key.strip('/').replace('/', '_')}"[:60])
+            mats[key] = material_spec(m.material, f"M{len(mats)}_{key.strip('/').replace('/', '_')}"[:60],
+                                      rec.warnings)
             if light is not None:
                 mats[key]["emission"] = [float(x) for x in emitted_radiance(light)]
         arrays = {"points": (m.points @ conv[:3, :3].T).astype(np.float32), "faces": m.faces.astype(np.int32)}
@@ -174,6 +163,8 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for l in rec.lights:
         _lux_warnings(l, rec.warnings)
+    for kind in (OPACITY_WARNING, EMISSIVE_WARNING):  # Cycles renders both (blender_materials)
+        rec.warnings.pop(kind, None)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights}
