@@ -131,3 +131,61 @@ def test_mitsuba_leaf_mask_round_trip_renders_the_same(cli, tmp_path):
     rmse = float(np.sqrt(np.mean((a - b) ** 2)) / a.mean())
     print(f"means {a.mean():.5f} vs {b.mean():.5f}, rel RMSE {rmse:.4f}")
     assert b.mean() == pytest.approx(a.mean(), rel=0.01) and rmse < 0.1
+
+
+TEXELS = np.uint8([51, 153, 230, 179])  # RGBA 0.2, 0.6, 0.902, 0.702 as stored (PNG alpha is unassociated)
+
+
+@pytest.mark.parametrize("channel, space, scale, bias, expect", [
+    ("r", "auto", 1.0, 0.0, "cut"),  # 0.2 sRGB-decoded to 0.033: below 0.3
+    ("g", "auto", 1.0, 0.0, "srgb"),  # 0.6 decoded to 0.319: kept
+    ("g", "raw", 1.0, 0.0, "value"),
+    ("g", "raw", 0.5, 0.1, "value"),  # scale and bias of the channel used: 0.4
+    ("b", "raw", 0.3, 0.0, "cut"),  # 0.27 after scale
+    ("a", "sRGB", 1.0, 0.0, "value"),  # alpha is never decoded
+    ("rgb", "raw", 1.0, 0.0, "cut"),  # red
+])
+def test_presence_map_uses_the_channel_colour_space_scale_and_bias(tmp_path, channel, space, scale, bias, expect):
+    """A constant 8-bit RGBA texture, threshold 0.3: the baked map is the UsdUVTexture output of the channel
+    (texel decoded from sRGB unless raw, alpha never; times scale plus bias) where it is >= 0.3, else 0."""
+    from usdrelight.imageio import srgb_to_linear
+    from usdrelight.mitsuba.cutout import cutout_spec, presence_map
+    from usdrelight.stage.records import TextureRecord
+
+    mi = load_mitsuba()
+    mi.Bitmap(np.tile(TEXELS, (2, 3, 1)), mi.Bitmap.PixelFormat.RGBA).write(str(tmp_path / "t.png"))
+    tex = TextureRecord(str(tmp_path / "t.png"), space, (scale,) * 4, (bias,) * 4, channel)
+    got = presence_map(cutout_spec(tex, 0.3))
+    v = TEXELS[{"r": 0, "g": 1, "b": 2, "a": 3, "rgb": 0}[channel]] / 255.0
+    want = {"cut": 0.0, "srgb": float(srgb_to_linear(np.float32(v))), "value": v * scale + bias}[expect]
+    assert got.shape == (2 * 8, 3 * 8, 1) and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+def test_presence_map_cuts_a_step_in_alpha_without_a_fringe_on_the_cut_side(tmp_path):
+    """Alpha 0.2 0.2 0.9 0.9 (a 4-texel row), threshold 0.5: the map, 8x finer, is the opacity where it is >= 0.5
+    except the sample next to the cut (0), so Mitsuba's bilinear filtering of it is exactly 0 wherever the
+    filtered opacity is below 0.5, and exactly the opacity from 2/8 texel past the cut on (but next to the
+    opacity's kinks at texel centres, where the fine samples' filtering rounds the corner)."""
+    from usdrelight.mitsuba.cutout import cutout_spec, presence_map
+    from usdrelight.stage.records import TextureRecord
+
+    rgba = np.ones((1, 4, 4), np.float32)
+    rgba[..., 3] = [0.2, 0.2, 0.9, 0.9]
+    write_image(tmp_path / "t.exr", rgba, "float")
+    row = presence_map(cutout_spec(TextureRecord(str(tmp_path / "t.exr"), "raw", channel="a"), 0.5))[0, :, 0]
+
+    def opacity(u):  # Mitsuba's bilinear filtering of the 4 texels, clamped
+        return np.interp(u * 4 - 0.5, [0, 1, 2, 3], [0.2, 0.2, 0.9, 0.9])
+
+    u = (np.arange(32) + 0.5) / 32
+    below = opacity(u) < 0.5
+    near = below | np.r_[False, below[:-1]] | np.r_[below[1:], False]
+    np.testing.assert_allclose(row, np.where(near, 0.0, opacity(u)), atol=1e-6)
+    fine = (np.arange(32 * 64) + 0.5) / (32 * 64)
+    filtered = np.interp(fine * 32 - 0.5, np.arange(32), row)
+    assert np.all(filtered[opacity(fine) < 0.5] == 0.0)
+    cut = fine[opacity(fine) >= 0.5][0]
+    # past the cut, but within one fine sample of the kinks at the texel centres u = 5/8 and 7/8 (0.02 off there)
+    past = (fine >= cut + 2 / 32) & (np.abs(fine - 0.625) > 1 / 32) & (np.abs(fine - 0.875) > 1 / 32)
+    np.testing.assert_allclose(filtered[past], opacity(fine[past]), atol=1e-6)
