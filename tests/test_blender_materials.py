@@ -104,6 +104,9 @@ def panel(stage, mat):
 # name -> (UsdPreviewSurface inputs, bound on the image mean's relative difference, bound on the object's).
 # Measured (Cycles vs Mitsuba, image / object): see README "Blender", "UsdPreviewSurface in Cycles".
 CASES = {
+    # the baseline: a Lambertian ball (a Diffuse BSDF in Cycles, `diffuse` in Mitsuba)
+    "lambertian": (dict(useSpecularWorkflow=1, diffuseColor=(0.6, 0.3, 0.2), specularColor=(0.0, 0.0, 0.0)),
+                   0.05, 0.05),
     # Principled's metal goes to white at grazing (F82 Schlick, as UsdPreviewSurface); Mitsuba's roughconductor
     # of material "none" keeps the base colour at every angle: +2.4% on the ball
     "gold_metal": (dict(diffuseColor=(1.0, 0.78, 0.34), metallic=1.0, roughness=0.3), 0.05, 0.06),
@@ -212,3 +215,50 @@ def test_emissive_colour_is_radiance(cli, tmp_path):
     m, c, _, wb = render_both(cli, tmp_path / "emissive.usda", tmp_path / "meshlight.usda")
     assert not [w for w in wb if "emissive" in w], wb
     agree(m, c, "emissive", 0.05, object_mask("box"), 0.05)
+
+
+def test_textured_scalars_render_as_their_constants(cli, tmp_path):
+    """roughness, metallic and opacity (threshold 0) read from one texture's g, b and r outputs (texels 0.4, 0.7,
+    0.6 in a uniform RGB image) render in Cycles as the constants do (Mitsuba takes textured scalars as
+    constants, so Cycles is its own reference here); a texel x scale + bias is used as the record says."""
+    from pxr import UsdShade as S
+
+    rgba = np.zeros((8, 8, 3), np.float32)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2] = 0.6, 0.4, 0.7
+    write_image(tmp_path / "params.png", rgba, "uint8")
+    means = {}
+    for name in ("constant", "textured"):
+        stage = base(tmp_path / f"{name}.usda")
+        mat = S.Material.Define(stage, "/World/Looks/M")
+        sh = S.Shader.Define(stage, "/World/Looks/M/Surface")
+        sh.CreateIdAttr("UsdPreviewSurface")
+        sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.8, 0.5, 0.3))
+        sh.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.5)
+        values = {"roughness": ("g", 0.4), "metallic": ("b", 0.7), "opacity": ("r", 0.6)}
+        if name == "textured":
+            tex = S.Shader.Define(stage, "/World/Looks/M/Params")
+            tex.CreateIdAttr("UsdUVTexture")
+            tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./params.png")
+            tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+            tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(1, 0.5, 1, 1))  # g: 0.8 x 0.5 = 0.4
+            rd = S.Shader.Define(stage, "/World/Looks/M/St")
+            rd.CreateIdAttr("UsdPrimvarReader_float2")
+            rd.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
+            tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(rd.ConnectableAPI(), "result")
+            rgba[..., 1] = 0.8
+            write_image(tmp_path / "params.png", rgba, "uint8")
+            for inp, (ch, _) in values.items():
+                tex.CreateOutput(ch, Sdf.ValueTypeNames.Float)
+                sh.CreateInput(inp, Sdf.ValueTypeNames.Float).ConnectToSource(tex.ConnectableAPI(), ch)
+        else:
+            for inp, (_, v) in values.items():
+                sh.CreateInput(inp, Sdf.ValueTypeNames.Float).Set(v)
+        mat.CreateSurfaceOutput().ConnectToSource(sh.ConnectableAPI(), "surface")
+        panel(stage, mat)  # a quad with st (a Sphere gprim has none)
+        stage.GetRootLayer().Save()
+        wb = cli.json("convert", tmp_path / f"{name}.usda", tmp_path / f"{name}.blend")["warnings"]
+        assert not [w for w in wb if "textured" in w or "ignored" in w], wb
+        img = read_map(render_blend(tmp_path / f"{name}.blend", tmp_path / f"{name}.exr", samples=SPP), 3)
+        means[name] = img[object_mask("panel")].mean(0)
+    print("textured scalars: object mean", means)
+    np.testing.assert_allclose(means["textured"], means["constant"], rtol=0.01)  # measured 0.1%
