@@ -24,7 +24,7 @@ from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
 from usdrelight.mitsuba.cutout import presence_map
-from usdrelight.mitsuba.scene_dict import Matrix, _rgb, safe_name, scene_dict
+from usdrelight.mitsuba.scene_dict import Matrix, _rgb, _texture, safe_name, scene_dict
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
 
@@ -205,7 +205,8 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
     ``distribution``, and a conductor's, plastic's or dielectric's BSDF itself while the UsdPreviewSurface still
     has the inputs the reader wrote (conductor: base colour, metallic, roughness; plastic: diffuse and specular
     colours, roughness, ior; dielectric: opacity 0, ior, roughness); an edited material is exported from its
-    inputs (warned). A one-sided BSDF (customData twosided false) is left unwrapped by ``bsdf_dict`` itself."""
+    inputs (warned). A one-sided BSDF (customData twosided false) is left unwrapped by ``bsdf_dict`` itself; a
+    mask's opacity texture marked ``"mask": "coverage"`` is put back as coverage (:func:`_restore_coverage`)."""
     for item in (*rec.meshes, *rec.shapes):
         prim = stage.GetPrimAtPath(item.material.path) if item.material.path else None
         data = prim.GetCustomDataByKey("mitsuba") if prim else None
@@ -217,6 +218,7 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
             dist, kept = extra.get("distribution"), extra.get("bsdf")
         except (TypeError, ValueError, AttributeError):
             continue
+        _restore_coverage(item.material, extra, entry)
         inner = entry["bsdf"]
         while isinstance(inner.get("bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"), dict):
             inner = inner["bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"]
@@ -232,6 +234,17 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
                 rec.warnings[f"{kept['type']} kept in customData (ignored: the UsdPreviewSurface was edited)"] += 1
         if dist in ("beckmann", "ggx") and inner.get("type") in ("roughplastic", "roughconductor"):
             inner["distribution"] = dist
+
+
+def _restore_coverage(mat, extra, entry: dict) -> None:
+    """A Mitsuba ``mask`` whose opacity texture the XML reader wrote as opacity + opacityThreshold 0.5 (marked
+    ``customData["mitsuba"]["mask"] = "coverage"``): while the threshold is still 0.5, the texture is written back
+    as the mask's coverage (Mitsuba's own meaning) instead of the thresholded map the spec asks for."""
+    mask = entry["bsdf"]
+    if extra.get("mask") == "coverage" and mask.get("type") == "mask" and isinstance(mask.get("opacity"), dict) \
+            and "cutout" in mask["opacity"] and isinstance(mat.opacity, TextureRecord) \
+            and mat.opacity_threshold == 0.5:
+        mask["opacity"] = _texture(mat.opacity, Counter())
 
 
 #: BSDFs the XML reader keeps whole in a Material's customData (UsdPreviewSurface only approximates them).
