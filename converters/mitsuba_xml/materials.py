@@ -190,6 +190,8 @@ class MaterialBuilder:
                 sh.GetInput("roughness").Set(math.sqrt(max(a, 0.0)))
         if mask is not None:
             self.mask_opacity(path, sh, mask)
+            if any(c.tag == "texture" and c.name == "opacity" for c in mask.children):
+                extra["mask"] = "coverage"  # Mitsuba's meaning, put back by the XML export while the threshold is 0.5
         if not two and t not in TWO_SIDED_BY_NATURE:  # Mitsuba: black from behind; kept for the XML export
             extra["twosided"] = False
             self.warnings[f"one-sided BSDF '{t}' (doubleSided false: back faces black in Mitsuba, culled in USD "
