@@ -207,3 +207,32 @@ def test_textured_eta_is_baked_into_an_f0_texture(cli, tmp_path):
     m0, m1 = _render(tmp_path / "a.xml", spp=64).mean(), _render(tmp_path / "b.xml", spp=64).mean()
     print("baked eta", m0, m1)
     assert m1 == pytest.approx(m0, rel=0.05)
+
+
+def test_bright_specular_colour_is_a_loadable_plastic_with_that_normal_incidence_colour(cli, tmp_path):
+    """specularColor (0.5, 0.3, 0.1) at ior 1.5 (F0 0.04) would be a Fresnel multiplier of 12.5, which Mitsuba
+    refuses; the export raises int_ior so F0 = 0.5 instead. Closed form: a smooth, black-diffuse sphere in a
+    white dome of radiance 1 reflects specularColor straight back at the camera (normal incidence)."""
+    from pxr import Gf, Sdf, UsdGeom, UsdLux
+
+    from usd_scenes import camera, new_stage
+    from usdrelight.intrinsics import Intrinsics
+    from usdrelight.stage.create import define_preview_material
+
+    stage = new_stage(tmp_path / "s.usda")
+    camera(stage, Intrinsics.from_fov_x(8.0, 16, 16), translate=(0, 0, 10))
+    mat, sh = define_preview_material(stage, "/World/Looks/Coat")
+    sh.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(1)
+    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0, 0, 0))
+    sh.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.5, 0.3, 0.1))
+    sh.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.0)
+    sh.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.5)
+    ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
+    UsdShade.MaterialBindingAPI.Apply(ball.GetPrim()).Bind(mat)
+    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateColorAttr((1.0, 1.0, 1.0))
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "x" / "s.xml")
+    assert rc == 0 and "specularColor above the normal-incidence reflectance" in err, err
+    mi = load_mitsuba()
+    img = np.array(mi.render(mi.load_file(str(tmp_path / "x" / "s.xml")), spp=64))[..., :3]
+    np.testing.assert_allclose(img[6:10, 6:10].mean((0, 1)), (0.5, 0.3, 0.1), rtol=0.03, atol=0.003)

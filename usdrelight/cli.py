@@ -199,6 +199,8 @@ def cmd_convert(args) -> int:
     from .converters.convert import convert
 
     res = convert(args.src, args.dst)
+    for kind, n in sorted(res.get("warnings", {}).items()):  # what the target cannot represent: a line per kind
+        log.warning("%s: %d", kind, n)
     summary = {"src": str(args.src), "dst": str(args.dst), "warnings": res.get("warnings", {}),
                "files": res.get("files", [])}
     _emit(args, summary, f"wrote {args.dst}")

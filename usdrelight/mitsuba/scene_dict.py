@@ -66,20 +66,30 @@ def _scalar(v, default: float, what: str, warnings) -> float:
     return float(v)
 
 
-def _plastic_specular(mat: MaterialRecord, warnings) -> dict:
-    """Mitsuba roughplastic's specular_reflectance (a multiplier of the coat's Fresnel term) for UsdPreviewSurface's
-    specularColor (the normal-incidence colour): specularColor / F0(ior). A texture whose UsdUVTexture scale is
-    F0 (as the XML reader writes it) is used unscaled; another texture as it is (warned)."""
-    f0 = max(((float(mat.ior) - 1.0) / (float(mat.ior) + 1.0)) ** 2, 1e-4)
+def _plastic_specular(mat: MaterialRecord, warnings) -> tuple[dict, float]:
+    """Mitsuba roughplastic's (specular_reflectance, int_ior) for UsdPreviewSurface's specularColor (the
+    normal-incidence colour) and ior: specularColor / F0(ior), a multiplier of the coat's Fresnel term. Mitsuba
+    refuses a reflectance above 1, so a specularColor brighter than F0(ior) raises int_ior until F0 equals its
+    largest channel (the colour's hue kept as the multiplier; warned). A texture whose UsdUVTexture scale is F0 (as
+    the XML reader writes it) is used unscaled; another texture as it is (warned)."""
+    ior = float(mat.ior)
+    f0 = max(((ior - 1.0) / (ior + 1.0)) ** 2, 1e-4)
     s = mat.specular
     if not isinstance(s, TextureRecord):
-        return _rgb(np.asarray(s, np.float64) / f0)
+        rgb = np.clip(np.broadcast_to(np.asarray(s, np.float64), (3,)), 0.0, None)
+        peak = float(rgb.max())
+        if peak > f0 * (1 + 1e-6):
+            peak = min(peak, 0.98)  # F0 = 0.98 needs an ior of 197; brighter is a mirror, not a plastic coat
+            warnings["specularColor above the normal-incidence reflectance of ior (int_ior raised so that F0 is "
+                      "its largest channel)"] += 1
+            ior, f0 = (1 + math.sqrt(peak)) / (1 - math.sqrt(peak)), peak
+        return _rgb(np.minimum(rgb / f0, 1.0)), ior
     if np.allclose(s.scale[:3], f0, rtol=1e-4) and not any(s.bias[:3]):
         s = replace(s, scale=(1.0, 1.0, 1.0, 1.0))
     else:
         warnings["textured specularColor (texels used as Mitsuba's specular_reflectance, a Fresnel multiplier, "
                  "not as the normal-incidence colour)"] += 1
-    return _texture(s, warnings)
+    return _texture(s, warnings), ior
 
 
 def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
@@ -91,9 +101,10 @@ def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
     rough = min(max(_scalar(mat.roughness, 0.5, "roughness", warnings), 0.0), 1.0)
     metal = min(max(_scalar(mat.metallic, 0.0, "metallic", warnings), 0.0), 1.0)
     if mat.use_specular_workflow:
+        specular, ior = _plastic_specular(mat, warnings)
         return {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
-                "specular_reflectance": _plastic_specular(mat, warnings), "alpha": max(rough * rough, 1e-3),
-                "distribution": "ggx", "int_ior": float(mat.ior), "nonlinear": False}
+                "specular_reflectance": specular, "alpha": max(rough * rough, 1e-3),
+                "distribution": "ggx", "int_ior": ior, "nonlinear": False}
     if metal >= 1.0:
         return {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
                 "alpha": max(rough * rough, 1e-3), "distribution": "ggx"}
