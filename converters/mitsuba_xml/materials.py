@@ -28,6 +28,7 @@ import numpy as np
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import write_image
 from usdrelight.mitsuba.runtime import load_mitsuba
+from usdrelight.mitsuba.textures import st_transform_of
 from usdrelight.stage.create import author_lambertian, author_uv_texture, define_preview_material
 
 from .common import Plugin, PrimNamer
@@ -72,9 +73,19 @@ class MaterialBuilder:
             return None
         path = tex.resolved
         linear = tex.props.get("raw", False) or Path(path).suffix.lower() in (".exr", ".hdr", ".pfm")
+        wrap = str(tex.props.get("wrap_mode", "repeat"))  # Mitsuba's default: repeat
+        if wrap not in ("repeat", "mirror", "clamp"):
+            self.warnings[f"bitmap wrap_mode '{wrap}' (repeat used)"] += 1
+            wrap = "repeat"
+        st_transform = None
+        if tex.props.get("to_uv") is not None:
+            try:
+                st_transform = st_transform_of(np.asarray(tex.props["to_uv"], np.float64))
+            except ValueError:
+                self.warnings["bitmap to_uv with a shear or a reflection (ignored)"] += 1
         return author_uv_texture(self.stage, shader, input_name, self.asset(path), "raw" if linear else "sRGB",
                                  self.unique(mat_path, input_name + "Texture"), self.unique(mat_path, "StReader"),
-                                 output=output)
+                                 wrap=wrap, output=output, st_transform=st_transform)
 
     def material(self, bsdf: Plugin | None):
         from pxr import Gf, Sdf

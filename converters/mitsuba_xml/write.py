@@ -25,6 +25,7 @@ from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
 from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import Matrix, _rgb, _texture, safe_name, scene_dict
+from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
 
@@ -110,6 +111,14 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
             write_image(dst, presence_map(d), "float")
             files.append(str(dst))
         d = {**{k: v for k, v in d.items() if k != "cutout"}, "filename": str(dst)}
+    if ptype == "bitmap" and "bake" in d:  # a UsdUVTexture's scale / bias / single channel (mitsuba.textures)
+        tag = hashlib.sha1(json.dumps([d["filename"], d["bake"]], sort_keys=True).encode()).hexdigest()[:8]
+        name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
+        dst = base / "textures" / f"{name.stem}_baked_{tag}.exr"
+        if str(dst) not in files:
+            write_image(dst, baked_texels(d), "float")
+            files.append(str(dst))
+        d = {**{k: v for k, v in d.items() if k != "bake"}, "filename": str(dst)}
     for k, v in d.items():
         if k == "type" or v is None:
             continue

@@ -27,6 +27,7 @@ from ..stage.lux import emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .cutout import cutout_spec, presence_map
+from .textures import baked_texels, texture_dict
 from .runtime import load_mitsuba
 
 log = logging.getLogger(__name__)
@@ -47,12 +48,11 @@ def _rgb(v) -> dict:
 
 
 def _texture(tex: TextureRecord, warnings) -> dict:
-    if tuple(tex.scale[:3]) != (1.0, 1.0, 1.0) or any(tex.bias[:3]):
-        warnings["UsdUVTexture scale/bias (ignored)"] += 1
-    if tex.channel not in ("rgb",):
-        warnings[f"UsdUVTexture output '{tex.channel}' used as colour (rgb used)"] += 1
-    return {"type": "bitmap", "filename": tex.path, "raw": bool(tex.linear), "filter_type": "bilinear",
-            "wrap_mode": "clamp"}
+    """A UsdUVTexture as a Mitsuba bitmap dict (:mod:`.textures`: wrap, to_uv, baked scale / bias / channel)."""
+    d = texture_dict(tex, warnings)
+    if "to_uv" in d:
+        d["to_uv"] = Matrix(d["to_uv"])
+    return d
 
 
 def _value(v, warnings) -> dict:
@@ -133,7 +133,10 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
         if textured:
             if op.channel == "rgb":
                 warnings["UsdUVTexture output 'rgb' feeding opacity (red used)"] += 1
-            return {"type": "mask", "opacity": cutout_spec(op, mat.opacity_threshold), "bsdf": d}
+            spec = cutout_spec(op, mat.opacity_threshold)
+            plain = _texture(op, warnings)  # the same wrap and to_uv as the texture itself
+            spec.update({k: plain[k] for k in ("wrap_mode", "to_uv") if k in plain})
+            return {"type": "mask", "opacity": spec, "bsdf": d}
         presence = float(op) if op >= mat.opacity_threshold else 0.0
         return d if presence >= 1.0 else {"type": "mask", "opacity": max(presence, 0.0), "bsdf": d}
     if not textured and op >= 1.0:
@@ -349,8 +352,8 @@ def to_mitsuba(d, mi=None, name: str = "root"):
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}
             out["bitmap"] = mi.Bitmap((bmp * np.asarray(d["tint"], np.float32)).astype(np.float32))
             return out
-        if d.get("type") == "bitmap" and "cutout" in d:  # a thresholded opacity texture: baked in memory
-            out = {k: v for k, v in d.items() if k not in ("cutout", "filename")}
-            return {**out, "bitmap": mi.Bitmap(presence_map(d))}
+        if d.get("type") == "bitmap" and ("cutout" in d or "bake" in d):  # baked in memory (cutout, textures)
+            out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("cutout", "bake", "filename")}
+            return {**out, "bitmap": mi.Bitmap(presence_map(d) if "cutout" in d else baked_texels(d))}
         return {k: to_mitsuba(v, mi, k) for k, v in d.items()}
     return d

@@ -84,11 +84,15 @@ def author_lambertian(surface) -> None:
 
 
 def author_uv_texture(stage, surface, input_name: str, file: str, color_space: str, texture_path: str,
-                      reader_path: str, wrap: str | None = None, output: str = "rgb"):
+                      reader_path: str, wrap: str | None = None, output: str = "rgb", wrap_t: str | None = None,
+                      st_transform: dict | None = None):
     """Connect ``surface``'s colour input ``input_name`` to a UsdUVTexture at ``texture_path`` reading ``file``
     (an asset path) through the ``st`` primvar (a UsdPrimvarReader_float2 at ``reader_path``); ``output="r"``:
-    a float input (opacity) read from the texture's red channel."""
-    from pxr import Sdf, UsdShade
+    a float input (opacity) read from the texture's red channel. ``wrap``: wrapS (and wrapT unless ``wrap_t``
+    is given; None: not authored, i.e. useMetadata). ``st_transform`` (``scale``, ``rotation`` [deg CCW],
+    ``translation``): a UsdTransform2d ``<texture_path>_Transform2d`` between the reader and the texture
+    (st' = R(rotation) (scale * st) + translation)."""
+    from pxr import Gf, Sdf, UsdShade
 
     tex = UsdShade.Shader.Define(stage, texture_path)
     tex.CreateIdAttr("UsdUVTexture")
@@ -96,11 +100,23 @@ def author_uv_texture(stage, surface, input_name: str, file: str, color_space: s
     tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set(color_space)
     if wrap:
         tex.CreateInput("wrapS", Sdf.ValueTypeNames.Token).Set(wrap)
-        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap)
+    if wrap_t or wrap:
+        tex.CreateInput("wrapT", Sdf.ValueTypeNames.Token).Set(wrap_t or wrap)
     reader = UsdShade.Shader.Define(stage, reader_path)
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
-    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.ConnectableAPI(), "result")
+    st_source = reader.ConnectableAPI()
+    if st_transform:
+        xf = UsdShade.Shader.Define(stage, texture_path + "_Transform2d")
+        xf.CreateIdAttr("UsdTransform2d")
+        xf.CreateInput("in", Sdf.ValueTypeNames.Float2).ConnectToSource(st_source, "result")
+        xf.CreateInput("scale", Sdf.ValueTypeNames.Float2).Set(Gf.Vec2f(*st_transform.get("scale", (1.0, 1.0))))
+        xf.CreateInput("rotation", Sdf.ValueTypeNames.Float).Set(float(st_transform.get("rotation", 0.0)))
+        xf.CreateInput("translation", Sdf.ValueTypeNames.Float2).Set(
+            Gf.Vec2f(*st_transform.get("translation", (0.0, 0.0))))
+        xf.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+        st_source = xf.ConnectableAPI()
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(st_source, "result")
     scalar = output == "r"
     tex.CreateOutput(output, Sdf.ValueTypeNames.Float if scalar else Sdf.ValueTypeNames.Float3)
     surface.CreateInput(input_name, Sdf.ValueTypeNames.Float if scalar else Sdf.ValueTypeNames.Color3f) \

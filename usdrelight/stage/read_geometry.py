@@ -43,7 +43,58 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto",
                          tuple(scale.Get()) if scale and scale.Get() is not None else (1, 1, 1, 1),
                          tuple(bias.Get()) if bias and bias.Get() is not None else (0, 0, 0, 0),
-                         output_name)
+                         output_name, _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
+                         **_st_transform(shader, warnings))
+
+
+WRAPS = ("repeat", "mirror", "clamp", "black")
+
+
+def _wrap(shader, name: str, warnings) -> str:
+    """wrapS / wrapT; ``useMetadata`` (the fallback) resolves to black: image metadata is not read."""
+    inp = shader.GetInput(name)
+    v = str(inp.Get()) if inp and inp.Get() is not None else "useMetadata"
+    if v == "useMetadata":
+        return "black"
+    if v not in WRAPS:
+        warnings[f"UsdUVTexture {name} '{v}' (black used)"] += 1
+        return "black"
+    return v
+
+
+def _get(shader, name: str, default):
+    inp = shader.GetInput(name)
+    v = inp.Get() if inp else None
+    return default if v is None else v
+
+
+def _st_transform(tex, warnings) -> dict:
+    """The UsdTransform2d between the texture's ``st`` and a UsdPrimvarReader_float2, as TextureRecord fields
+    (``{}``: none). Another node feeding ``st`` is warned and left out (the mesh's st used as they are)."""
+    from pxr import UsdShade
+
+    st = tex.GetInput("st")
+    if not st or not st.HasConnectedSource():
+        return {}
+    node = UsdShade.Shader(st.GetConnectedSource()[0].GetPrim())
+    sid = node.GetIdAttr().Get()
+    out = {}
+    if sid == "UsdTransform2d":
+        out = {"st_scale": tuple(float(x) for x in _get(node, "scale", (1.0, 1.0))),
+               "st_rotation": float(_get(node, "rotation", 0.0)),
+               "st_translation": tuple(float(x) for x in _get(node, "translation", (0.0, 0.0)))}
+        if not all(np.isfinite([*out["st_scale"], out["st_rotation"], *out["st_translation"]])):
+            warnings["non-finite UsdTransform2d (ignored)"] += 1
+            out = {}
+        inp = node.GetInput("in")
+        if not inp or not inp.HasConnectedSource():
+            warnings["UsdTransform2d without a connected 'in' (the mesh's st used)"] += 1
+            return out
+        node = UsdShade.Shader(inp.GetConnectedSource()[0].GetPrim())
+        sid = node.GetIdAttr().Get()
+    if sid != "UsdPrimvarReader_float2":
+        warnings[f"UsdUVTexture st from a '{sid}' node (the mesh's st used)"] += 1
+    return out
 
 
 def _input_value(shader, name, default, warnings):

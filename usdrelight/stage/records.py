@@ -41,6 +41,17 @@ class TextureRecord:
     """UsdUVTexture ``bias`` (RGBA), added after ``scale``."""
     channel: str = "rgb"
     """The shader output that is used: rgb | r | g | b | a."""
+    wrap_s: str = "black"
+    """UsdUVTexture ``wrapS``: repeat | mirror | clamp | black (``useMetadata`` resolved: the file's metadata is
+    not read, so the spec's fallback, black, is used)."""
+    wrap_t: str = "black"
+    """UsdUVTexture ``wrapT`` (as ``wrap_s``)."""
+    st_scale: tuple = (1.0, 1.0)
+    """UsdTransform2d ``scale`` between the st primvar reader and the texture (identity: no transform)."""
+    st_rotation: float = 0.0
+    """UsdTransform2d ``rotation``, degrees counter-clockwise about st = (0, 0)."""
+    st_translation: tuple = (0.0, 0.0)
+    """UsdTransform2d ``translation``. The texture is looked up at st' = R(rotation) (scale * st) + translation."""
 
     @property
     def linear(self) -> bool:
@@ -50,6 +61,14 @@ class TextureRecord:
         if self.color_space == "sRGB":
             return False
         return Path(self.path).suffix.lower() in (".exr", ".hdr", ".pfm", ".tif", ".tiff")
+
+    def st_matrix(self) -> np.ndarray:
+        """The UsdTransform2d as a 3x3 affine matrix on column vectors ``[s, t, 1]`` (identity when none)."""
+        a = np.radians(float(self.st_rotation))
+        c, s = np.cos(a), np.sin(a)
+        m = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([*map(float, self.st_scale), 1.0])
+        m[:2, 2] = [float(x) for x in self.st_translation]
+        return m
 
 
 Color = Union[tuple, TextureRecord]

@@ -1,0 +1,122 @@
+"""A UsdUVTexture (:class:`~usdrelight.stage.records.TextureRecord`) -> a Mitsuba ``bitmap`` texture dict.
+
+* wrapS / wrapT -> ``wrap_mode`` (repeat, mirror, clamp). Mitsuba's bitmap has one wrap mode for both axes and
+  none that is black outside [0, 1]: black is rendered clamp (equal inside st [0, 1] but for the spec's
+  half-texel fade to black at the edges) and wrapS != wrapT uses wrapS; both warned.
+* The UsdTransform2d (st' = R (scale * st) + translation) -> the bitmap's ``to_uv``. Mitsuba's uv is (s, 1 - t)
+  (README "st texture coordinates"), so ``to_uv = F T F`` with F(u, v) = (u, 1 - v), a 4x4 :class:`Matrix` of
+  the 2D affine map (x, y rows; translation in the last column).
+* ``scale`` / ``bias`` and an output other than ``rgb`` (r, g, b, a: a grey colour) are exact: the texture is
+  baked (``bake`` in the dict, like :mod:`.cutout`'s ``cutout``): out = decoded texel * scale + bias, texels
+  decoded from sRGB unless the record is linear (alpha never), a 1- or 2-channel file is grey(+alpha), a missing
+  alpha is 1. Scale and bias are affine, so Mitsuba's bilinear filtering of the baked map equals the spec's
+  scale/bias of the filtered texture. ``to_mitsuba`` bakes it in memory, the XML writer into ``textures/``.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from ..imageio import srgb_to_linear
+from ..stage.records import TextureRecord
+from .cutout import CHANNELS, _read_texels
+
+WRAP_MODES = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp"}
+FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # (u, v) <-> (s, t): v = 1 - t
+
+
+def wrap_mode(tex: TextureRecord, warnings) -> str:
+    """Mitsuba's one ``wrap_mode`` for the texture's wrapS / wrapT (see the module docstring)."""
+    if tex.wrap_s != tex.wrap_t:
+        warnings[f"UsdUVTexture wrapS '{tex.wrap_s}' != wrapT '{tex.wrap_t}' (Mitsuba has one wrap_mode: wrapS "
+                 "used for both)"] += 1
+    if tex.wrap_s == "black":
+        warnings["UsdUVTexture wrap 'black' (Mitsuba clamp used: differs where st leaves [0, 1])"] += 1
+    return WRAP_MODES.get(tex.wrap_s, "clamp")
+
+
+def to_uv(tex: TextureRecord) -> np.ndarray | None:
+    """The bitmap's ``to_uv`` (4x4, column-vector convention) for the record's UsdTransform2d; None: identity."""
+    t = tex.st_matrix()
+    if np.allclose(t, np.eye(3), rtol=0.0, atol=1e-12):
+        return None
+    m2 = FLIP_V @ t @ FLIP_V
+    m = np.eye(4)
+    m[:2, :2] = m2[:2, :2]
+    m[:2, 3] = m2[:2, 2]
+    return m
+
+
+def st_transform_of(m: np.ndarray) -> dict | None:
+    """The inverse of :func:`to_uv`: TextureRecord-style ``st_scale``, ``st_rotation`` [deg], ``st_translation``
+    of a Mitsuba ``to_uv`` 4x4 (None: identity). ValueError: a shear or a reflection (no UsdTransform2d)."""
+    m = np.asarray(m, np.float64)
+    a = np.eye(3)
+    a[:2, :2], a[:2, 2] = m[:2, :2], m[:2, 3]
+    t = FLIP_V @ a @ FLIP_V
+    if np.allclose(t, np.eye(3), rtol=0.0, atol=1e-12):
+        return None
+    lin = t[:2, :2]
+    sx, sy = np.hypot(lin[0, 0], lin[1, 0]), np.hypot(lin[0, 1], lin[1, 1])
+    rot = np.degrees(np.arctan2(lin[1, 0], lin[0, 0]))
+    chk = TextureRecord("", "raw", st_scale=(sx, sy), st_rotation=rot, st_translation=(t[0, 2], t[1, 2]))
+    if not np.allclose(chk.st_matrix(), t, rtol=1e-6, atol=1e-9):
+        raise ValueError("to_uv is not scale * rotation + translation")
+    return {"scale": (float(sx), float(sy)), "rotation": float(rot), "translation": (float(t[0, 2]), float(t[1, 2]))}
+
+
+@lru_cache(maxsize=64)
+def _channel_count(path: str) -> int:
+    return int(_read_texels(path).shape[2])
+
+
+def needs_bake(tex: TextureRecord) -> bool:
+    """True when the texels are not used as they are: scale / bias on the channels used, or one channel (r, g,
+    b, a) of an RGB(A) file (an r, g or b of a grey(+alpha) file is its grey value, as Mitsuba reads it)."""
+    if tex.channel != "rgb":
+        i = CHANNELS.get(tex.channel, 0)
+        if tex.channel == "a" or _channel_count(tex.path) > 2:  # Mitsuba drops a grey file's alpha
+            return True
+        return float(tex.scale[i]) != 1.0 or float(tex.bias[i]) != 0.0
+    return tuple(map(float, tex.scale[:3])) != (1.0, 1.0, 1.0) or any(map(float, tex.bias[:3]))
+
+
+def texture_dict(tex: TextureRecord, warnings) -> dict:
+    """The plain-data bitmap dict of a UsdUVTexture (see the module docstring)."""
+    d = {"type": "bitmap", "filename": tex.path, "raw": bool(tex.linear), "filter_type": "bilinear",
+         "wrap_mode": wrap_mode(tex, warnings)}
+    m = to_uv(tex)
+    if m is not None:
+        d["to_uv"] = m  # numpy; scene_dict wraps it in its Matrix
+    if tex.channel not in ("rgb", "r", "g", "b", "a"):
+        warnings[f"UsdUVTexture output '{tex.channel}' (rgb used)"] += 1
+        tex = TextureRecord(tex.path, tex.color_space, tex.scale, tex.bias, "rgb")
+    if needs_bake(tex):
+        d["raw"] = True
+        d["bake"] = {"channel": tex.channel, "linear": tex.linear, "scale": [float(x) for x in tex.scale[:4]],
+                     "bias": [float(x) for x in tex.bias[:4]]}
+    return d
+
+
+def _decode(v: np.ndarray, linear: bool) -> np.ndarray:
+    return v if linear else srgb_to_linear(v)
+
+
+def baked_texels(spec: dict) -> np.ndarray:
+    """The baked (H, W, 3) float32 map of a :func:`texture_dict` with ``bake``: the UsdUVTexture's output."""
+    b = spec["bake"]
+    tx = _read_texels(spec["filename"])
+    c = tx.shape[2]
+    scale, bias = np.asarray(b["scale"], np.float32), np.asarray(b["bias"], np.float32)
+    if b["channel"] == "rgb":
+        rgb = np.repeat(tx[..., :1], 3, axis=2) if c <= 2 else tx[..., :3]
+        out = _decode(rgb, b["linear"]) * scale[:3] + bias[:3]
+    else:
+        i = CHANNELS[b["channel"]]
+        if b["channel"] == "a":
+            v = tx[..., -1] if c in (2, 4) else np.ones(tx.shape[:2], np.float32)
+        else:
+            v = _decode(tx[..., 0] if c <= 2 else tx[..., i], b["linear"])
+        out = np.repeat((v * scale[i] + bias[i])[..., None], 3, axis=2)
+    return np.ascontiguousarray(out, dtype=np.float32)
