@@ -12,8 +12,11 @@ Diffuse BSDF of roughness 0. Everything else is one Principled BSDF (Blender 5.0
 * opacity with opacityThreshold 0: Transmission Weight = 1 - opacity (clear glass at 0, refracting by IOR);
   with opacityThreshold > 0: a cutout, Alpha = opacity where opacity >= threshold, else 0;
 * emissiveColor: Emission Color, Emission Strength 1 (radiance = the colour, as a MeshLightAPI's);
-* a textured input: an Image Texture node on UV map ``st``; a scalar takes the TextureRecord's channel
-  (r, g, b or a; rgb: its red) times its scale plus its bias.
+* a textured input: an Image Texture node on UV map ``st`` (Blender's v = 0 at the bottom, as USD's t: no flip),
+  extension from wrapS (repeat REPEAT, mirror MIRROR, clamp EXTEND, black CLIP; wrapT != wrapS warned), a
+  UsdTransform2d as a Mapping node (POINT: scale, rotation about Z, location: the spec's order); a scalar takes
+  the TextureRecord's channel (r, g, b or a; rgb: its red) times its scale plus its bias; a colour takes rgb
+  times scale plus bias (Vector Math), or a single channel as a grey colour.
 """
 from __future__ import annotations
 
@@ -37,9 +40,25 @@ def ior_from_f0(f0: float) -> float:
     return (1.0 + s) / (1.0 - s)
 
 
+#: UsdUVTexture wrap -> Image Texture extension (CLIP: black outside the image).
+EXTENSIONS = {"repeat": "REPEAT", "mirror": "MIRROR", "clamp": "EXTEND", "black": "CLIP"}
+
+
 def _texture(t: TextureRecord) -> dict:
-    return {"path": t.path, "linear": bool(t.linear), "channel": t.channel,
-            "scale": [float(x) for x in t.scale], "bias": [float(x) for x in t.bias]}
+    d = {"path": t.path, "linear": bool(t.linear), "channel": t.channel,
+         "scale": [float(x) for x in t.scale], "bias": [float(x) for x in t.bias],
+         "extension": EXTENSIONS.get(t.wrap_s, "CLIP")}
+    if not np.allclose(t.st_matrix(), np.eye(3), rtol=0.0, atol=1e-12):
+        d["st_transform"] = {"scale": [float(x) for x in t.st_scale], "rotation_rad": math.radians(t.st_rotation),
+                             "translation": [float(x) for x in t.st_translation]}
+    return d
+
+
+def _wrap_warnings(mat: MaterialRecord, warnings) -> None:
+    for v in (mat.diffuse, mat.roughness, mat.metallic, mat.specular, mat.opacity, mat.emissive):
+        if isinstance(v, TextureRecord) and v.wrap_s != v.wrap_t:
+            warnings[f"UsdUVTexture wrapS '{v.wrap_s}' != wrapT '{v.wrap_t}' (Blender's Image Texture has one "
+                     "extension: wrapS used for both)"] += 1
 
 
 def _colour(v):
@@ -64,6 +83,7 @@ def _clamp01(v):
 
 def material_spec(mat: MaterialRecord, name: str, warnings) -> dict:
     """The material description for ``make_material`` in the Blender script (see the module docstring)."""
+    _wrap_warnings(mat, warnings)
     e = _colour(mat.emissive)
     emits = isinstance(e, dict) or max(e) > 0.0
     if mat.is_lambertian and not emits and _opaque(mat):

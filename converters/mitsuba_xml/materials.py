@@ -73,7 +73,15 @@ class MaterialBuilder:
             return None
         path = tex.resolved
         linear = tex.props.get("raw", False) or Path(path).suffix.lower() in (".exr", ".hdr", ".pfm")
-        wrap = str(tex.props.get("wrap_mode", "repeat"))  # Mitsuba's default: repeat
+        wrap, st_transform = self.wrap_and_st(tex)
+        return author_uv_texture(self.stage, shader, input_name, self.asset(path), "raw" if linear else "sRGB",
+                                 self.unique(mat_path, input_name + "Texture"), self.unique(mat_path, "StReader"),
+                                 wrap=wrap, output=output, st_transform=st_transform)
+
+    def wrap_and_st(self, tex: Plugin) -> tuple[str, dict | None]:
+        """A bitmap's ``wrap_mode`` (Mitsuba's default: repeat) as wrapS = wrapT, and its ``to_uv`` as
+        UsdTransform2d inputs (None: identity; a shear or a reflection: None, warned)."""
+        wrap = str(tex.props.get("wrap_mode", "repeat"))
         if wrap not in ("repeat", "mirror", "clamp"):
             self.warnings[f"bitmap wrap_mode '{wrap}' (repeat used)"] += 1
             wrap = "repeat"
@@ -83,9 +91,7 @@ class MaterialBuilder:
                 st_transform = st_transform_of(np.asarray(tex.props["to_uv"], np.float64))
             except ValueError:
                 self.warnings["bitmap to_uv with a shear or a reflection (ignored)"] += 1
-        return author_uv_texture(self.stage, shader, input_name, self.asset(path), "raw" if linear else "sRGB",
-                                 self.unique(mat_path, input_name + "Texture"), self.unique(mat_path, "StReader"),
-                                 wrap=wrap, output=output, st_transform=st_transform)
+        return wrap, st_transform
 
     def material(self, bsdf: Plugin | None):
         from pxr import Gf, Sdf
@@ -297,8 +303,10 @@ class MaterialBuilder:
             return False
         dst = Path(layer.realPath).parent / "textures" / f"{path.rsplit('/', 1)[-1]}_f0.exr"
         write_image(dst, f0.astype(np.float32), "float")
+        wrap, st_transform = self.wrap_and_st(textures.get("eta") or textures["k"])
         author_uv_texture(self.stage, sh, "diffuseColor", self.asset(str(dst)), "raw",
-                          self.unique(path, "diffuseColorTexture"), self.unique(path, "StReader"))
+                          self.unique(path, "diffuseColorTexture"), self.unique(path, "StReader"), wrap=wrap,
+                          st_transform=st_transform)
         self.warnings[f"{inner.type}: textured eta/k (normal-incidence F0 baked into textures/*_f0.exr next to the "
                       f"USD file)"] += 1
         return True

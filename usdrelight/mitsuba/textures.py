@@ -14,6 +14,7 @@
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
@@ -91,7 +92,7 @@ def texture_dict(tex: TextureRecord, warnings) -> dict:
         d["to_uv"] = m  # numpy; scene_dict wraps it in its Matrix
     if tex.channel not in ("rgb", "r", "g", "b", "a"):
         warnings[f"UsdUVTexture output '{tex.channel}' (rgb used)"] += 1
-        tex = TextureRecord(tex.path, tex.color_space, tex.scale, tex.bias, "rgb")
+        tex = replace(tex, channel="rgb")
     if needs_bake(tex):
         d["raw"] = True
         d["bake"] = {"channel": tex.channel, "linear": tex.linear, "scale": [float(x) for x in tex.scale[:4]],
