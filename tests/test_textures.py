@@ -151,6 +151,7 @@ CASES = {  # name -> (wrap, UsdTransform2d)
     "mirror": ("mirror", None),
     "clamp": ("clamp", None),
     "transform": ("repeat", {"scale": (2.0, 2.0), "translation": (0.25, 0.25)}),
+    "rotated": ("mirror", {"scale": (1.5, 1.0), "rotation": 30.0, "translation": (0.1, -0.2)}),
 }
 
 
@@ -158,7 +159,8 @@ CASES = {  # name -> (wrap, UsdTransform2d)
 def test_wrap_and_st_transform_in_mitsuba(cli, tmp_path, checker_file, case):
     """UVs 0..4: repeat gives 4 x 4 checker tiles (8 cells, 7 edges along a row), mirror reflects every other
     tile, clamp holds the edge texels beyond st = 1; a UsdTransform2d scale 2 + translation 0.25 shifts the cells
-    by a quarter of a tile (in st') and doubles their count; every clean pixel is a E / pi of its cell."""
+    by a quarter of a tile (in st') and doubles their count; scale (1.5, 1), rotation 30 deg, translation
+    (0.1, -0.2) turns them counter-clockwise (in st); every clean pixel is a E / pi of its cell."""
     wrap, xf = CASES[case]
     uv_max = 2.0 if xf else 4.0
     usda = make_stage(tmp_path / "s.usda", checker_file, uv_max, wrap, xf)
@@ -169,7 +171,7 @@ def test_wrap_and_st_transform_in_mitsuba(cli, tmp_path, checker_file, case):
         assert int(np.count_nonzero(row[1:] != row[:-1])) == 7
 
 
-@pytest.mark.parametrize("case", ["repeat", "mirror", "transform"])
+@pytest.mark.parametrize("case", ["repeat", "mirror", "transform", "rotated"])
 def test_wrap_and_st_transform_in_cycles(cli, tmp_path, checker_file, case):
     """The same stages as .blend in Cycles: Image Texture extension REPEAT / MIRROR, a Mapping node for the
     UsdTransform2d; the same clean pixels, and the image mean within 5% of Mitsuba's."""

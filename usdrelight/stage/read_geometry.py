@@ -38,12 +38,12 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
         check_image_size(resolved)
     cs = shader.GetInput("sourceColorSpace")
-    scale = shader.GetInput("scale")
-    bias = shader.GetInput("bias")
-    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto",
-                         tuple(scale.Get()) if scale and scale.Get() is not None else (1, 1, 1, 1),
-                         tuple(bias.Get()) if bias and bias.Get() is not None else (0, 0, 0, 0),
-                         output_name, _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
+    scale = tuple(float(x) for x in _get(shader, "scale", (1.0, 1.0, 1.0, 1.0)))
+    bias = tuple(float(x) for x in _get(shader, "bias", (0.0, 0.0, 0.0, 0.0)))
+    if not np.all(np.isfinite(scale + bias)):
+        warnings["non-finite UsdUVTexture scale / bias (1 / 0 used)"] += 1
+        scale, bias = (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
+    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto", scale, bias, output_name, _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
                          **_st_transform(shader, warnings))
 
 
