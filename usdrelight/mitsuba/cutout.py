@@ -4,13 +4,15 @@ The spec's cutout mode: presence(x) = opacity(x) where opacity(x) >= threshold, 
 UsdUVTexture's output (texel decoded from sRGB unless the record is linear, alpha never decoded; times ``scale``
 plus ``bias`` of the channel used; a 1- or 2-channel file is grey(+alpha), a missing alpha is 1; output ``rgb``
 feeding the float input: red). Renderers threshold the *filtered* opacity; Mitsuba filters the map it is given,
-so the map is baked ``UPSAMPLE``x finer (bilinear upsampling with Mitsuba's texel-centre convention and clamped
-edges, at most ``MAX_BAKED_PIXELS``), thresholded there and eroded by one sample (a sample next to one below the
-threshold is 0 too), so that Mitsuba's bilinear filtering of the map is exactly 0 wherever the opacity is below
-the threshold (no fringe on the cut side) and exactly the opacity wherever all neighbouring samples are at or
-above it; along the cut, on the kept side, presence ramps up from 0 over at most 2/UPSAMPLE of a source texel
-(measured in tests/test_opacity_threshold_texture.py). The map is one float
-channel (Mitsuba's ``eval_1`` of a 1-channel bitmap is its value), used with ``raw`` true, bilinear, clamped.
+so the map is baked ``UPSAMPLE``x finer (bilinear upsampling with Mitsuba's texel-centre convention and the
+texture's wrap mode at the edges, at most ``MAX_BAKED_PIXELS``), thresholded there and eroded by one sample (a
+sample next to one below the threshold is 0 too), so that Mitsuba's bilinear filtering of the map is exactly 0
+wherever the opacity is below the threshold (no fringe on the cut side) and exactly the opacity wherever all
+neighbouring samples are at or above it; along the cut, on the kept side, presence ramps up from 0 over at most
+2/UPSAMPLE of a source texel (measured in tests/test_opacity_threshold_texture.py). The map is one float
+channel (Mitsuba's ``eval_1`` of a 1-channel bitmap is its value), used with ``raw`` true, bilinear, with the
+texture's wrap_mode and to_uv (:mod:`.textures`; a repeated texture is upsampled and eroded across its seams:
+the upsampling matches Mitsuba's bilinear lookup of the source to 2.4e-7 for repeat, mirror and clamp).
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ def cutout_spec(tex: TextureRecord, threshold: float) -> dict:
     needs and is replaced by the baked map (``to_mitsuba``: an in-memory bitmap; the XML writer: a float EXR)."""
     return {"type": "bitmap", "filename": tex.path, "raw": True, "filter_type": "bilinear", "wrap_mode": "clamp",
             "cutout": {"threshold": float(threshold), "channel": tex.channel, "linear": tex.linear,
+                       "repeat": tex.wrap_s == "repeat",
                        "scale": float(tex.scale[CHANNELS.get(tex.channel, 0)]),
                        "bias": float(tex.bias[CHANNELS.get(tex.channel, 0)])}}
 
@@ -66,14 +69,18 @@ def _opacity(texels: np.ndarray, channel: str, linear: bool) -> np.ndarray:
     return v if linear else srgb_to_linear(v)
 
 
-def _upsample(v: np.ndarray, k: int) -> np.ndarray:
-    """Bilinear k-fold upsampling at Mitsuba's sample positions (texel centres at (i + 0.5) / n, clamped edges)."""
+def _upsample(v: np.ndarray, k: int, repeat: bool = False) -> np.ndarray:
+    """Bilinear k-fold upsampling at Mitsuba's sample positions (texel centres at (i + 0.5) / n); edges clamped
+    (clamp, and mirror, whose texel beyond the edge is the edge texel) or wrapped around (repeat)."""
     for axis in (0, 1):
         n = v.shape[axis]
-        x = np.clip((np.arange(n * k) + 0.5) / k - 0.5, 0.0, n - 1)
+        x = (np.arange(n * k) + 0.5) / k - 0.5
+        if not repeat:
+            x = np.clip(x, 0.0, n - 1)
         i0 = np.floor(x).astype(np.int64)
-        i1 = np.minimum(i0 + 1, n - 1)
         w = (x - i0).astype(np.float32)
+        i1 = (i0 + 1) % n if repeat else np.minimum(i0 + 1, n - 1)
+        i0 = i0 % n
         shape = [1, 1]
         shape[axis] = -1
         w = w.reshape(shape)
@@ -87,8 +94,9 @@ def presence_map(spec: dict) -> np.ndarray:
     op = _opacity(_read_texels(spec["filename"]), cut["channel"], cut["linear"]) * cut["scale"] + cut["bias"]
     h, w = op.shape
     k = max(1, min(UPSAMPLE, int(np.sqrt(MAX_BAKED_PIXELS / max(h * w, 1)))))
-    op = _upsample(op.astype(np.float32), k) if k > 1 else op
-    below = np.pad(op < cut["threshold"], 1, mode="edge")
+    repeat = bool(cut.get("repeat", False))
+    op = _upsample(op.astype(np.float32), k, repeat) if k > 1 else op
+    below = np.pad(op < cut["threshold"], 1, mode="wrap" if repeat else "edge")
     near = np.zeros(op.shape, bool)  # a sample below the threshold or next to one (8-neighbourhood): 0
     for dy in range(3):
         for dx in range(3):

@@ -43,7 +43,8 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     if not np.all(np.isfinite(scale + bias)):
         warnings["non-finite UsdUVTexture scale / bias (1 / 0 used)"] += 1
         scale, bias = (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
-    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto", scale, bias, output_name, _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
+    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto", scale, bias, output_name,
+                         _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
                          **_st_transform(shader, warnings))
 
 
