@@ -128,7 +128,7 @@ def _author_material(stage, mesh_prim, name: str, material, usd_dir: Path | None
         with atomic_path(usd_dir / rel) as tmp:
             image.convert("RGB").save(tmp, format="PNG")
         author_uv_texture(stage, surf, "diffuseColor", "./" + rel, "sRGB", f"{ROOT}/Looks/{name}/BaseColorTexture",
-                          f"{ROOT}/Looks/{name}/StReader")
+                          f"{ROOT}/Looks/{name}/StReader", wrap="repeat")  # glTF's default sampler wrap
     else:
         rgb = factor[:3]
         if image is not None:

@@ -240,6 +240,8 @@ def test_textured_scalars_render_as_their_constants(cli, tmp_path):
             tex.CreateIdAttr("UsdUVTexture")
             tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./params.png")
             tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+            for wrap in ("wrapS", "wrapT"):  # unauthored is black (the spec): the edge half-texel would fade
+                tex.CreateInput(wrap, Sdf.ValueTypeNames.Token).Set("clamp")
             tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(1, 0.5, 1, 1))  # g: 0.8 x 0.5 = 0.4
             rd = S.Shader.Define(stage, "/World/Looks/M/St")
             rd.CreateIdAttr("UsdPrimvarReader_float2")
