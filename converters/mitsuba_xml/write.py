@@ -59,6 +59,22 @@ def _local_file(path: str, base: Path, files: list) -> str:
     return rel_path(str(dst), base)
 
 
+#: bitmap dict keys whose texels are computed, not read: key -> (file label, texels(d) -> float image)
+_BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("bake", "baked", baked_texels))
+
+
+def _baked_bitmap(d: dict, key: str, label: str, texels, base: Path, files: list) -> dict:
+    """The bitmap ``d`` with its computed texels (``texels(d)``: a UsdPreviewSurface opacityThreshold presence map,
+    or a UsdUVTexture's scale / bias / single channel) written once to textures/<stem>_<label>_<hash>.exr."""
+    digest = hashlib.sha1(json.dumps([d["filename"], d[key]], sort_keys=True).encode()).hexdigest()[:8]
+    name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
+    dst = base / "textures" / f"{name.stem}_{label}_{digest}.exr"
+    if str(dst) not in files:
+        write_image(dst, texels(d), "float")
+        files.append(str(dst))
+    return {**{k: v for k, v in d.items() if k != key}, "filename": str(dst)}
+
+
 def _to_xml(parent: ET.Element, name: str, value, base: Path, files: list) -> None:
     if isinstance(value, Matrix):
         t = ET.SubElement(parent, "transform", name=name)
@@ -103,22 +119,10 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
         write_image(dst, read_photo(src) * np.asarray(d["tint"], np.float32), "float")
         files.append(str(dst))
         d = {**{k: v for k, v in d.items() if k != "tint"}, "filename": str(dst)}
-    if ptype == "bitmap" and "cutout" in d:  # a thresholded opacity texture (UsdPreviewSurface opacityThreshold)
-        tag = hashlib.sha1(json.dumps([d["filename"], d["cutout"]], sort_keys=True).encode()).hexdigest()[:8]
-        name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
-        dst = base / "textures" / f"{name.stem}_cutout_{tag}.exr"
-        if str(dst) not in files:
-            write_image(dst, presence_map(d), "float")
-            files.append(str(dst))
-        d = {**{k: v for k, v in d.items() if k != "cutout"}, "filename": str(dst)}
-    if ptype == "bitmap" and "bake" in d:  # a UsdUVTexture's scale / bias / single channel (mitsuba.textures)
-        tag = hashlib.sha1(json.dumps([d["filename"], d["bake"]], sort_keys=True).encode()).hexdigest()[:8]
-        name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
-        dst = base / "textures" / f"{name.stem}_baked_{tag}.exr"
-        if str(dst) not in files:
-            write_image(dst, baked_texels(d), "float")
-            files.append(str(dst))
-        d = {**{k: v for k, v in d.items() if k != "bake"}, "filename": str(dst)}
+    if ptype == "bitmap":  # texels computed from the source: an opacityThreshold cutout, a scale/bias/channel
+        for key_, label, texels in _BAKED_BITMAPS:
+            if key_ in d:
+                d = _baked_bitmap(d, key_, label, texels, base, files)
     for k, v in d.items():
         if k == "type" or v is None:
             continue
