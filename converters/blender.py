@@ -68,16 +68,15 @@ def run_blender(script: Path, *args: str, timeout: float = 1800) -> subprocess.C
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
-def _shape_mesh(shape, n: int = 48) -> MeshRecord:
-    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere: n x n/2 UV sphere, smooth normals;
-    its area is 0.3% short of the sphere's at n = 48)."""
-    if shape.kind == "sphere":
-        th, ph = np.meshgrid(np.linspace(0, np.pi, n // 2 + 1), np.linspace(0, 2 * np.pi, n + 1), indexing="ij")
-        unit = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
-        i, j = np.meshgrid(np.arange(n // 2), np.arange(n), indexing="ij")
-        a, b = (i * (n + 1) + j).ravel(), (i * (n + 1) + j + 1).ravel()
-        c, d = a + n + 1, b + n + 1
-        faces = np.concatenate([np.stack([a, c, d], 1), np.stack([a, d, b], 1)])
+def _shape_mesh(shape) -> MeshRecord:
+    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere: a 4-times subdivided icosphere, 5120
+    triangles, smooth normals; its area is 0.12% short of the sphere's)."""
+    if shape.kind == "sphere":  # an icosphere: no poles (a UV sphere's pole showed a ring in Cycles)
+        import trimesh
+
+        ico = trimesh.creation.icosphere(subdivisions=4)
+        unit, faces = np.asarray(ico.vertices, np.float64), np.asarray(ico.faces, np.int64)
+        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
         normals = unit
     elif shape.kind == "cube":
         unit, faces = [], []
