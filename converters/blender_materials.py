@@ -120,7 +120,7 @@ def material_spec(mat: MaterialRecord, name: str, warnings) -> dict:
         elif op < 1.0:
             spec["alpha"] = float(op) if op >= thr else 0.0
     elif translucent:
-        spec["transmission"] = {**_texture(op), "invert": True} if isinstance(op, TextureRecord) \
+        spec["transmission"] = _texture(op) if isinstance(op, TextureRecord) \
             else 1.0 - min(max(float(op), 0.0), 1.0)
     if emits:
         spec["emissive"] = e

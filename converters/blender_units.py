@@ -51,7 +51,7 @@ def spot_blend(half_angle: float, softness: float) -> float:
     smoothstep((cos theta - cos theta_c) / ((1 - cos theta_c) spot_blend)) (in cosine), so no spot_blend gives
     the same profile: the one chosen (bisection) sends the same power into the cone. Mitsuba's spot
     (beam_width = theta_c (1 - s), linear in angle) sends 1.4% more at s = 0.5 (0.585 vs 0.577 of the hard
-    cone's power for a 20 degree cone), 3% more at s = 1.
+    cone's power for a 20 degree cone), 5.3% more at s = 0.8, 11% more at s = 1.
     """
     s = min(max(float(softness), 0.0), 1.0)
     if s <= 0.0 or half_angle <= 0.0:

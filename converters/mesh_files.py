@@ -103,9 +103,7 @@ def write_to_file(stage, path) -> dict:
     else:
         data = trimesh.exchange.obj.export_obj(scene, include_normals=True, include_texture=False).encode("utf-8")
     write_bytes_atomic(path, data)
-    for kind, n in warnings.items():
-        log.warning("%s: %d", kind, n)
-    return {"files": [str(path)], "warnings": dict(warnings)}
+    return {"files": [str(path)], "warnings": dict(warnings)}  # logged by the CLI, a line per kind
 
 
 def _author_material(stage, mesh_prim, name: str, material, usd_dir: Path | None, warnings: Counter) -> None:

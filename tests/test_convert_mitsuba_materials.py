@@ -197,7 +197,7 @@ def test_textured_eta_is_baked_into_an_f0_texture(cli, tmp_path):
     (tmp_path / "a.xml").write_text(SCENE.format(bsdf=bsdf).replace('type="sphere">', 'type="rectangle">'))
     rc, _, err = cli("convert", tmp_path / "a.xml", tmp_path / "usd" / "a.usda")
     assert rc == 0 and "normal-incidence F0 baked" in err and "constants used" not in err, err
-    baked = list((tmp_path / "usd" / "textures").glob("*_f0.exr"))
+    baked = list((tmp_path / "usd" / "textures").glob("*_f0_*.exr"))
     assert len(baked) == 1
     f0 = read_photo(baked[0])[..., :3]
     want = lambda e: ((e - 1) ** 2 + 9) / ((e + 1) ** 2 + 9)  # noqa: E731

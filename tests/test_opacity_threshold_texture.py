@@ -213,3 +213,18 @@ def test_presence_map_cuts_a_step_in_alpha_without_a_fringe_on_the_cut_side(tmp_
     # past the cut, but within one fine sample of the kinks at the texel centres u = 5/8 and 7/8 (0.02 off there)
     past = (fine >= cut + 2 / 32) & (np.abs(fine - 0.625) > 1 / 32) & (np.abs(fine - 0.875) > 1 / 32)
     np.testing.assert_allclose(filtered[past], opacity(fine[past]), atol=1e-6)
+
+
+def test_a_dip_below_the_threshold_at_a_texel_centre_is_cut(tmp_path):
+    """A 3 x 3 opacity of 0.9 with a centre texel of 0.3, threshold 0.32: the filtered opacity dips below the
+    threshold only right at the centre texel, between the fine samples; the presence map is 0 there all the same."""
+    from usdrelight.mitsuba.cutout import cutout_spec, presence_map
+    from usdrelight.stage.records import TextureRecord
+
+    t = np.full((3, 3, 3), 0.9, np.float32)
+    t[1, 1] = 0.3
+    write_image(tmp_path / "t.exr", t, "float")
+    pm = presence_map(cutout_spec(TextureRecord(str(tmp_path / "t.exr"), "raw", channel="r"), 0.32))[..., 0]
+    h, w = pm.shape
+    assert pm[h // 2, w // 2] == 0.0 and pm[h // 3:2 * h // 3, w // 3:2 * w // 3].max() == 0.0
+    assert pm.max() == pytest.approx(0.9, abs=1e-6)

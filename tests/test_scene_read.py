@@ -73,3 +73,28 @@ def test_closed_forms_through_the_xml_converter(cli, tmp_path, light):
     img = np.array(mi.render(mi.load_file(str(tmp_path / "x" / "s.xml")), spp=64))
     h, w = img.shape[:2]
     assert img[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1, :3].mean() == pytest.approx(expected, rel=0.03)
+
+
+def test_malformed_material_values_fall_back_with_a_warning(cli, tmp_path):
+    """Another tool's stage with ior -1 and a 3-component UsdUVTexture scale: read with warnings (ior 1.5, scale 1),
+    and `convert` to XML succeeds (it used to raise ZeroDivisionError / IndexError)."""
+    from usdrelight.imageio import write_image
+
+    write_image(tmp_path / "t.exr", np.full((4, 4, 3), 0.5, np.float32), "float")
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    add_closed_form_light(stage, "dome")
+    sh = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Grey/Surface"))
+    sh.CreateInput("specularColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(0.04, 0.04, 0.04))
+    sh.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(-1.0)
+    tex = UsdShade.Shader.Define(stage, "/World/Looks/Grey/Tex")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("./t.exr")
+    tex.CreateInput("scale", Sdf.ValueTypeNames.Float3).Set(Gf.Vec3f(2, 2, 2))
+    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(tex.ConnectableAPI(), "rgb")
+    stage.GetRootLayer().Save()
+    rec = read_scene(stage)
+    mat = rec.meshes[0].material
+    assert mat.ior == 1.5 and mat.diffuse.scale == (1.0, 1.0, 1.0, 1.0)
+    assert any("ior -1.0" in w for w in rec.warnings) and any("scale with 3" in w for w in rec.warnings)
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "x" / "s.xml")
+    assert rc == 0 and "ior -1.0" in err, err

@@ -5,7 +5,7 @@ workflow with roughness sqrt(alpha), ior int_ior / ext_ior and specularColor = F
 (the spec's normal-incidence colour), the BSDF kept in customData; conductor/roughconductor -> metallic 1 with
 the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (eta/k of a named
 ``material`` read from Mitsuba itself) times the specular reflectance as base colour (bitmap eta/k: F0 per texel
-baked into ``textures/<material>_f0.exr`` next to the USD file, the only file this reader writes); dielectric/
+baked into ``textures/<material>_f0_<hash>.exr`` next to the USD file, the only file this reader writes); dielectric/
 roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
 itself kept in the Material's ``customData["mitsuba"]["bsdf"]`` for the XML export; principled -> metallic
 workflow; mask -> opacity with opacityThreshold > 0 (presence, the spec's cutout mode: a texture's red channel
@@ -18,6 +18,7 @@ Bitmap textures become UsdUVTexture shaders reading the ``st`` primvar. A rough 
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from collections import Counter
@@ -301,13 +302,14 @@ class MaterialBuilder:
             f0 = ((eta - 1) ** 2 + k ** 2) / ((eta + 1) ** 2 + k ** 2) * spec
         if not np.all(np.isfinite(f0)) or np.any(eta < 0) or np.any(k < 0):
             return False
-        dst = Path(layer.realPath).parent / "textures" / f"{path.rsplit('/', 1)[-1]}_f0.exr"
+        digest = hashlib.sha1(f0.astype(np.float32).tobytes()).hexdigest()[:8]  # another scene's map is kept
+        dst = Path(layer.realPath).parent / "textures" / f"{path.rsplit('/', 1)[-1]}_f0_{digest}.exr"
         write_image(dst, f0.astype(np.float32), "float")
         wrap, st_transform = self.wrap_and_st(textures.get("eta") or textures["k"])
         author_uv_texture(self.stage, sh, "diffuseColor", self.asset(str(dst)), "raw",
                           self.unique(path, "diffuseColorTexture"), self.unique(path, "StReader"), wrap=wrap,
                           st_transform=st_transform)
-        self.warnings[f"{inner.type}: textured eta/k (normal-incidence F0 baked into textures/*_f0.exr next to the "
+        self.warnings[f"{inner.type}: textured eta/k (normal-incidence F0 baked into textures/*_f0_*.exr next to the "
                       f"USD file)"] += 1
         return True
 

@@ -259,7 +259,9 @@ class UsdBuilder:
                               "the cone; the texture kept in customData for XML export)"] += 1
                 mean = spot_texture_mean(tex.resolved, cutoff, beam, bool(tex.props.get("raw", False)))
                 extra = {"texture": self.asset(tex.resolved) if self.dir is None else tex.resolved,
-                         "texture_mean": [float(x) for x in mean]}
+                         "texture_mean": [float(x) for x in mean],
+                         "texture_props": {k: tex.props[k] for k in ("raw", "wrap_mode", "filter_type")
+                                           if isinstance(tex.props.get(k), (bool, str))}}
                 intensity = intensity * mean
             self.set_xform(light.GetPrim(), R)
             self._light_common(light, intensity, extra)

@@ -203,9 +203,13 @@ def _restore_extras(stage, d: dict) -> None:
         key = safe_name(str(prim.GetPath()))
         if key in d and isinstance(d[key], dict):
             mean = extra.pop("texture_mean", None)
+            props = extra.pop("texture_props", None)  # the bitmap's raw / wrap_mode / filter_type
             for k, v in extra.items():
                 if k == "texture" and isinstance(v, str):
                     v = {"type": "bitmap", "filename": v}
+                    if isinstance(props, dict):
+                        v.update({p: props[p] for p in ("raw", "wrap_mode", "filter_type")
+                                  if isinstance(props.get(p), (bool, str))})
                 d[key][k] = v
             if "texture" in extra and isinstance(mean, list) and len(mean) == 3 and \
                     isinstance(d[key].get("intensity"), dict):  # the UsdLux colour was the texture's mean

@@ -95,11 +95,14 @@ def presence_map(spec: dict) -> np.ndarray:
     h, w = op.shape
     k = max(1, min(UPSAMPLE, int(np.sqrt(MAX_BAKED_PIXELS / max(h * w, 1)))))
     repeat = bool(cut.get("repeat", False))
+    src_below = op < cut["threshold"]
     op = _upsample(op.astype(np.float32), k, repeat) if k > 1 else op
     below = np.pad(op < cut["threshold"], 1, mode="wrap" if repeat else "edge")
     near = np.zeros(op.shape, bool)  # a sample below the threshold or next to one (8-neighbourhood): 0
     for dy in range(3):
         for dx in range(3):
             near |= below[dy:dy + op.shape[0], dx:dx + op.shape[1]]
+    # a texel below the threshold cuts its whole cell too: a dip at a texel centre can fall between samples
+    near |= np.repeat(np.repeat(src_below, k, 0), k, 1)
     out = np.where(near, 0.0, np.clip(op, 0.0, 1.0))
     return np.ascontiguousarray(out[..., None], dtype=np.float32)

@@ -104,7 +104,7 @@ def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
         specular, ior = _plastic_specular(mat, warnings)
         return {"type": "roughplastic", "diffuse_reflectance": _value(mat.diffuse, warnings),
                 "specular_reflectance": specular, "alpha": max(rough * rough, 1e-3),
-                "distribution": "ggx", "int_ior": ior, "nonlinear": False}
+                "distribution": "ggx", "int_ior": ior, "ext_ior": 1.0, "nonlinear": False}
     if metal >= 1.0:
         return {"type": "roughconductor", "material": "none", "specular_reflectance": _value(mat.diffuse, warnings),
                 "alpha": max(rough * rough, 1e-3), "distribution": "ggx"}
@@ -141,7 +141,10 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
         return d if presence >= 1.0 else {"type": "mask", "opacity": max(presence, 0.0), "bsdf": d}
     if not textured and op >= 1.0:
         return d
-    weight = _texture(op, Counter()) if textured else float(max(op, 0.0))
+    if textured and op.channel == "rgb":  # a weight is one channel: red, as the cutout and Cycles use
+        warnings["UsdUVTexture output 'rgb' feeding opacity (red used)"] += 1
+        op = replace(op, channel="r")
+    weight = _texture(op, warnings) if textured else float(max(op, 0.0))
     ior = float(mat.ior)
     if not math.isfinite(ior) or ior <= 0.0 or abs(ior - 1.0) < 1e-3:  # no refraction: a pass-through blend
         return {"type": "mask", "opacity": weight, "bsdf": d}

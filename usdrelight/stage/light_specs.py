@@ -1,4 +1,5 @@
-"""The ``--light`` syntax: one light per string, in the stage's frame and UsdLux units.
+"""The ``--light`` syntax: one light per string, in the stage's frame (metres: a stage in other units is
+read scaled to metres, as :func:`usdrelight.stage.read.read_scene` does) and UsdLux units.
 
     point:X,Y,Z:R,G,B                         point light (SphereLight treatAsPoint): radiant intensity, W/sr
     spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT]     the same, shaped: pointing along D, ShapingAPI coneAngle CONE

@@ -38,8 +38,8 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
     if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
         check_image_size(resolved)
     cs = shader.GetInput("sourceColorSpace")
-    scale = tuple(float(x) for x in _get(shader, "scale", (1.0, 1.0, 1.0, 1.0)))
-    bias = tuple(float(x) for x in _get(shader, "bias", (0.0, 0.0, 0.0, 0.0)))
+    scale = _vec(shader, "scale", (1.0, 1.0, 1.0, 1.0), warnings)
+    bias = _vec(shader, "bias", (0.0, 0.0, 0.0, 0.0), warnings)
     if not np.all(np.isfinite(scale + bias)):
         warnings["non-finite UsdUVTexture scale / bias (1 / 0 used)"] += 1
         scale, bias = (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
@@ -63,6 +63,20 @@ def _wrap(shader, name: str, warnings) -> str:
     return v
 
 
+def _vec(shader, name: str, default: tuple, warnings) -> tuple:
+    """A float vector input of ``len(default)`` components; another shape is warned and ``default`` used."""
+    v = _get(shader, name, default)
+    try:
+        out = tuple(float(x) for x in v)
+    except TypeError:  # a scalar where a vector belongs
+        out = ()
+    if len(out) != len(default):
+        warnings[f"{shader.GetIdAttr().Get()} {name} with {len(out) or 1} component(s), not {len(default)} "
+                 f"(default used)"] += 1
+        return default
+    return out
+
+
 def _get(shader, name: str, default):
     inp = shader.GetInput(name)
     v = inp.Get() if inp else None
@@ -81,9 +95,10 @@ def _st_transform(tex, warnings) -> dict:
     sid = node.GetIdAttr().Get()
     out = {}
     if sid == "UsdTransform2d":
-        out = {"st_scale": tuple(float(x) for x in _get(node, "scale", (1.0, 1.0))),
-               "st_rotation": float(_get(node, "rotation", 0.0)),
-               "st_translation": tuple(float(x) for x in _get(node, "translation", (0.0, 0.0)))}
+        rotation = _get(node, "rotation", 0.0)
+        out = {"st_scale": _vec(node, "scale", (1.0, 1.0), warnings),
+               "st_rotation": float(rotation) if isinstance(rotation, (int, float)) else float("nan"),
+               "st_translation": _vec(node, "translation", (0.0, 0.0), warnings)}
         if not all(np.isfinite([*out["st_scale"], out["st_rotation"], *out["st_translation"]])):
             warnings["non-finite UsdTransform2d (ignored)"] += 1
             out = {}
@@ -134,7 +149,7 @@ def read_material(prim, warnings) -> MaterialRecord:
         metallic=_input_value(surf, "metallic", d.metallic, warnings),
         specular=_input_value(surf, "specularColor", d.specular, warnings),
         use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings)),
-        ior=d.ior if isinstance(ior, TextureRecord) else float(ior),
+        ior=_ior(ior, d.ior, warnings),
         opacity=_input_value(surf, "opacity", d.opacity, warnings),
         opacity_threshold=_threshold(surf, warnings),
         one_sided=_one_sided(mat.GetPrim()),
@@ -148,6 +163,17 @@ def read_material(prim, warnings) -> MaterialRecord:
     if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
         warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
     return rec
+
+
+def _ior(v, default: float, warnings) -> float:
+    """UsdPreviewSurface ior: a finite number > 0; a texture, a vector or another value: ``default``, warned."""
+    if isinstance(v, TextureRecord):
+        warnings[f"textured ior ({default} used)"] += 1
+        return default
+    if not isinstance(v, float) or not np.isfinite(v) or v <= 0.0:
+        warnings[f"ior {v!r} is not a finite number > 0 ({default} used)"] += 1
+        return default
+    return v
 
 
 def _threshold(surf, warnings) -> float:
