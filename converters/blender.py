@@ -33,7 +33,8 @@ from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
-from .blender_units import SOFTEST_SPOT, Y_UP_TO_Z_UP, blender_light_to_usd, light_to_blender
+from .blender_units import (SOFTEST_SPOT, UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
+                            light_to_blender, stage_units)
 
 SUFFIXES = (".blend", ".py")
 TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
@@ -166,7 +167,8 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
         rec.warnings.pop(kind, None)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
-               "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights}
+               "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
+               "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis}}
     return payload, dict(rec.warnings)
 
 
@@ -217,6 +219,7 @@ def walk(lc, hidden):
 
 
 walk(bpy.context.view_layer.layer_collection, False)
+meta = bpy.context.scene.get("usdrelight_stage")  # the source stage's units, recorded by usdrelight's writer
 for obj in bpy.context.scene.objects:
     if obj.type != "LIGHT":
         continue
@@ -250,14 +253,15 @@ for obj in bpy.context.scene.objects:
         d.update(strength=l.energy, angle=l.angle)
     out.append(d)
 with open(args[1], "w") as f:
-    json.dump(out, f)
+    json.dump({"lights": out, "stage": json.loads(meta) if isinstance(meta, str) else None}, f)
 '''
 
 
-def blender_lights(path) -> list[dict]:
+def blender_lights(path) -> BlenderLights:
     """The lights of the .blend's active scene as plain records (Blender units, Z-up world matrix); a light that
     does not render (hidden from render, or in a collection excluded or hidden from render) is only
-    ``{"name", "hidden": True}``."""
+    ``{"name", "hidden": True}``. The list's ``stage``: the source stage's metersPerUnit / upAxis recorded by
+    :func:`write_to_file` (None for a .blend made otherwise)."""
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
@@ -266,32 +270,16 @@ def blender_lights(path) -> list[dict]:
         script.write_text(_DUMP)
         out = Path(td) / "lights.json"
         run_blender(script, str(path.absolute()), str(out))
-        return json.loads(out.read_text())
-
-
-def _check_light(u: dict, name: str) -> None:
-    """Finite numbers everywhere (matrix, power, sizes), non-negative power, colour and sizes."""
-    for key, v in u.items():
-        if isinstance(v, (bool, str)) or v is None:
-            continue
-        arr = np.asarray(v, np.float64)
-        if not np.all(np.isfinite(arr)):
-            raise UsdRelightError(f"Blender light {name!r}: non-finite {key}")
-        if key != "matrix" and np.any(arr < 0):
-            raise UsdRelightError(f"Blender light {name!r}: negative {key}")
-
-
-UNREAD = {"transmission_factor": "Blender light transmission factor other than 1 (read as 1)",
-          "volume_factor": "Blender light volume factor other than 1 (read as 1)",
-          "node_tree": "Blender light with an emission node tree (read as its colour and power alone)",
-          "use_soft_falloff": "Blender point/spot light of radius > 0 with soft falloff (read as a sphere light "
-                              "without it: +1% light 1 m below a 0.1 m sphere, measured)",
-          "use_square": "Blender square spot (read as a round cone)",
-          "spread": "Blender area light spread below 180 deg (read as a Lambertian emitter)"}
+        dump = json.loads(out.read_text())
+    lights = BlenderLights(dump["lights"])
+    lights.stage = dump["stage"]
+    return lights
 
 
 def read_from_file(path, usd_path=None):
-    """The .blend's lights as a UsdLux layer (upAxis Y, metres): ``def "Scene" { Lights { User { ... } } }``.
+    """The .blend's lights as a UsdLux layer ``def "Scene" { Lights { User { ... } } }`` in the units and up axis
+    of the stage the .blend was made from (recorded by :func:`write_to_file`), so that sublayered into that stage
+    every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres.
 
     Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
@@ -300,9 +288,10 @@ def read_from_file(path, usd_path=None):
     from pxr import Gf, UsdGeom, UsdLux
 
     lights = blender_lights(path)
+    up, mpu = stage_units(getattr(lights, "stage", None))
     warnings = Counter()
-    # upAxis Y, metersPerUnit 1 (Blender's Z-up metres, turned Y-up; unauthored, USD's fallback is centimetres)
-    stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {Path(path).name} by usdrelight.")
+    stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {Path(path).name} by usdrelight.",
+                         up_axis=up, meters_per_unit=mpu)
     if any(not b.get("hidden") for b in lights):
         UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
@@ -312,14 +301,14 @@ def read_from_file(path, usd_path=None):
             warnings["Blender light hidden from render (not read)"] += 1
             continue
         try:
-            with np.errstate(all="ignore"):  # a zero size gives Inf: refused by _check_light below
-                u = blender_light_to_usd(b)
+            with np.errstate(all="ignore"):  # a zero size gives Inf: refused by check_light below
+                u = blender_light_to_usd(b, up, mpu)
         except ValueError as exc:
             raise UsdRelightError(str(exc)) from None
         except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
             raise UsdRelightError(f"Blender light {b.get('name', '?')!r}: unusable values "
                                   f"({type(exc).__name__})") from None
-        _check_light(u, b.get("name", "?"))
+        check_light(u, b.get("name", "?"))
         name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
         if name[0].isdigit():
             name = "_" + name

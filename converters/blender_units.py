@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import emitted_radiance, split_rgb, world_scale
 from usdrelight.stage.records import LightRecord
 
@@ -154,10 +155,36 @@ def blender_emission(b: dict, area: float) -> float:
     return P / (math.pi * area) if norm else P / math.pi
 
 
-def blender_light_to_usd(b: dict) -> dict:
+class BlenderLights(list):
+    """:func:`usdrelight.converters.blender.blender_lights`' answer: the list of light records, and ``stage``: the
+    source stage's ``{"metersPerUnit", "upAxis"}`` that our writer recorded in the Blender scene
+    (``scene["usdrelight_stage"]``), None for a .blend made otherwise."""
+    stage: dict | None = None
+
+
+def stage_units(meta) -> tuple[str, float]:
+    """(upAxis, metersPerUnit) of the lights layer for a .blend's recorded source-stage metadata (None: a .blend
+    not made by usdrelight: Y-up, metres). A malformed record is an error."""
+    if meta is None:
+        return "Y", 1.0
+    try:
+        up, mpu = str(meta["upAxis"]), float(meta["metersPerUnit"])
+    except (KeyError, TypeError, ValueError):
+        raise UsdRelightError("the .blend's usdrelight_stage property is malformed (wants upAxis and "
+                              "metersPerUnit)") from None
+    if up not in ("Y", "Z") or not (math.isfinite(mpu) and mpu > 0):
+        raise UsdRelightError(f"the .blend's usdrelight_stage property is malformed (upAxis {up!r}, "
+                              f"metersPerUnit {mpu:g})")
+    return up, mpu
+
+
+def blender_light_to_usd(b: dict, up_axis: str = "Y", meters_per_unit: float = 1.0) -> dict:
     """Inverse of :func:`light_to_blender` for lights edited in Blender (see converters.blender): a UsdLux light
-    (normalize off) emitting what the Blender light renders in Cycles (:func:`blender_emission`)."""
-    m = Z_UP_TO_Y_UP @ np.asarray(b["matrix"], np.float64)
+    (normalize off) emitting what the Blender light renders in Cycles (:func:`blender_emission`), in a stage of
+    ``up_axis`` ("Y": Blender's Z-up turned Y-up; "Z": as it is) and ``meters_per_unit``: the position and the
+    sizes (radius, width, height) divided by it, the rotation unscaled (read_scene scales the world matrix by
+    metersPerUnit, giving Blender's metres back). Intensities are unit free (radiance, or W/sr at metres)."""
+    m = (Z_UP_TO_Y_UP if up_axis == "Y" else np.eye(4)) @ np.asarray(b["matrix"], np.float64)
     s = np.linalg.norm(m[:3, :3], axis=0)
     rot = m.copy()
     rot[:3, :3] = m[:3, :3] / np.maximum(s, 1e-300)
@@ -186,5 +213,30 @@ def blender_light_to_usd(b: dict) -> dict:
         out = {"kind": "DistantLight", "angle": math.degrees(b.get("angle", 0.0)), "intensity": blender_emission(b, 0.0)}
     else:
         raise ValueError(f"unsupported Blender light type {t}")
+    rot[:3, 3] /= meters_per_unit
+    for key in ("radius", "width", "height"):
+        if key in out:
+            out[key] /= meters_per_unit
     out.update(color=color, matrix=rot.tolist(), name=b["name"])
     return out
+
+
+def check_light(u: dict, name: str) -> None:
+    """Finite numbers everywhere (matrix, power, sizes), non-negative power, colour and sizes."""
+    for key, v in u.items():
+        if isinstance(v, (bool, str)) or v is None:
+            continue
+        arr = np.asarray(v, np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise UsdRelightError(f"Blender light {name!r}: non-finite {key}")
+        if key != "matrix" and np.any(arr < 0):
+            raise UsdRelightError(f"Blender light {name!r}: negative {key}")
+
+
+UNREAD = {"transmission_factor": "Blender light transmission factor other than 1 (read as 1)",
+          "volume_factor": "Blender light volume factor other than 1 (read as 1)",
+          "node_tree": "Blender light with an emission node tree (read as its colour and power alone)",
+          "use_soft_falloff": "Blender point/spot light of radius > 0 with soft falloff (read as a sphere light "
+                              "without it: +1% light 1 m below a 0.1 m sphere, measured)",
+          "use_square": "Blender square spot (read as a round cone)",
+          "spread": "Blender area light spread below 180 deg (read as a Lambertian emitter)"}

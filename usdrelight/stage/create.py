@@ -1,7 +1,8 @@
 """The one place usdrelight creates stages and authors the pieces every stage it writes shares.
 
 * :func:`create_stage`: a new stage (on disk or in memory) with the metadata set once: ``upAxis = Y``,
-  ``metersPerUnit = 1`` (metres), a default prim of kind ``assembly`` (``Xform``).
+  ``metersPerUnit = 1`` (metres; other values only for a layer sublayered into a stage in other units),
+  a default prim of kind ``assembly`` (``Xform``).
 * :func:`author_render_settings`: ``/Render`` with RenderSettings, one RenderVar and one RenderProduct per
   AOV (:mod:`usdrelight.stage.aovs`), and the stage's ``renderSettingsPrimPath``.
 * :func:`define_preview_material`, :func:`author_lambertian`, :func:`author_uv_texture`: UsdPreviewSurface
@@ -14,16 +15,19 @@ from .aovs import Aov
 from .layout import RENDER_SCOPE, RENDER_SETTINGS
 
 
-def create_stage(path=None, root: str = "/Scene", kind: str | None = "assembly", doc: str | None = None):
+def create_stage(path=None, root: str = "/Scene", kind: str | None = "assembly", doc: str | None = None,
+                 up_axis: str = "Y", meters_per_unit: float = 1.0):
     """A new ``Usd.Stage`` at ``path`` (in memory when None) with usdrelight's stage metadata and its
-    default prim ``root`` (an Xform of model kind ``kind``; None = no kind)."""
+    default prim ``root`` (an Xform of model kind ``kind``; None = no kind). ``up_axis`` ("Y" or "Z") and
+    ``meters_per_unit``: Y and 1 for every stage usdrelight builds; a layer meant to be sublayered into another
+    stage (the Blender lights layer) takes that stage's."""
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.CreateNew(str(path)) if path is not None else Usd.Stage.CreateInMemory()
     if doc:
         stage.GetRootLayer().documentation = doc
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis == "Z" else UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
     prim = UsdGeom.Xform.Define(stage, root).GetPrim()
     stage.SetDefaultPrim(prim)
     if kind:
