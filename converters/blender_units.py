@@ -14,7 +14,9 @@
 Soft falloff and light clamping are off; area/point powers use world-space sizes. Blender is Z-up: a Y-up
 stage point (x, y, z) is the Blender point (x, -z, y) (``Y_UP_TO_Z_UP``). Blender's equirectangular lookup
 puts u = 1/2 at +X and u = 1/4 at +Y (Blender frame); USD's latlong puts u = 1/2 at +Z_usd = -Y_blender,
-so the world texture's direction is rotated by +90 degrees about Blender Z before the lookup.
+so the world texture's direction is rotated by +90 degrees about Blender Z before the lookup. The .blend is in
+metres (read_scene applies metersPerUnit); the source stage's metersPerUnit / upAxis are recorded in it and the
+lights read back (:func:`blender_light_to_usd`, :func:`stage_units`) return to them.
 Camera: lens = focalLength, sensor_fit HORIZONTAL, sensor_width = horizontalAperture,
 shift_x = horizontalApertureOffset / horizontalAperture, shift_y = verticalApertureOffset / horizontalAperture.
 """

@@ -98,3 +98,13 @@ def test_stage_units_of_a_blend_made_elsewhere_and_malformed_records():
                 {"upAxis": "Y", "metersPerUnit": math.inf}, {"upAxis": "Y"}, "Y"):
         with pytest.raises(UsdRelightError, match="usdrelight_stage"):
             stage_units(bad)
+
+
+def test_the_standalone_script_records_the_stage_units_too(tmp_path):
+    """``convert s.usda s.py`` then the user's Blender runs it: the .blend it saves carries the same record."""
+    from usdrelight.converters.blender import blender_lights, run_blender, write_to_file
+
+    write_to_file(_stage(tmp_path / "s.usda", "Z", 0.01), tmp_path / "s.py")
+    run_blender(tmp_path / "s.py", str(tmp_path / "s.blend"))
+    lights = blender_lights(tmp_path / "s.blend")
+    assert len(lights) == 3 and lights.stage == {"metersPerUnit": 0.01, "upAxis": "Z"}
