@@ -68,29 +68,15 @@ def measure(case: str, work: Path, spp: int) -> dict:
 
 
 def contact_sheet(rows: list[dict], path: Path) -> None:
-    import matplotlib
+    """Mitsuba | Cycles per material, three materials a row, each pair with the Mitsuba image's exposure."""
+    from usdrelight.neural.contact_sheet import write_contact_sheet
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from usdrelight.neural.contact_sheet import tonemapped
-
-    per_row = 3
-    n_rows = -(-len(rows) // per_row)
-    fig, axes = plt.subplots(n_rows, 2 * per_row, figsize=(2 * per_row * 2.0, n_rows * 2.2), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for i, r in enumerate(rows):
+    panels = []
+    for r in rows:
         m, c = r["_images"]
-        for j, (what, img) in enumerate((("Mitsuba", m), ("Cycles", c))):
-            ax = axes[i // per_row, 2 * (i % per_row) + j]
-            ax.imshow(tonemapped(img, m), interpolation="nearest")
-            label = f"{r['material']}\n{what}" if j == 0 else f"{r['object_cycles_vs_mitsuba']:+.1%} on the object\n{what}"
-            ax.set_title(label, fontsize=7)
-    fig.tight_layout(pad=0.3)
+        panels += [(f"{r['material']}\nMitsuba", m, m), (f"{r['object_cycles_vs_mitsuba']:+.1%} on the object\nCycles", c, m)]
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    write_contact_sheet(path, panels, rows[0]["_images"][0], columns=6, fontsize=7)
 
 
 def main_bench(argv=None) -> int:

@@ -258,31 +258,19 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def contact_sheet(rows: list[dict], path: Path, per_row: int = 2) -> None:
+def contact_sheet(rows: list[dict], path: Path) -> None:
     """Seed-0 renders, scene by scene: original | round trip | USD alone (each scene tone-mapped with its
-    original's 99.5th percentile), for a person to look at."""
-    import matplotlib
+    original's 99.5th percentile), two scenes a row, for a person to look at."""
+    from usdrelight.neural.contact_sheet import write_contact_sheet
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from usdrelight.neural.contact_sheet import tonemapped
-
-    shown = [r for r in rows if "_images" in r]
-    n_rows = -(-len(shown) // per_row)
-    fig, axes = plt.subplots(n_rows, 3 * per_row, figsize=(3 * per_row * 1.9, n_rows * 2.1), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for i, r in enumerate(shown):
+    panels = []
+    for r in (r for r in rows if "_images" in r):
         ref = r["_images"][0]
-        for j, (what, img) in enumerate(zip(("original", "round trip", "USD alone"), r["_images"])):
-            ax = axes[i // per_row, 3 * (i % per_row) + j]
-            ax.imshow(tonemapped(img, ref), interpolation="nearest")
-            ax.set_title(f"{r['scene'].replace('corpus/', '')[:28]}\n{what}" if j == 0 else f"\n{what}", fontsize=6)
-    fig.tight_layout(pad=0.2)
+        name = r["scene"].replace("corpus/", "")[:28]
+        panels += [(f"{name}\n{what}" if j == 0 else f"\n{what}", img, ref)
+                   for j, (what, img) in enumerate(zip(("original", "round trip", "USD alone"), r["_images"]))]
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    write_contact_sheet(path, panels, panels[0][2], columns=6, fontsize=6)
 
 
 def main_bench(argv=None) -> int:

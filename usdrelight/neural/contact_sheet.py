@@ -19,8 +19,9 @@ def tonemapped(img: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.clip(linear_to_srgb(np.clip(img / scale, 0.0, None)), 0.0, 1.0)
 
 
-def write_contact_sheet(path, panels, ref: np.ndarray, columns: int | None = None) -> Path:
-    """Write ``panels`` ([(title, linear image), ...]) as one PNG, ``columns`` per row (default: all)."""
+def write_contact_sheet(path, panels, ref: np.ndarray, columns: int | None = None, fontsize: int = 9) -> Path:
+    """Write ``panels`` ([(title, linear image), ...], or (title, image, its own exposure reference)) as one PNG,
+    ``columns`` per row (default: all); panels may differ in size (the figure is laid out for ``ref``'s)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -33,9 +34,9 @@ def write_contact_sheet(path, panels, ref: np.ndarray, columns: int | None = Non
     fig, axes = plt.subplots(rows, cols, figsize=(cols * 3.2, rows * 3.2 * h / w + 0.4 * rows), squeeze=False)
     for ax in axes.ravel():
         ax.axis("off")
-    for ax, (title, img) in zip(axes.ravel(), panels):
-        ax.imshow(tonemapped(img, ref), interpolation="nearest")
-        ax.set_title(title, fontsize=9)
+    for ax, (title, img, *own) in zip(axes.ravel(), panels):
+        ax.imshow(tonemapped(img, own[0] if own else ref), interpolation="nearest")
+        ax.set_title(title, fontsize=fontsize)
     fig.tight_layout(pad=0.3)
     path = Path(path)
     with atomic_path(path) as tmp:
