@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import subprocess
@@ -33,8 +34,8 @@ from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
-from .blender_units import (SOFTEST_SPOT, UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
-                            light_to_blender, stage_units)
+from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
+                            light_to_blender, spot_blend, stage_units)
 
 SUFFIXES = (".blend", ".py")
 TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
@@ -111,9 +112,10 @@ def _lux_warnings(light, warnings) -> None:
         warnings["SphereLight under a non-uniform scale (Cycles: a sphere of the geometric-mean radius)"] += 1
     if light.cone_angle_deg is not None and light.kind != "sphere":
         warnings["ShapingAPI on a disk, rect, distant, dome or mesh light in the Blender converter (ignored)"] += 1
-    elif light.cone_angle_deg is not None and light.cone_softness > SOFTEST_SPOT:
-        warnings[f"ShapingAPI coneSoftness above {SOFTEST_SPOT} (Cycles' softest spot_blend 1 used: "
-                 f"more light than UsdLux's fade, up to 1.6x at softness 1)"] += 1
+    elif light.cone_angle_deg is not None and light.cone_softness > 0.5 and \
+            spot_blend(math.radians(min(light.cone_angle_deg, 90.0)), light.cone_softness) > 1 - 1e-6:
+        warnings["ShapingAPI coneSoftness above what Cycles' softest spot_blend (1) sends (0.61 for a 20 deg cone, "
+                 "0.67 at 80 deg): more light than UsdLux's fade, up to 1.6x at softness 1"] += 1
 
 
 def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) -> tuple[dict, dict]:

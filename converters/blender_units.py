@@ -4,7 +4,7 @@
 | UsdLux | Blender light | Blender value | Mitsuba |
 |---|---|---|---|
 | SphereLight treatAsPoint / radius 0 | POINT, radius 0 | power P = 4 pi I (I = L W/sr) | point, intensity I |
-| + ShapingAPI | SPOT | P = 4 pi I, spot_size = 2 coneAngle, spot_blend = softness | spot |
+| + ShapingAPI | SPOT | P = 4 pi I, spot_size = 2 coneAngle, spot_blend: the fade sending the same cone power | spot |
 | SphereLight radius r | POINT, radius r | P = 4 pi^2 r^2 L | sphere + area, radiance L |
 | DiskLight radius r | AREA DISK, size 2r (ELLIPSE 2r sx x 2r sy under a non-uniform scale) | P = pi L (pi r^2 sx sy) | disk + area |
 | RectLight w x h | AREA RECTANGLE w x h | P = pi L w h | rectangle + area |
@@ -32,7 +32,6 @@ from usdrelight.stage.records import LightRecord
 
 Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
 Z_UP_TO_Y_UP = Y_UP_TO_Z_UP.T
-SOFTEST_SPOT = 0.6  # coneSoftness beyond which Cycles' spot_blend 1 still sends more light than UsdLux's fade
 EQUIRECT_FIX = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], dtype=np.float64)  # +90 deg about Z
 
 
