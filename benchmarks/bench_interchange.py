@@ -150,9 +150,10 @@ def _mean_se(x) -> tuple[float, float]:
 
 def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, label: str, allow: list) -> dict:
     row = {"scene": label, "spp": spp, "seeds": seeds}
+    ref_img = None
     if ref is not None:
-        row.update(reference=str(ref.relative_to(DATA)),
-                   mean_reference=float(np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3].mean()))
+        ref_img = np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3]
+        row.update(reference=str(ref.relative_to(DATA)), mean_reference=float(ref_img.mean()))
     allow_args = [a for d in allow for a in ("--allow-path", d)]
     t = time.perf_counter()
     try:
@@ -163,31 +164,24 @@ def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, lab
         return row
     row["seconds_render_original"] = round(time.perf_counter() - t, 2)
     usd, back = work / f"{label}.usda", work / "back" / label / "scene.xml"
-    t = time.perf_counter()
-    rc, err = _cli("convert", scene, usd, *allow_args)
-    row["seconds_to_usd"] = round(time.perf_counter() - t, 3)
-    row["warnings_to_usd"] = [e for e in err if "error" not in e]
-    if rc != 0:
-        row.update(status="XML -> USD failed", error=err[-1] if err else "")
-        return row
-    t = time.perf_counter()
-    rc, err = _cli("convert", usd, back, *allow_args)
-    row["seconds_to_xml"] = round(time.perf_counter() - t, 3)
-    row["warnings_to_xml"] = [e for e in err if "error" not in e]
-    if rc != 0:
-        row.update(status="USD -> XML failed", error=err[-1] if err else "")
-        return row
+    for what, src, dst, failed in (("usd", scene, usd, "XML -> USD failed"), ("xml", usd, back, "USD -> XML failed")):
+        t = time.perf_counter()
+        rc, err = _cli("convert", src, dst, *allow_args)
+        row[f"seconds_to_{what}"] = round(time.perf_counter() - t, 3)
+        row[f"warnings_to_{what}"] = [e for e in err if "error" not in e]
+        if rc != 0:
+            row.update(status=failed, error=err[-1] if err else "")
+            return row
     t = time.perf_counter()
     ours = _renders(back, spp, seeds)
     row["seconds_render_round_trip"] = round(time.perf_counter() - t, 2)
     usd_only, stripped = strip_kept_mitsuba(usd)
     row["prims_with_kept_mitsuba_data"] = stripped
+    alone = ours  # nothing kept: USD alone is the round trip
     if stripped:
-        rc, _ = _cli("convert", usd_only, work / "usd_only" / label / "scene.xml", *allow_args)
-        if rc == 0:
-            alone_renders = _renders(work / "usd_only" / label / "scene.xml", spp, seeds)
-            alone, alone_img = np.array([b.mean() for b in alone_renders]), alone_renders[0]
-    row["_images"] = (original[0], ours[0], alone_img if stripped and rc == 0 else ours[0])
+        alone_xml = work / "usd_only" / label / "scene.xml"
+        alone = _renders(alone_xml, spp, seeds) if _cli("convert", usd_only, alone_xml, *allow_args)[0] == 0 else None
+    row["_images"] = (original[0], ours[0], ours[0] if alone is None else alone[0])
     mo = np.array([a.mean() for a in original])
     mr = np.array([b.mean() for b in ours])
     (m_orig, se_orig), (m_ours, se_ours) = _mean_se(mo), _mean_se(mr)
@@ -196,18 +190,18 @@ def measure(scene: Path, work: Path, spp: int, seeds: int, ref: Path | None, lab
         diff = _mean_se(mr - mo)
         row.update(round_trip_vs_original=m_ours / m_orig - 1, se_round_trip_vs_original=diff[1] / m_orig,
                    pixel_rel_rmse_vs_original=float(np.sqrt(np.mean((ours[0] - original[0]) ** 2)) / mo[0]))
-        if not stripped:  # nothing kept: USD alone is the round trip
+        if alone is ours:
             row.update(usd_alone_vs_original=row["round_trip_vs_original"])
-        elif rc == 0:
-            row.update(usd_alone_vs_original=float(alone.mean()) / m_orig - 1,
-                       se_usd_alone_vs_original=_mean_se(alone - mo)[1] / m_orig)
-    if ref is not None:
-        r = np.array(load_mitsuba().Bitmap(str(ref)), dtype=np.float64)[..., :3]
+        elif alone is not None:
+            ma = np.array([b.mean() for b in alone])
+            row.update(usd_alone_vs_original=float(ma.mean()) / m_orig - 1,
+                       se_usd_alone_vs_original=_mean_se(ma - mo)[1] / m_orig)
+    if ref_img is not None:
         m_ref = row["mean_reference"]
         row.update(original_vs_reference=m_orig / m_ref - 1, round_trip_vs_reference=m_ours / m_ref - 1,
                    se_round_trip_vs_reference=se_ours / m_ref,
-                   pixel_rel_rmse_round_trip_vs_reference=float(np.sqrt(np.mean((ours[0] - r) ** 2)) / m_ref)
-                   if ours[0].shape == r.shape else None)
+                   pixel_rel_rmse_round_trip_vs_reference=float(np.sqrt(np.mean((ours[0] - ref_img) ** 2)) / m_ref)
+                   if ours[0].shape == ref_img.shape else None)
     return row
 
 
