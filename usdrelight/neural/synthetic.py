@@ -135,8 +135,6 @@ class RelitPair:
     """(H, W, 3) the full 3D scene path traced under the light set, linear (ground truth)."""
     photo: np.ndarray
     """(H, W, 3) the photo the stage was built from (the scene under its own lights), linear."""
-    added: np.ndarray | None = None
-    """(H, W, 3) the 2.5D render of the added lights alone (``add`` only), linear."""
 
 
 def relit_pairs(scene: SyntheticScene, sets, spp: int = 64) -> list[RelitPair]:
@@ -146,9 +144,8 @@ def relit_pairs(scene: SyntheticScene, sets, spp: int = 64) -> list[RelitPair]:
     out = []
     for ls in sets:
         aovs = engine.render(ls.records())
-        added = engine.render(ls.records(ls.added)).beauty if ls.added else None
         target = render_ground_truth(replace(scene.spec, point_lights=list(ls.point_lights),
                                              env_radiance=ls.env_radiance), spp=spp).image
         out.append(RelitPair(f"{scene.name}-{ls.kind}", ls.kind, aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5,
-                             target, scene.photo, added))
+                             target, scene.photo))
     return out
