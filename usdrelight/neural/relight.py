@@ -141,6 +141,12 @@ class RelightSession:
         """Whether the fast renderer found its prepared data on disk (None with Mitsuba)."""
         return None if self.engine is None else self.engine.cache_hit
 
+    def source_photo(self) -> np.ndarray | None:
+        """The source photo at the render resolution (read once), or None when the stage names none."""
+        if self.photo is None and self._source_photo:
+            self.photo = self._photo()
+        return self.photo
+
     def _photo(self) -> np.ndarray:
         """The source photo at the render resolution."""
         path = self._source_photo

@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import hashlib
-import inspect
 import logging
 import os
 import threading
@@ -31,19 +30,17 @@ import numpy as np
 from ..atomic import publish
 from ..engine.renderer import CACHE_DIR
 from ..errors import UsdRelightError
-from ..imageio import linear_to_srgb, read_photo, resize_image
+from ..imageio import linear_to_srgb
 from ..neural.composite import MODES
-from ..neural.relight import RelightSession, source_photo_path
+from ..neural.relight import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession
 from ..stage.layout import USER_LIGHTS_SCOPE
-from ..stage.validate import open_stage
 from .state import to_record
 
 log = logging.getLogger(__name__)
-_RELIGHT_DEFAULT = inspect.signature(RelightSession).parameters["mode"].default
 #: The app's first mode: relight's default when it names one mode; otherwise (a rule such as "auto" that
 #: depends on whether the fitted lighting is kept, which the app changes live) ratio, the mode for a kept and
 #: dimmable photo lighting. A stage that cannot run it (no fit) falls back to neural.
-DEFAULT_MODE = _RELIGHT_DEFAULT if _RELIGHT_DEFAULT in MODES else "ratio"
+DEFAULT_MODE = RELIGHT_DEFAULT_MODE if RELIGHT_DEFAULT_MODE in MODES else "ratio"
 
 
 def to_display(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
@@ -186,7 +183,7 @@ class LiveRelight:
         self._user_records = {l.path: l for l in first.user_lights if l.path.startswith(USER_LIGHTS_SCOPE + "/")}
         self.others = self._outside
         self.seconds = dict(first.seconds)
-        self._photo = None
+        self._first = first
 
     def keep_other(self, paths) -> None:
         """Render these user-layer lights as they are (the ones the app cannot edit)."""
@@ -213,14 +210,9 @@ class LiveRelight:
         return k.width, k.height
 
     def photo(self) -> np.ndarray | None:
-        """The source photo at the live resolution (linear), or None when the stage does not name it."""
-        if self._photo is None:
-            path = source_photo_path(open_stage(self.stage_path))  # one-line errors if it no longer composes
-            if not path:
-                return None
-            w, h = self.resolution
-            self._photo = resize_image(read_photo(path), w, h)
-        return self._photo
+        """The source photo at the live resolution (linear), or None when the stage does not name it: the first
+        session's (read at start-up in ratio and add modes)."""
+        return self._first.source_photo()
 
     def lights(self, ls: LightSet) -> list:
         """The light records of ``ls`` in render order: other lights, fitted (dimmed), the user's."""
