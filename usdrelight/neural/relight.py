@@ -279,9 +279,10 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     with result_group(out_dir) as folder:
         for i, extra in enumerate(per_frame):
             frame = session.render(common + extra)
+            first = frame if i == 0 else first
             written.append(_write_frame(folder, f"_{i:04d}" if frames is not None else "", frame))
         if contact_sheet:
-            sheet = out_dir / _contact_sheet(folder, common + per_frame[0], session).name
+            sheet = out_dir / _contact_sheet(folder, common + per_frame[0], session, first).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
                for f in written]
     h, w = frame.image.shape[:2]
@@ -289,12 +290,13 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
                          {**session.seconds, "total": time.perf_counter() - t0}, sheet)
 
 
-def _contact_sheet(out_dir: Path, lights, session: RelightSession) -> Path:
-    """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out)."""
+def _contact_sheet(out_dir: Path, lights, session: RelightSession, used: RelitFrame) -> Path:
+    """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out); ``used``:
+    the frame already rendered under ``lights`` in the session's own mode."""
     panels = []
     for mode in MODES:
         try:
-            frame = session.render(lights, mode=mode)
+            frame = used if mode == session.mode else session.render(lights, mode=mode)
         except UsdRelightError as exc:
             log.warning("contact sheet: mode %s left out (%s)", mode, exc)
             continue
