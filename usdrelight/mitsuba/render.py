@@ -159,11 +159,11 @@ def stage_stamp(stage, resolution) -> str:
     return h.hexdigest()[:32]
 
 
-def stale_aov_files(stage_path, paths: dict) -> list[str]:
-    """Names (of ``paths``: product name -> file) whose file was not rendered from the stage as it is now:
-    no stamp (written by another tool, or before stamps) or another stage state (rebuilt, refit, relit)."""
-    stage = open_stage(stage_path)
-    stamp = stage_stamp(stage, read_scene(stage).resolution)
+def stale_aov_files(stage, rec, paths: dict) -> list[str]:
+    """Names (of ``paths``: product name -> file) whose file was not rendered from ``stage`` (``rec``: its
+    :func:`read_scene` record) as it is now: no stamp (written by another tool, or before stamps) or another
+    stage state (rebuilt, refit, relit)."""
+    stamp = stage_stamp(stage, rec.resolution)
     return [name for name, path in paths.items() if image_attribute(path, STAMP_KEY) != stamp]
 
 

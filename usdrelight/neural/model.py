@@ -145,9 +145,9 @@ class NeuralResult:
     """Wall time per step (hole_fill, network, write; total when the caller adds it)."""
 
 
-def find_aovs(stage_path) -> dict:
-    """Product file paths of the diffuse, albedo and valid AOVs declared by the stage (by sourceName)."""
-    rec = read_scene(open_stage(stage_path))
+def find_aovs(stage_path, rec) -> dict:
+    """Product file paths of the diffuse, albedo and valid AOVs declared by the stage (by sourceName);
+    ``rec``: the stage's :func:`read_scene` record."""
     base = Path(stage_path).resolve().parent
     found = {}
     for p in rec.products:
@@ -190,10 +190,12 @@ def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = 
 def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool = False, spp: int = 64) -> NeuralResult:
     """``usdrelight neural``: read the stage's AOVs (rendering missing ones when asked) and run the network."""
     t0 = time.perf_counter()
-    aovs = find_aovs(stage_path)
+    stage = open_stage(stage_path)
+    rec = read_scene(stage)
+    aovs = find_aovs(stage_path, rec)
     missing = [name for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and not path.is_file()]
     present = {name: path for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and path.is_file()}
-    stale = stale_aov_files(stage_path, present)  # provenance: rendered from this stage as it is now?
+    stale = stale_aov_files(stage, rec, present)  # provenance: rendered from this stage as it is now?
     if render_missing:
         missing += stale
     if missing and render_missing:
