@@ -16,7 +16,7 @@ import numpy as np
 from . import __version__
 from .argtypes import non_negative_int as _non_negative_int, port as _port, positive_int as _positive_int
 from .batch.args import add_batch_parser
-from .errors import UsdRelightError
+from .errors import UsdRelightError, one_line
 from .native_io import command_context
 
 log = logging.getLogger("usdrelight")
@@ -363,10 +363,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _one_line(exc: BaseException) -> str:
-    return "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-
-
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -375,7 +371,7 @@ def main(argv=None) -> int:
         with command_context(getattr(args, "allow_path", [])):  # native logs off stdout, --allow-path
             return int(args.func(args) or 0)
     except UsdRelightError as exc:
-        sys.stderr.write(f"usdrelight: error: {_one_line(exc)}\n")
+        sys.stderr.write(f"usdrelight: error: {one_line(exc)}\n")
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         sys.stderr.write("usdrelight: interrupted\n")
@@ -383,7 +379,7 @@ def main(argv=None) -> int:
     except Exception as exc:  # never a traceback for the user unless asked
         if args.debug:
             raise
-        sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {_one_line(exc)} "
+        sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {one_line(exc)} "
                          f"(rerun with --debug for a traceback)\n")
         return EXIT_INTERNAL
 

@@ -11,7 +11,7 @@ import logging
 import time
 from pathlib import Path
 
-from ..errors import UsdRelightError
+from ..errors import UsdRelightError, one_line
 from ..neural.pairs import MANIFEST, list_photos
 from .manifest import make_job, read_manifest, remove_leftovers, reusable, write_manifest
 from .records import BatchOptions, BatchSummary, PhotoJob, PhotoRecord
@@ -55,7 +55,7 @@ def _client(options: BatchOptions):
 
 
 def _crash_record(job: PhotoJob, exc: BaseException) -> PhotoRecord:
-    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    text = one_line(exc)
     return PhotoRecord(job.name, "failed", job.input_hash, str(job.photo),
                        error=f"worker died while processing the photo ({type(exc).__name__}: {text})"[:500],
                        error_kind="crash", pairs=job.options.pairs)

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from ..atomic import fsync_tree, publish, temp_dir_beside, write_text_atomic
-from ..errors import UsdRelightError
+from ..errors import UsdRelightError, one_line
 from ..neural.pairs import make_pair_files
 from .manifest import RECORD
 from .records import PhotoJob, PhotoRecord
@@ -27,7 +27,7 @@ TEST_KILL_ENV = "USDRELIGHT_BATCH_TEST_KILL"
 
 
 def _one_line(exc: BaseException) -> str:
-    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    text = one_line(exc)
     return text if isinstance(exc, UsdRelightError) else f"{type(exc).__name__}: {text}"
 
 
