@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "examples" / "motorcycle"))
 
 from make_example import write_right_view  # noqa: E402
-from usdrelight.fit.run import fit_stage  # noqa: E402
+from usdrelight.fit.run import FitSettings, fit  # noqa: E402
 from usdrelight.imageio import read_photo, resize_image, write_image  # noqa: E402
 from usdrelight.mitsuba.procedural import render_ground_truth  # noqa: E402
 from usdrelight.neural.composite import MODES, add_composite, ratio_composite  # noqa: E402
@@ -87,7 +87,7 @@ def real_photo(name, files, work, sheet, stage=None):
         if not done.is_file():
             build(files["photo"], stage_dir, BuildOptions(depth=files["depth"], intrinsics=files["intrinsics"]))
             t = time.perf_counter()
-            rep = fit_stage(stage, "fast", verify_spp=64)
+            rep = fit(stage, FitSettings(verify_spp=64))
             done.write_text(json.dumps({"fit_seconds": time.perf_counter() - t, "fit_psnr_db": rep.psnr_db,
                                         "fit_lights": rep.lights_kept}))
         row.update(json.loads(done.read_text()))
@@ -123,7 +123,7 @@ def held_out_renders(seed, work) -> dict:
     if cache.is_file():
         return dict(np.load(cache))
     scene = make_scene(work / f"w{seed}", seed, spp=256)
-    fit_stage(scene.stage, "fast", lights=8, max_side=256, verify_spp=16)
+    fit(scene.stage, FitSettings(lights=8, max_side=256, verify_spp=16))
     kept = RelightSession(scene.stage, max_side=None, mode="neural", with_fitted=True)
     off = RelightSession(scene.stage, max_side=None, mode="neural", with_fitted=False)
     first = kept.render([])

@@ -18,7 +18,11 @@ def _is_usd(path: Path) -> bool:
     return path.suffix.lower() in USD_SUFFIXES
 
 
-def convert(src, dst, **options) -> dict:
+ConvertReport = dict
+"""What :func:`convert` wrote: {"files": [written paths], "warnings": {kind: count}} (a record soon)."""
+
+
+def convert(src, dst, **options) -> ConvertReport:
     """Convert ``src`` to ``dst``; returns {"files": [written paths], "warnings": {kind: count}}."""
     src, dst = Path(src), Path(dst)
     if not src.exists():

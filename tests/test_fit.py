@@ -6,7 +6,7 @@ import pytest
 from pxr import UsdLux
 
 from conftest import EXAMPLES, make_photo
-from usdrelight.fit.run import fit_stage, render_fitted
+from usdrelight.fit.run import FitSettings, fit, render_fitted
 from usdrelight.stage.records import PointLightValue
 from usdrelight.fit.problem import load_problem
 from usdrelight.imageio import write_image
@@ -27,7 +27,7 @@ def procedural_stage(tmp_path_factory):
 def test_fast_fit_reproduces_the_ground_truth_scene(procedural_stage, tmp_path):
     user = procedural_stage.parent / "lights_user.usda"
     before = user.read_text()
-    rep = fit_stage(procedural_stage, "fast", lights=16, iterations=30, report_dir=tmp_path / "rep", verify_spp=256)
+    rep = fit(procedural_stage, FitSettings(lights=16, iterations=30, verify_spp=256), report_dir=tmp_path / "rep")
     # converted to Mitsuba and rendered (the verification render), the fit reproduces D
     assert rep.render_psnr_db >= 30.0, rep
     assert rep.psnr_db >= 30.0
@@ -115,7 +115,7 @@ def test_pruning_on_a_scene_lit_by_one_light(tmp_path):
     stage = _synthetic_stage(tmp_path, _room_depth())
     img, prob = _render_target(stage, [PointLightValue(np.array([0.3, 0.2, -3.0]), np.array([6.0, 5.0, 4.0]))])
     write_image(stage.parent / "estimates" / "diffuse.exr", img, "float")
-    rep = fit_stage(stage, "fast", lights=9, iterations=25, verify_spp=1024)
+    rep = fit(stage, FitSettings(lights=9, iterations=25, verify_spp=1024))
     assert rep.lights_kept <= 2, rep  # from a budget of 9
     assert rep.render_psnr_db > 30
     s = open_stage(stage)
@@ -160,7 +160,7 @@ def test_stability_cases(tmp_path, case):
               "hdr_range": np.geomspace(1e-2, 1e2, h * w).reshape(h, w, 1).repeat(3, 2)}.get(
         case, 0.2 + 0.05 * rng.random((h, w, 3)))
     stage = _synthetic_stage(tmp_path, depth, albedo, target.astype(np.float32))
-    rep = fit_stage(stage, "fast", lights=4, iterations=6, verify_spp=16, env_res="4x8")
+    rep = fit(stage, FitSettings(lights=4, iterations=6, verify_spp=16, env_res="4x8"))
     assert np.isfinite(rep.mse) and np.isfinite(rep.render_mse) and np.isfinite(rep.psnr_db)
     if case == "black":
         assert rep.lights_kept == 0 and not rep.environment_kept and rep.mse == 0.0

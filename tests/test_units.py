@@ -192,7 +192,7 @@ def test_fit_writes_its_lights_in_stage_units(tmp_path):
     """The fit works in metres (read_scene) and writes the fitted-lights layer in the stage's units: a built
     stage rewritten in centimetres finds the light that lit it at 100 x its position in metres."""
     from test_fit import _render_target, _room_depth, _synthetic_stage
-    from usdrelight.fit.run import fit_stage
+    from usdrelight.fit.run import FitSettings, fit
     from usdrelight.imageio import write_image
     from usdrelight.stage.records import PointLightValue
 
@@ -201,7 +201,7 @@ def test_fit_writes_its_lights_in_stage_units(tmp_path):
     img, _ = _render_target(stage, [PointLightValue(true, np.array([6.0, 5.0, 4.0]))])
     write_image(stage.parent / "estimates" / "diffuse.exr", img, "float")
     _built_stage_in_centimetres(stage)
-    fit_stage(stage, "fast", lights=9, iterations=25, verify_spp=0)
+    fit(stage, FitSettings(lights=9, iterations=25, verify_spp=0))
     s = Usd.Stage.Open(str(stage))
     assert UsdGeom.GetStageMetersPerUnit(s) == pytest.approx(0.01)
     lights = [p for p in s.Traverse() if p.GetTypeName() == "SphereLight"]

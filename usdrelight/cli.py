@@ -124,7 +124,7 @@ def cmd_render(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from .fit.run import fit_stage
+    from .fit.run import FitSettings, fit
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("fit {task.description}"), BarColumn(), TimeElapsedColumn(), console=_stderr_console(),
@@ -134,8 +134,10 @@ def cmd_fit(args) -> int:
         def progress(it, total, mse):
             bar.update(task, completed=it, total=total, description=f"{args.method} mse={mse:.3e}")
 
-        rep = fit_stage(args.stage, args.method, args.lights, args.env_res, args.iterations, args.max_side,
-                        args.report, verify_spp=args.verify_spp, progress=progress, seed=args.seed)
+        settings = FitSettings(method=args.method, lights=args.lights, env_res=args.env_res,
+                               iterations=args.iterations, max_side=args.max_side, verify_spp=args.verify_spp,
+                               seed=args.seed)
+        rep = fit(args.stage, settings, report_dir=args.report, progress=progress)
     summary = {k: v for k, v in rep.to_dict().items() if k != "curve"}
     verified = "not rendered" if rep.render_psnr_db is None else f"{rep.render_psnr_db:.2f} dB"
     _emit(args, summary, f"fit ({rep.method}): PSNR {rep.psnr_db:.2f} dB (model), {verified} "

@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -116,18 +116,45 @@ def _parse_env_res(text, max_cells: int = MAX_ENV_TEXELS) -> tuple:
     return h, w
 
 
-def fit_stage(stage_path, *args, **kwargs) -> FitReport:
-    """:func:`fit_unlocked` holding the stage folder's write lock from reading the stage to publishing the
-    fitted lights (a concurrent build or fit fails with "being written by PID N" instead of interleaving)."""
+@dataclass(frozen=True)
+class FitSettings:
+    """How ``usdrelight fit`` fits the photo's lighting (the CLI's options, same defaults)."""
+
+    method: str = "fast"
+    """``fast`` (greedy selection + variable projection, :mod:`usdrelight.fit.fast`) or ``adam`` (the paper's
+    differentiable-rendering baseline, :mod:`usdrelight.fit.adam`)."""
+    lights: int = 16
+    """Most point lights to fit, 0..256 (the fast method stops earlier when a light does not pay for itself)."""
+    env_res: str | tuple | None = None
+    """Environment latlong cells ``"HxW"`` or (H, W); ``"0x0"``: no environment; None: 8x16 (fast), 128x256
+    (adam)."""
+    iterations: int | None = None
+    """Position iterations; None: 40 (fast), 200 (adam)."""
+    max_side: int = 512
+    """Longer side of the fit resolution, pixels (the target D is box-filtered down to it)."""
+    verify_spp: int = 128
+    """Samples per pixel of the Mitsuba verification render of the fitted lights (0: no verification)."""
+    seed: int = 0
+    """Seed of every random choice (ray samples, initialisation); a fit is deterministic for a seed."""
+    fast: FastSettings = field(default_factory=FastSettings)
+    """Knobs of the coarse-to-fine fast fit (error against time: ``benchmarks/bench_batch.py``)."""
+
+
+def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, progress=None) -> FitReport:
+    """Fit the lighting of the photo a stage was built from and write it into the stage's fitted-lights layer
+    (``lights_fitted.usda``, metres converted to the stage's units).
+
+    Holds the stage folder's write lock from reading the stage to publishing the layer (a concurrent build or
+    fit fails with "being written by PID N" instead of interleaving). ``report_dir``: also write
+    fit_report.json and a plot of error against run time there. ``progress(i, n, mse)`` is called per step.
+    Returns the :class:`~usdrelight.fit.result.FitReport` (MSE and PSNR in the linear units of D, seconds)."""
     with stage_lock(Path(stage_path).absolute().parent):
-        return fit_unlocked(stage_path, *args, **kwargs)
+        return _fit_unlocked(stage_path, settings or FitSettings(), report_dir, progress)
 
 
-def fit_unlocked(stage_path, method: str = "fast", lights: int = 16, env_res=None, iterations: int | None = None,
-              max_side: int = 512, report_dir=None, verify_spp: int = 128, progress=None, seed: int = 0,
-              fast_settings: FastSettings = FastSettings()) -> FitReport:
-    """Fit, write the fitted-lights layer, verify by rendering with Mitsuba (``verify_spp`` samples per
-    pixel; 0 = no verification render, render_* are then None), and report."""
+def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> FitReport:
+    method, lights, env_res, iterations = settings.method, settings.lights, settings.env_res, settings.iterations
+    max_side, verify_spp, seed, fast_settings = settings.max_side, settings.verify_spp, settings.seed, settings.fast
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
     t_all = time.perf_counter()

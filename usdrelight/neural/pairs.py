@@ -20,7 +20,7 @@ import numpy as np
 from ..atomic import write_text_atomic
 from ..errors import UsdRelightError
 from ..fit.result import FitReport
-from ..fit.run import fit_stage
+from ..fit.run import FitSettings, fit
 from ..imageio import read_map, read_photo
 from ..mitsuba.render import render_stage
 from ..stage.build import BuildOptions, build
@@ -114,8 +114,8 @@ def make_pair_files(photo: Path, out: Path, max_side: int = 256, fit_iterations:
     t_build = time.perf_counter() - t
     if after_build is not None:
         after_build()
-    rep = fit_stage(out / "scene.usda", "fast", lights=lights, iterations=fit_iterations, max_side=max_side,
-                    verify_spp=verify_spp)
+    rep = fit(out / "scene.usda", FitSettings(lights=lights, iterations=fit_iterations, max_side=max_side,
+                                              verify_spp=verify_spp))
     t = time.perf_counter()
     rel = None
     if render:

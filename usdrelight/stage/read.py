@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -27,6 +28,7 @@ from ..imageio import check_image_size, check_resolution
 from ..safe_paths import check_read, stage_folder
 from .camera import check_clipping, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, read_material, read_mesh
+from .validate import open_stage
 from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
 
 log = logging.getLogger(__name__)
@@ -256,10 +258,13 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
 
 
 def read_scene(stage, time=None) -> SceneRecord:
-    """Collect everything a renderer needs from ``stage`` into a :class:`SceneRecord`, in metres (the stage's
-    metersPerUnit applied; see the module docstring)."""
+    """Collect everything a renderer needs from ``stage`` (a ``Usd.Stage``, or the path of one: opened with
+    :func:`usdrelight.stage.validate.open_stage`) into a :class:`SceneRecord`, in metres (the stage's
+    metersPerUnit applied; see the module docstring). ``time``: the USD time code to read (None: default)."""
     from pxr import Usd, UsdGeom, UsdLux
 
+    if isinstance(stage, (str, Path)):
+        stage = open_stage(stage)
     t = Usd.TimeCode.Default() if time is None else time
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter()

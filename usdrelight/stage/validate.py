@@ -81,7 +81,15 @@ def validate_stage(stage) -> list[Finding]:
     return out
 
 
+def validate(path: str | Path) -> list[Finding]:
+    """Open the stage at ``path`` (:func:`open_stage`: one-line UsdRelightError when it cannot be opened or
+    composed) and run every ``pxr.UsdValidation`` validator on it; returns all findings, errors first as the
+    validators report them. ``[f for f in findings if f.severity.startswith("Error")]`` are the errors."""
+    return validate_stage(open_stage(path))
+
+
 def errors_only(findings: list[Finding]) -> list[Finding]:
+    """The findings of severity Error."""
     return [f for f in findings if f.severity.lower().startswith("error")]
 
 
