@@ -26,10 +26,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import usdrelight  # noqa: E402,F401
-from usdrelight.engine.renderer import EngineSettings, FastRenderer  # noqa: E402
+from usdrelight.engine.fast import EngineSettings, FastRenderer  # noqa: E402
+from usdrelight.transport.cache import TransportCache  # noqa: E402
 from usdrelight.mitsuba.runtime import load_mitsuba  # noqa: E402
 from usdrelight.mitsuba.scene_dict import scene_dict, to_mitsuba  # noqa: E402
-from usdrelight.neural.relight import RelightSession  # noqa: E402
+from usdrelight.relight.session import RelightSession  # noqa: E402
 from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 from usdrelight.stage.light_specs import parse_lights  # noqa: E402
 from usdrelight.stage.read import read_scene  # noqa: E402
@@ -69,16 +70,16 @@ def error_vs_time(name: str, rec, lights, max_side, spps, ref_passes: int) -> di
     ref, ref_sec = mts.render(64 * ref_passes, seed=7)
     with tempfile.TemporaryDirectory() as td:
         t = time.perf_counter()
-        fr = FastRenderer(rec, EngineSettings(max_side=max_side), Path(td))
+        fr = FastRenderer(rec, EngineSettings(max_side=max_side), TransportCache(td))
         cold = time.perf_counter() - t
         t = time.perf_counter()
-        FastRenderer(rec, EngineSettings(max_side=max_side), Path(td))
+        FastRenderer(rec, EngineSettings(max_side=max_side), TransportCache(td))
         warm = time.perf_counter() - t
     fr.render(lights)  # first call compiles the ray kernels
     t = time.perf_counter()
     out = fr.render(lights)
     frame = time.perf_counter() - t
-    valid = out.valid[..., 0] > 0
+    valid = out.valid
     rows = []
     for spp in spps:
         img, sec = mts.render(spp, seed=1)

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import usdrelight  # noqa: E402,F401
-from usdrelight.neural.composite import MODES  # noqa: E402
+from usdrelight.relight.composite import MODES  # noqa: E402
 from usdrelight.serve.app import ServeApp  # noqa: E402
 from usdrelight.serve.state import color_from_picker  # noqa: E402
 

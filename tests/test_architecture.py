@@ -24,14 +24,19 @@ LAYERS = [
     ("estimate", ["usdrelight.estimate"]),
     ("stage", ["usdrelight.stage"]),
     ("mitsuba", ["usdrelight.mitsuba"]),
-    ("fit", ["usdrelight.fit"]),
-    ("engine", ["usdrelight.engine"]),
-    ("neural", ["usdrelight.neural"]),
+    # the light-transport layer: visible surface, environment basis, bounce gather, the shared cache
+    ("transport", ["usdrelight.transport"]),
+    ("fit", ["usdrelight.fit"]),  # transport + a target
+    ("engine", ["usdrelight.engine"]),  # transport + lights; never the fit (INDEPENDENT)
+    ("neural", ["usdrelight.neural"]),  # the network: contract, inference, training
+    ("relight", ["usdrelight.relight"]),  # sessions, modes, compositing, sequences, contact sheets
     ("batch", ["usdrelight.batch"]),
     ("serve", ["usdrelight.serve"]),
     ("converters", ["usdrelight.converters"]),
-    ("cli", ["usdrelight.cli", "usdrelight.__main__"]),
+    ("api", ["usdrelight.api", "usdrelight.cli", "usdrelight.__main__"]),
 ]
+#: Layers next to each other in the list above that must not import one another either way.
+INDEPENDENT = [("usdrelight.fit", "usdrelight.engine"), ("usdrelight.batch", "usdrelight.serve")]
 #: Modules allowed to import project modules inside functions: the CLI loads a subcommand's code only when
 #: that subcommand runs (so `usdrelight --help` and `validate` start fast). Nothing else may defer an import.
 LAZY_OK = {"usdrelight.cli"}
@@ -114,6 +119,46 @@ def test_every_module_is_in_a_layer_and_imports_only_upstream():
                 bad.append(f"{_where(mod)}:{line} ({LAYERS[_layer(mod)][0]}) imports {target} "
                            f"({LAYERS[_layer(target)][0]})")
     assert not bad, "upward imports:\n" + "\n".join(bad)
+
+
+def _in(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+@pytest.mark.parametrize("a, b", INDEPENDENT)
+def test_independent_layers_do_not_import_each_other(a, b):
+    bad = [f"{_where(mod)}:{line} imports {target}" for mod in MODULES for target, line, _ in _imports(mod)
+           if (_in(mod, a) and _in(target, b)) or (_in(mod, b) and _in(target, a))]
+    assert not bad, f"{a} and {b} import each other:\n" + "\n".join(bad)
+
+
+def _private_uses(module: str) -> list[str]:
+    """Private names (``_x``, not dunders) ``module`` takes from other packages: imported, or read as an
+    attribute of anything but ``self``/``cls``."""
+    package = module.rsplit(".", 1)[0]
+    out = []
+    for node in ast.walk(ast.parse(MODULES[module].read_text())):
+        if isinstance(node, ast.ImportFrom):
+            for target in _resolve(module, node):
+                if not _in(target, package):
+                    out += [f"{_where(module)}:{node.lineno} imports {a.name}" for a in node.names
+                            if a.name.startswith("_") and not a.name.startswith("__")]
+        elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__") and \
+                not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+            out.append(f"{_where(module)}:{node.lineno} uses {ast.unparse(node)}")
+    return out
+
+
+def test_serve_uses_only_public_names_of_other_packages(tmp_path):
+    bad = [line for mod in MODULES if _in(mod, "usdrelight.serve") for line in _private_uses(mod)]
+    assert not bad, "serve reaches into other packages:\n" + "\n".join(bad)
+    # the check can fail
+    MODULES["usdrelight.serve._probe"] = tmp_path / "p.py"
+    (tmp_path / "p.py").write_text("from ..relight.session import _x\n\ndef f(s):\n    s.engine._terms = 1\n")
+    try:
+        assert len(_private_uses("usdrelight.serve._probe")) == 2
+    finally:
+        del MODULES["usdrelight.serve._probe"]
 
 
 def test_no_project_import_is_hidden_inside_a_function():

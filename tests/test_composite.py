@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from usdrelight.imageio import read_photo, resize_image
-from usdrelight.neural.composite import add_composite, ratio_composite, ratio_guard
-from usdrelight.neural.relight import RelightSession
+from usdrelight.relight.composite import add_composite, ratio_composite, ratio_guard
+from usdrelight.relight.session import RelightSession
 from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.records import FitProvenance, PointLightValue
 

@@ -167,7 +167,7 @@ def test_relight_session_falls_back_to_mitsuba_for_mesh_lights(tmp_path, caplog)
     import logging
 
     from usdrelight.intrinsics import Intrinsics
-    from usdrelight.neural.relight import RelightSession
+    from usdrelight.relight.session import RelightSession
 
     stage = _mesh_light_stage(tmp_path / "s.usda", normalize=False)
     camera(stage, Intrinsics(60.0, 60.0, 8.0, 6.0, 16, 12), translate=(0, 0.5, 0), rotate_x_deg=-90)

@@ -222,7 +222,7 @@ def test_wrapper_bsdfs_use_the_nested_one(cli, tmp_path):
 
 
 def test_fast_engine_refuses_translucent_materials(cli, tmp_path):
-    from usdrelight.engine.renderer import FastRenderer
+    from usdrelight.engine.fast import FastRenderer
     from usdrelight.stage.read import read_scene
 
     def half(surf):

@@ -169,13 +169,13 @@ def test_stability_cases(tmp_path, case):
 
 def test_light_initialised_on_a_surface_stays_finite(tmp_path):
     from usdrelight.fit.fast import fit_fast
-    from usdrelight.fit.transport import build_transport
+    from usdrelight.fit.transport import fit_transport
 
     stage = _synthetic_stage(tmp_path, np.full((24, 32), 2.0), target=np.full((24, 32, 3), 0.3, np.float32))
     prob = load_problem(stage)
     on_surface = prob.p[len(prob.p) // 2][None]
     next_to = on_surface + prob.n[len(prob.p) // 2] * 1e-9
-    tr = build_transport(prob, (4, 8), 32, 4)
+    tr = fit_transport(prob, (4, 8), 32, 4)
     g, dg = tr.point_columns(np.concatenate([on_surface, next_to]), with_grad=True)
     assert np.all(np.isfinite(g)) and np.all(np.isfinite(dg))
     st, _ = fit_fast(prob, 2, (4, 8), 5, transport=tr, positions=np.concatenate([on_surface, next_to]))

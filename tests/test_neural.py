@@ -148,7 +148,7 @@ def test_shipped_model_gain_is_bounded_so_nothing_is_blacked_out():
 
 def test_shipped_model_is_monotone_when_a_light_is_added(tmp_path):
     from conftest import build_procedural
-    from usdrelight.neural.relight import RelightSession
+    from usdrelight.relight.session import RelightSession
 
     stage = build_procedural(tmp_path / "st")
     session = RelightSession(stage, max_side=96, mode="neural")

@@ -39,7 +39,7 @@ def test_schema_registers_from_a_wheel_install(tmp_path):
     code = textwrap.dedent("""
         import usdrelight.schemas as s, usdrelight.converters as c
         import usdrelight.cli, usdrelight.converters.convert, usdrelight.converters.mitsuba_xml, usdrelight.fit.run
-        import usdrelight.neural.relight, usdrelight.neural.train, usdrelight.stage.build
+        import usdrelight.relight.session, usdrelight.relight.run, usdrelight.engine.fast, usdrelight.transport.cache, usdrelight.neural.train, usdrelight.stage.build
         from pxr import Usd
         assert s.__file__.startswith(%r), s.__file__
         assert usdrelight.neural.model.DEFAULT_MODEL.is_file()

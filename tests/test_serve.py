@@ -169,14 +169,18 @@ def test_colour_picker_round_trip_and_validation():
             LightState(**{"name": "L", "kind": "spot", **bad})
 
 
-def test_direct_cache_renders_what_the_engine_renders(stage):
-    """The app's per-light cache of direct terms (scaled by radiance) gives the engine's own frame, also after
-    a light moved and another changed colour; cached terms are reused."""
+def test_per_light_terms_are_reused_and_render_what_an_uncached_engine_renders(stage):
+    """The renderer keeps each light's direct term (scaled by radiance): the app's frames equal those of an
+    engine that keeps none, also after a light moved and another changed colour; unchanged lights are reused."""
+    from dataclasses import replace
+
+    from usdrelight.engine.fast import FastRenderer
     from usdrelight.serve.live import LightSet, LiveRelight
+    from usdrelight.stage.read import read_scene
 
     live = LiveRelight(stage, max_side=SIDE, mode="add")
-    cached = live.session("add").engine
-    engine = cached._engine
+    engine = live.session("add").engine
+    fresh = FastRenderer(read_scene(stage), replace(engine.settings, direct_terms=0))
     states = [LightState("P", "point", color=(1.0, 0.5, 0.2), intensity=6.0, position=(0.3, 0.8, -2.0)),
               LightState("S", "spot", intensity=9.0, position=(-0.5, 1.0, -1.5),
                          rotation=quat_pointing_along([0.3, -1.0, -0.5]), cone_angle=30.0, softness=0.3),
@@ -184,12 +188,13 @@ def test_direct_cache_renders_what_the_engine_renders(stage):
               LightState("Dome", "dome", color=(0.2, 0.3, 0.5), intensity=0.4)]
     for step in range(3):
         lights = live.lights(LightSet(tuple(states), fitted_on=True, dimmer=0.5, mode="ratio"))
-        ref = engine.render(lights).beauty
-        got = cached.render(lights).beauty
+        ref = fresh.render(lights).beauty
+        got = engine.render(lights).beauty
         np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6 * float(ref.max()))
-        assert len(cached._terms) == 5 + step  # 4 lights + the fitted one, plus one term per move
+        assert engine.terms_kept == 5 + step and fresh.terms_kept == 0  # 4 lights + the fitted one, + 1 per move
         states[0] = states[0].with_(position=(0.3 + 0.1 * (step + 1), 0.8, -2.0))
         states[1] = states[1].with_(color=color_from_picker((255, 60 * step, 0)), intensity=9.0 + step)
+    live.close()
 
 
 # ---- safety -------------------------------------------------------------------------------------------

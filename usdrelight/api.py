@@ -18,7 +18,8 @@ from .errors import UsdRelightError
 from .fit.result import FitReport
 from .fit.run import FitSettings, fit
 from .mitsuba.render import RenderResult, render_stage as render
-from .neural.relight import RelightResult, RelightSession, RelitFrame, relight
+from .relight.run import RelightResult, relight
+from .relight.session import RelightSession, RelitFrame
 from .stage.build import BuildOptions, BuildResult, build
 from .stage.read import read_scene
 from .stage.records import SceneRecord

@@ -1,5 +1,43 @@
-"""Stage + lights -> D~ fast: the deterministic relight renderer with its per-stage cache.
+"""Stage + lights -> images: the renderers behind one interface (:class:`~.aovs.Renderer`, one result record
+:class:`~.aovs.Aovs`).
 
-Modules: ``lights`` (direct light of each UsdLux kind at the visible surface), ``renderer`` (prepare or load
-the cache, render a light set with one indirect bounce).
+Modules: ``aovs`` (the record and the interface), ``lights`` (direct light of each UsdLux kind at the visible
+surface), ``fast`` (the deterministic fast renderer on the transport layer's cached preparation),
+``path_traced`` (Mitsuba's path tracer, the reference). :func:`open_renderer` picks one.
 """
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+from ..errors import UsdRelightError
+from ..stage.records import SceneRecord
+from ..transport.cache import TransportCache
+from .aovs import Aovs, Renderer
+from .fast import EngineSettings, FastRenderer
+from .path_traced import MitsubaRenderer
+
+log = logging.getLogger(__name__)
+RENDERERS = ("fast", "mitsuba")
+__all__ = ["Aovs", "EngineSettings", "FastRenderer", "MitsubaRenderer", "RENDERERS", "Renderer", "open_renderer"]
+
+
+def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | None = 512, spp: int = 32,
+                  max_depth: int = 3, settings: EngineSettings | None = None,
+                  cache: TransportCache | None = None) -> Renderer:
+    """A renderer of ``rec`` at ``max_side`` pixels (longer side): ``fast`` (``settings``, prepared data in
+    ``cache``) or ``mitsuba`` (``spp`` samples per pixel). A scene the fast renderer cannot render (mesh
+    lights, non-Lambertian materials) gets Mitsuba, with one warning naming why."""
+    if renderer not in RENDERERS:
+        raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
+    if spp < 1 or max_depth < 2:
+        raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+    if renderer == "fast":
+        try:
+            return FastRenderer(rec, replace(settings or EngineSettings(), max_side=max_side, max_depth=max_depth),
+                                cache)
+        except UsdRelightError as exc:
+            if rec.camera is None:
+                raise
+            log.warning("fast renderer not used (%s): rendering with Mitsuba", exc)
+    return MitsubaRenderer(rec, max_side, spp, max_depth)

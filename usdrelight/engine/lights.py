@@ -6,7 +6,7 @@ by the renderer). Units and frames are those of :mod:`usdrelight.stage.lux` and 
 fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
 
 * point (SphereLight treatAsPoint / radius 0): I / r^2 cos, exact, one shadow ray per pixel, distances
-  clamped to ``Transport.r_min`` as in the fit;
+  clamped to ``LightTransport.r_min`` as in the fit;
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
 * sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
@@ -22,18 +22,11 @@ import math
 
 import numpy as np
 
-from ..fit.transport import Transport, direction_to_cell, rays, stratified, tangent_frames
 from ..imageio import read_photo
-from ..mitsuba.runtime import load_mitsuba
 from ..stage.lux import emitted_radiance, light_direction, world_area, world_scale
 from ..stage.records import LightRecord
-
-
-def _visible(tr: Transport, o: np.ndarray, d: np.ndarray, maxt: np.ndarray | None) -> np.ndarray:
-    """Unoccluded flags for rays from ``o`` along unit ``d`` (flattened), up to ``maxt`` (None: infinite)."""
-    mi = load_mitsuba()
-    m = None if maxt is None else np.maximum(maxt - 2 * tr.eps, 0.0)
-    return ~np.array(tr.problem.mi_scene.ray_test(rays(mi, o, d, m)), bool)
+from ..transport.basis import LightTransport
+from ..transport.sampling import direction_to_cell, stratified, tangent_frames
 
 
 def spot_falloff(light: LightRecord, points: np.ndarray) -> np.ndarray:
@@ -47,24 +40,24 @@ def spot_falloff(light: LightRecord, points: np.ndarray) -> np.ndarray:
     return np.where(cos > math.cos(cutoff), np.where(cos >= math.cos(beam), 1.0, ramp), 0.0)
 
 
-def point_light(tr: Transport, light: LightRecord) -> np.ndarray:
+def point_light(tr: LightTransport, light: LightRecord) -> np.ndarray:
     g = tr.point_columns(light.to_world[:3, 3][None])[:, 0]
     if light.cone_angle_deg is not None:
-        g = g * spot_falloff(light, tr.problem.p)
+        g = g * spot_falloff(light, tr.surface.p)
     return g[:, None] * emitted_radiance(light)[None, :]
 
 
-def sphere_light(tr: Transport, light: LightRecord, samples: int, rng) -> np.ndarray:
-    prob = tr.problem
+def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
+    surf = tr.surface
     radius = light.radius * float(np.cbrt(np.prod(world_scale(light.to_world))))
-    o = prob.origins(tr.eps)
+    o = surf.origins(tr.eps)
     w = light.to_world[:3, 3][None] - o
     dist = np.linalg.norm(w, axis=1)
     outside = dist > radius * (1 + 1e-6)
-    out = np.zeros((prob.n_pixels, 3))
+    out = np.zeros((surf.n_pixels, 3))
     if not outside.any():
         return out
-    o, w, dist, n = o[outside], w[outside], dist[outside], prob.n[outside]
+    o, w, dist, n = o[outside], w[outside], dist[outside], surf.n[outside]
     wn = w / dist[:, None]
     cos_max = np.sqrt(np.maximum(0.0, 1.0 - (radius / dist) ** 2))
     u1, u2 = stratified(len(o), samples, rng)
@@ -77,15 +70,15 @@ def sphere_light(tr: Transport, light: LightRecord, samples: int, rng) -> np.nda
     # distance to the near side of the sphere along each direction
     hit = dist[:, None] * cos_t - np.sqrt(np.maximum(radius ** 2 - (dist[:, None] * sin_t) ** 2, 0.0))
     cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, n), 0.0)
-    vis = _visible(tr, np.repeat(o, samples, 0), dirs.reshape(-1, 3), hit.reshape(-1)).reshape(len(o), samples)
+    vis = tr.visible(np.repeat(o, samples, 0), dirs.reshape(-1, 3), hit.reshape(-1)).reshape(len(o), samples)
     weight = 2.0 * (1.0 - cos_max) * np.mean(vis * cos_x, axis=1)
     out[outside] = weight[:, None] * emitted_radiance(light)[None, :]
     return out
 
 
-def planar_light(tr: Transport, light: LightRecord, samples: int, rng) -> np.ndarray:
+def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
     """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``)."""
-    prob = tr.problem
+    surf = tr.surface
     u1, u2 = stratified(1, samples, rng)
     u1, u2 = u1[0], u2[0]
     if light.kind == "disk":
@@ -95,41 +88,41 @@ def planar_light(tr: Transport, light: LightRecord, samples: int, rng) -> np.nda
         local = np.stack([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, np.zeros_like(u1)], 1)
     ys = local @ light.to_world[:3, :3].T + light.to_world[:3, 3]
     n_l = light_direction(light)
-    o = prob.origins(tr.eps)
-    acc = np.zeros(prob.n_pixels)
+    o = surf.origins(tr.eps)
+    acc = np.zeros(surf.n_pixels)
     for y in ys:  # one shadow-ray batch per light sample: memory stays at N rays
         v = y[None] - o
         dist = np.linalg.norm(v, axis=1)
         om = v / np.maximum(dist, 1e-300)[:, None]
-        g = np.maximum(np.einsum("ij,ij->i", prob.n, om), 0.0) * np.maximum(-(om @ n_l), 0.0) / np.maximum(dist, 1e-12) ** 2
+        g = np.maximum(np.einsum("ij,ij->i", surf.n, om), 0.0) * np.maximum(-(om @ n_l), 0.0) / np.maximum(dist, 1e-12) ** 2
         live = g > 0
         if live.any():
-            vis = _visible(tr, o[live], om[live], dist[live])
+            vis = tr.visible(o[live], om[live], dist[live])
             acc[np.nonzero(live)[0][vis]] += g[live][vis]
     scale = world_area(light) / (np.pi * samples)
     return (acc * scale)[:, None] * emitted_radiance(light)[None, :]
 
 
-def distant_light(tr: Transport, light: LightRecord, samples: int, rng) -> np.ndarray:
-    prob = tr.problem
+def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
+    surf = tr.surface
     towards = -light_direction(light)
-    o = prob.origins(tr.eps)
+    o = surf.origins(tr.eps)
     half = math.radians(light.angle_deg) / 2.0
     if half <= 0:
-        cos_x = np.maximum(prob.n @ towards, 0.0)
+        cos_x = np.maximum(surf.n @ towards, 0.0)
         live = cos_x > 0
-        vis = np.zeros(prob.n_pixels, bool)
+        vis = np.zeros(surf.n_pixels, bool)
         if live.any():
-            vis[live] = _visible(tr, o[live], np.broadcast_to(towards, (int(live.sum()), 3)).copy(), None)
+            vis[live] = tr.visible(o[live], np.broadcast_to(towards, (int(live.sum()), 3)).copy(), None)
         return (cos_x * vis / np.pi)[:, None] * emitted_radiance(light)[None, :]
-    u1, u2 = stratified(prob.n_pixels, samples, rng)
+    u1, u2 = stratified(surf.n_pixels, samples, rng)
     cos_t = 1.0 - u1 * (1.0 - math.cos(half))
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
     t, b = tangent_frames(towards[None])
     phi = 2 * np.pi * u2
     dirs = (sin_t * np.cos(phi))[..., None] * t[0] + (sin_t * np.sin(phi))[..., None] * b[0] + cos_t[..., None] * towards
-    cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, prob.n), 0.0)
-    vis = _visible(tr, np.repeat(o, samples, 0), dirs.reshape(-1, 3), None).reshape(prob.n_pixels, samples)
+    cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, surf.n), 0.0)
+    vis = tr.visible(np.repeat(o, samples, 0), dirs.reshape(-1, 3), None).reshape(surf.n_pixels, samples)
     return (np.mean(vis * cos_x, axis=1) / np.pi)[:, None] * emitted_radiance(light)[None, :]
 
 
@@ -160,5 +153,5 @@ def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int =
     return num / np.maximum(den, 1e-300) * L[None, :]
 
 
-def dome_light(tr: Transport, light: LightRecord, textures: dict) -> np.ndarray:
+def dome_light(tr: LightTransport, light: LightRecord, textures: dict) -> np.ndarray:
     return tr.H @ dome_cell_radiance(light, tr.env_shape, textures).astype(tr.H.dtype)

@@ -19,10 +19,10 @@ from ..errors import UsdRelightError
 from ..mitsuba.runtime import load_mitsuba
 from ..mitsuba.scene_dict import scene_dict, to_mitsuba
 from ..stage.records import PointLightValue
+from ..transport.surface import R_MIN_REL
 from .fast import initial_positions
 from .problem import FitProblem
 from .result import FitResult, psnr
-from .transport import R_MIN_REL
 
 _REGISTERED = False
 

@@ -1,7 +1,7 @@
 """``--method fast``: the render is linear in the environment and the light intensities, so those are
 solved exactly (non-negative least squares) for given light positions; positions are refined by Adam on
 the reduced objective (variable projection), with analytic gradients of the point-light transport.
-Primary hits, environment visibility and the indirect gather are computed once (:mod:`usdrelight.fit.transport`).
+Primary hits, environment visibility and the indirect gather are computed once (:mod:`usdrelight.transport`).
 """
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from ..transport.basis import bounce_filter
 from .problem import FitProblem, coarse_problem
-from .transport import Transport, bounce_filter, build_transport
+from .transport import FitTransport, fit_transport
 
 
 def initial_positions(prob: FitProblem, k: int) -> np.ndarray:
@@ -68,13 +69,13 @@ class FitState:
 
 def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, lr_rel: float = 0.03,
              env_samples: int = 128, indirect_samples: int = 32, seed: int = 0, progress=None,
-             transport: Transport | None = None, positions: np.ndarray | None = None,
+             transport: FitTransport | None = None, positions: np.ndarray | None = None,
              smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None,
-             patience: int | None = None) -> tuple[FitState, Transport]:
+             patience: int | None = None) -> tuple[FitState, FitTransport]:
     """Adam on the light positions with intensities and environment at their optimum (VarPro); keeps the best
     state. ``patience``: stop early once the best MSE has not improved by 0.1% for that many iterations."""
     t0 = time.perf_counter()
-    tr = transport or build_transport(prob, env_shape, env_samples, indirect_samples, seed)
+    tr = transport or fit_transport(prob, env_shape, env_samples, indirect_samples, seed)
     pos = initial_positions(prob, k) if positions is None else np.array(positions, np.float64)
     lo, hi = prob.p.min(0), prob.p.max(0)
     box_lo, box_hi = lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo)
@@ -122,7 +123,7 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
     return best, tr
 
 
-def prune(state: FitState, tr: Transport, prob: FitProblem, tol: float = 0.01, smooth: float = 1e-3,
+def prune(state: FitState, tr: FitTransport, prob: FitProblem, tol: float = 0.01, smooth: float = 1e-3,
           refine_iterations: int = 8, candidates: int = 3) -> tuple[FitState, bool]:
     """Leave out what the scene does not need.
 
@@ -176,12 +177,12 @@ def candidate_positions(prob: FitProblem, per_axis: int = 5, min_distance_rel: f
 def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, tol: float = 0.02,
                     patience: int | None = None,
                     refine_iterations: int = 20, env_samples: int = 128, indirect_samples: int = 32, seed: int = 0,
-                    smooth: float = 1e-3, progress=None, callback=None) -> tuple[FitState, Transport]:
+                    smooth: float = 1e-3, progress=None, callback=None) -> tuple[FitState, FitTransport]:
     """Forward selection: add the candidate light that best explains the residual, re-fit every light's
     position and intensity (VarPro), and stop at ``k`` lights or when a new light improves the RMSE by less
     than ``tol``. A scene lit by one light ends with one light; the light budget ``k`` is a maximum."""
     t0 = time.perf_counter()
-    tr = build_transport(prob, env_shape, env_samples, indirect_samples, seed)
+    tr = fit_transport(prob, env_shape, env_samples, indirect_samples, seed)
     cands = candidate_positions(prob)
     sub = np.arange(0, prob.n_pixels, max(1, prob.n_pixels // 20000))  # selection on a pixel subset
     gc_full = tr.point_columns(cands)
@@ -265,7 +266,7 @@ class FastSettings:
 def fit_fast_coarse_to_fine(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40,
                             prune_tol: float | None = 0.01, settings: FastSettings = FastSettings(),
                             seed: int = 0, smooth: float = 1e-3, progress=None,
-                            callback=None) -> tuple[FitState, bool, Transport]:
+                            callback=None) -> tuple[FitState, bool, FitTransport]:
     """Select, refine and prune the lights on a coarse copy of the problem (``settings.coarse_side``), then
     build the full-resolution transport, polish the positions there for a few iterations and solve the
     intensities and the environment exactly; the environment is kept unless dropping it keeps the
@@ -289,9 +290,9 @@ def fit_fast_coarse_to_fine(prob: FitProblem, k: int = 16, env_shape=(8, 16), it
         if direct:
             return st, env_on, tr
         curve = list(st.curve)
-        tr = build_transport(prob, env_shape, settings.env_samples, settings.indirect_samples, seed)
+        tr = fit_transport(prob, env_shape, settings.env_samples, settings.indirect_samples, seed)
         if settings.filter_env and tr.H.shape[1]:
-            tr = Transport(prob, tr.env_shape, bounce_filter(prob) @ tr.H, tr.P, tr.r_min, tr.eps)
+            tr = FitTransport.of(tr, H=bounce_filter(prob) @ tr.H)
         t1 = time.perf_counter() - t0
         full, _ = fit_fast(prob, len(st.positions), env_shape, max(1, settings.polish_iterations),
                            lr_rel=settings.polish_lr_rel, transport=tr, positions=st.positions, smooth=smooth)

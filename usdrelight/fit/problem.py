@@ -1,77 +1,43 @@
-"""What the light fit works on: the stage's geometry, camera and albedo, the diffuse target D, all at
-the fit resolution (longer side <= ``max_side``), plus per-pixel primary hits.
+"""What the light fit works on: the visible surface of the stage (:mod:`usdrelight.transport.surface`) at the
+fit resolution (longer side <= ``max_side``) plus the diffuse target D = A * S at its valid pixels.
 
-Frames: world = the stage's world (for `build` stages: camera at the origin looking down -Z, +Y up).
+Frames: world = the stage's world in metres (for `build` stages: camera at the origin looking down -Z, +Y up).
 Pixels are row-major; ``idx`` maps valid pixels to (row, col).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
-from ..mitsuba.render import trace_pixel_centres
-from ..mitsuba.runtime import load_mitsuba
-from ..mitsuba.scene_dict import scene_dict, to_mitsuba
 from ..safe_paths import check_read, stage_folder
 from ..stage.read import read_scene
 from ..stage.records import SceneRecord
 from ..stage.validate import open_stage
-
-EPS_REL = 1e-4  # ray-origin offset, relative to the scene extent
+from ..transport.surface import VisibleSurface, trace_surface
 
 
 @dataclass(frozen=True)
-class FitProblem:
-    """A stage prepared for the light fit (read-only once made)."""
+class FitProblem(VisibleSurface):
+    """A visible surface with a target: what the fit explains (read-only once made)."""
 
-    stage_path: Path
-    """The stage's root layer."""
-    scene: SceneRecord
-    """The stage's scene with its camera at the fit resolution and without lights (the fit models them)."""
-    width: int
-    """Fit resolution, pixels."""
-    height: int
-    """Fit resolution, pixels."""
     target: np.ndarray
     """(N, 3) linear D = A * S at the valid pixels."""
-    idx: np.ndarray
-    """(N, 2) row, col of the valid pixels (row-major order)."""
-    p: np.ndarray
-    """(N, 3) primary hit points, world space."""
-    n: np.ndarray
-    """(N, 3) unit shading normals, facing the camera."""
-    ng: np.ndarray
-    """(N, 3) unit geometric normals, facing the camera (secondary rays start offset along them)."""
-    albedo: np.ndarray
-    """(N, 3) diffuse albedo at the hits, in [0, 1]."""
-    center: np.ndarray
-    """(3,) centre of the hit points' bounding box."""
-    extent: float
-    """Diagonal of that box, metres (the scale of every relative tolerance)."""
-    mi_scene: object
-    """Geometry-only Mitsuba scene, for visibility rays."""
+    stage_path: Path
+    """The stage's root layer (``Path()`` when made from a record)."""
 
-    @property
-    def n_pixels(self) -> int:
-        return int(self.p.shape[0])
-
-    def image(self, values: np.ndarray) -> np.ndarray:
-        """Scatter (N, C) values back into an (H, W, C) image (zeros elsewhere)."""
-        out = np.zeros((self.height, self.width, values.shape[1]), np.float32)
-        out[self.idx[:, 0], self.idx[:, 1]] = values
-        return out
+    @classmethod
+    def of(cls, surface: VisibleSurface, target: np.ndarray, stage_path=None) -> FitProblem:
+        """``surface`` with ``target`` (N, 3) at its valid pixels."""
+        return cls(**{f.name: getattr(surface, f.name) for f in fields(VisibleSurface)}, target=target,
+                   stage_path=Path(stage_path) if stage_path else Path())
 
     def target_image(self) -> np.ndarray:
+        """D as an (H, W, 3) image (zeros at invalid pixels)."""
         return self.image(self.target)
-
-    def origins(self, eps: float) -> np.ndarray:
-        """Secondary-ray origins: hit points pushed off the surface along the geometric normal
-        (offsetting along the interpolated shading normal can land below the surface: shadow acne)."""
-        return self.p + self.ng * (eps + 1e-5 * (1.0 + np.abs(self.p).max(1, keepdims=True)))
 
 
 def diffuse_target_path(stage) -> Path:
@@ -84,49 +50,16 @@ def diffuse_target_path(stage) -> Path:
     return check_read(asset.resolvedPath, stage_folder(stage), "diffuse target")
 
 
-def geometry_scene(rec: SceneRecord):
-    """The Mitsuba scene of ``rec``'s geometry and camera, without lights (for visibility rays)."""
-    mi = load_mitsuba()
-    return mi.load_dict(to_mitsuba(scene_dict(rec.with_lights(()), spp=1, max_depth=2), mi))
-
-
-def problem_from_scene(rec: SceneRecord, max_side: int | None, target=None, stage_path=None,
+def problem_from_scene(rec: SceneRecord, max_side: int | None, target: np.ndarray, stage_path=None,
                        mi_scene=None) -> FitProblem:
-    """Trace one primary ray per pixel of ``rec``'s camera at ``max_side``; ``target`` is D at the camera's
-    full resolution (None: zeros, for renderers that need the hits but no target; NaN pixels are left out).
-    ``mi_scene``: an already loaded geometry scene of ``rec`` (rays are generated in normalized film
-    coordinates, so one scene serves every resolution)."""
-    if rec.camera is None:
-        raise UsdRelightError(f"{stage_path or 'the stage'} has no camera")
-    if not rec.meshes and not rec.shapes:
-        raise UsdRelightError(f"{stage_path or 'the stage'} has no geometry to light")
-    rec = rec.with_lights(()).with_camera(rec.camera.limited(max_side))
-    W, H = rec.resolution
-    D = np.zeros((H, W, 3), np.float32) if target is None else resize_image(target, W, H)
-    mi = load_mitsuba()
-    scene = geometry_scene(rec) if mi_scene is None else mi_scene
-    ray, si = trace_pixel_centres(mi, scene, W, H)
-    hit = np.array(si.is_valid(), bool)
-    p = np.array(si.p, np.float64).T
-    n = np.array(si.sh_frame.n, np.float64).T
-    ng = np.array(si.n, np.float64).T
-    d = np.array(ray.d, np.float64).T
-    alb = np.array(si.bsdf().eval_diffuse_reflectance(si), np.float64).T
-    flip = np.einsum("ij,ij->i", n, d) > 0
-    n[flip] *= -1
-    ng[np.einsum("ij,ij->i", ng, d) > 0] *= -1
-    ok = hit & np.all(np.isfinite(p), 1) & np.all(np.isfinite(n), 1) & np.all(np.isfinite(D.reshape(-1, 3)), 1)
-    if not ok.any():
-        raise UsdRelightError("no pixel of the camera sees geometry (empty valid mask)")
-    rows, cols = np.divmod(np.nonzero(ok)[0], W)
-    P = p[ok]
-    lo, hi = P.min(0), P.max(0)
-    extent = float(np.linalg.norm(hi - lo))
-    if not np.isfinite(extent) or extent <= 0:
-        extent = float(np.linalg.norm(P.mean(0))) or 1.0
-    return FitProblem(Path(stage_path) if stage_path else Path(), rec, W, H,
-                      D.reshape(-1, 3)[ok].astype(np.float64), np.stack([rows, cols], 1), P, n[ok], ng[ok],
-                      np.clip(alb[ok], 0.0, 1.0), (lo + hi) / 2, extent, scene)
+    """Trace one primary ray per pixel of ``rec``'s camera at ``max_side``; ``target`` is D (H, W, 3) at the
+    camera's full resolution (pixels where it is NaN are left out). ``mi_scene``: an already loaded geometry
+    scene of ``rec`` (one scene serves every resolution)."""
+    k = rec.camera.intrinsics.limited(max_side) if rec.camera is not None else None
+    D = resize_image(target, k.width, k.height) if k is not None else None
+    keep = np.all(np.isfinite(D.reshape(-1, 3)), 1) if D is not None else None
+    surf = trace_surface(rec, max_side, mi_scene=mi_scene, keep=keep, what=str(stage_path or "the stage"))
+    return FitProblem.of(surf, D.reshape(-1, 3)[surf.flat_index()].astype(np.float64), stage_path)
 
 
 def coarse_problem(prob: FitProblem, max_side: int) -> FitProblem:

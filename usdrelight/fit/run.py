@@ -25,7 +25,7 @@ from .fast import FastSettings, fit_fast_coarse_to_fine
 from .problem import FitProblem, load_problem
 from .report import write_report
 from .result import FitReport, FitResult, masked_mse, psnr
-from .transport import build_transport
+from .transport import fit_transport
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,7 @@ def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_T
     """Drop lights (and the environment) whose own contribution to the render, predicted by the
     transport model, has an RMS below ``tol`` (1%) of the RMS of D. Used after ``adam``."""
     env_shape = (8, 16)
-    tr = build_transport(prob, env_shape, env_samples=64, indirect_samples=8)
+    tr = fit_transport(prob, env_shape, env_samples=64, indirect_samples=8)
     rms_d = float(np.sqrt(np.mean(prob.target ** 2)))
     keep = []
     if res.lights:

@@ -83,10 +83,12 @@ def trace_pixel_centres(mi, scene, width: int, height: int):
     return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy))
 
 
-def footprint_albedo(mi, scene, width: int, height: int, k: int = 4) -> np.ndarray:
-    """(H * W, 3) diffuse albedo averaged over each pixel's area with k x k stratified rays, misses counting
-    as 0: what a box pixel filter sees of the albedo (coverage included)."""
+def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(albedo (H * W, 3), coverage (H * W,)) of every pixel from k x k stratified camera rays: the diffuse
+    albedo averaged over the pixel's area with misses counting as 0, and the fraction of the area that sees
+    geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel)."""
     acc = np.zeros((width * height, 3))
+    cov = np.zeros(width * height)
     dx, dy = PRIMARY_RAY_NUDGE_PX
     for i in range(k):
         for j in range(k):
@@ -94,7 +96,8 @@ def footprint_albedo(mi, scene, width: int, height: int, k: int = 4) -> np.ndarr
             hit = np.array(si.is_valid(), bool)
             alb = np.array(si.bsdf().eval_diffuse_reflectance(si), np.float64).T
             acc += np.where(hit[:, None] & np.isfinite(alb), alb, 0.0)
-    return np.clip(acc / (k * k), 0.0, 1.0)
+            cov += hit
+    return np.clip(acc / (k * k), 0.0, 1.0), cov / (k * k)
 
 
 def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, wanted: set) -> dict:
@@ -115,6 +118,8 @@ def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, w
     if "normal" in wanted:
         n = np.array(si.sh_frame.n, dtype=np.float32).T
         out["normal"] = np.where(valid[:, None], n, 0.0).reshape(height, width, 3)
+    if "coverage" in wanted:
+        out["coverage"] = pixel_footprint(mi, scene, width, height)[1].reshape(height, width, 1).astype(np.float32)
     for k, v in out.items():
         out[k] = np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
     return out

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.renderer import EngineSettings, FastRenderer
+from ..engine.fast import EngineSettings, FastRenderer
 from ..imageio import read_photo
 from ..mitsuba.procedural import PointLight, SceneSpec, random_spec, render_ground_truth, write_training_photo
 from ..stage.build import BuildOptions, build
@@ -146,6 +146,6 @@ def relit_pairs(scene: SyntheticScene, sets, spp: int = 64) -> list[RelitPair]:
         aovs = engine.render(ls.records())
         target = render_ground_truth(replace(scene.spec, point_lights=list(ls.point_lights),
                                              env_radiance=ls.env_radiance), spp=spp).image
-        out.append(RelitPair(f"{scene.name}-{ls.kind}", ls.kind, aovs.beauty, aovs.albedo, aovs.valid[..., 0] > 0.5,
+        out.append(RelitPair(f"{scene.name}-{ls.kind}", ls.kind, aovs.beauty, aovs.albedo, aovs.valid,
                              target, scene.photo))
     return out

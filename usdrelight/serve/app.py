@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..neural.composite import MODES
+from ..relight.composite import MODES
 from ..stage.validate import open_stage
 from .files import export_relit, read_user_states, store_upload, write_user_layer
 from .gui import Gui
@@ -136,6 +136,7 @@ class ServeApp:
             loop.stop()
             with contextlib.redirect_stdout(sys.stderr):
                 self.server.stop()
+            self.live.close()
 
     def __enter__(self):
         return self

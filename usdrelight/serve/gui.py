@@ -14,7 +14,7 @@ import threading
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..neural.composite import MODES
+from ..relight.composite import MODES
 from .state import KINDS, color_from_picker, picker_from_color, quat_pointing_along
 
 log = logging.getLogger(__name__)

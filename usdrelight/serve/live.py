@@ -1,7 +1,7 @@
 """The web app's relight engine, free of any GUI: the light set, the relit frame, the update loop.
 
-:class:`LiveRelight` keeps one :class:`usdrelight.neural.relight.RelightSession` per output mode (made when the
-mode is first used; each loads the stage's relight cache) and owns the light list it renders: the user's
+:class:`LiveRelight` keeps one :class:`usdrelight.relight.session.RelightSession` per output mode (made when the
+mode is first used; each loads the stage's transport cache) and owns the light list it renders: the user's
 editable lights, the stage's other non-fitted lights, and the fitted lights scaled by a dimmer (the photo's own
 lighting, 1 = as fitted, 0 = off: day to night). Mode ``ratio`` divides by the render under the full fitted
 lighting, so dimming it darkens the photo itself; mode ``add`` keeps the photo's light, so the fitted lights
@@ -15,11 +15,8 @@ Display images are sRGB 8-bit: linear * 2^display exposure, clipped to [0, 1], s
 """
 from __future__ import annotations
 
-import contextlib
 import contextvars
-import hashlib
 import logging
-import os
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -27,12 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import publish
-from ..engine.renderer import CACHE_DIR
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb
-from ..neural.composite import MODES
-from ..neural.relight import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession
+from ..relight.composite import MODES
+from ..relight.session import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession
 from ..stage.layout import USER_LIGHTS_SCOPE
 from .state import to_record
 
@@ -91,50 +86,6 @@ class Frame:
     """time.perf_counter() when the request was made (for the request -> shown latency)."""
 
 
-def light_key(light) -> bytes:
-    """Everything but the radiance that decides a light's direct term, as bytes (a cache key)."""
-    tex = light.texture
-    fields = (light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
-              light.treat_as_point, light.cone_angle_deg, light.cone_softness,
-              None if tex is None else (tex.path, tex.color_space, tex.scale, tex.bias, tex.channel))
-    return repr(fields).encode() + np.asarray(light.to_world, np.float64).tobytes()
-
-
-class DirectCache:
-    """The fast renderer with every light's direct term kept between frames.
-
-    The fast renderer is linear in the lights: a frame is the sum of the lights' direct terms (E / pi at the
-    visible surface) followed by one bounce, and each direct term is linear in its light's radiance, channel by
-    channel. Rendering through this wrapper keeps each light's term for unit radiance, scales it by the
-    radiance, and computes only the terms of lights that moved or changed shape since they were last seen (a
-    gizmo drag: one light; a colour, intensity or dimmer change: none), then runs the engine's own
-    :meth:`FastRenderer.render` code for the sum and the bounce. Lights that sample (area lights, a sun with an
-    angular diameter) get a random stream of their own, seeded by their key, so a frame never depends on what
-    was cached. At most ``size`` terms are kept (each (N, 3) float64 over the valid pixels).
-    """
-
-    def __init__(self, engine, size: int = 24):
-        self._engine, self._size = engine, size
-        self._terms: dict = {}
-
-    def __getattr__(self, name):
-        return getattr(self._engine, name)
-
-    def direct(self, light, rng=None) -> np.ndarray:
-        key = light_key(light)
-        term = self._terms.pop(key, None)
-        if term is None:
-            seed = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") ^ self._engine.settings.seed
-            term = self._engine.direct(replace(light, radiance=np.ones(3)), np.random.default_rng(seed))
-        self._terms[key] = term  # most recently used last
-        while len(self._terms) > self._size:
-            self._terms.pop(next(iter(self._terms)))
-        return term * np.asarray(light.radiance, np.float64)[None, :]
-
-    def render(self, lights, max_depth: int | None = None):
-        return type(self._engine).render(self, lights, max_depth)
-
-
 def check_servable(stage, path) -> None:
     """One clear error unless ``stage`` has a camera and a mesh (what the app shows and relights)."""
     from pxr import UsdGeom
@@ -185,6 +136,13 @@ class LiveRelight:
         self.seconds = dict(first.seconds)
         self._first = first
 
+    def close(self) -> None:
+        """Close every session (their transport cache entries may be evicted from now on)."""
+        with self._lock:
+            for s in self._sessions.values():
+                s.close()
+            self._sessions.clear()
+
     def keep_other(self, paths) -> None:
         """Render these user-layer lights as they are (the ones the app cannot edit)."""
         self.others = self._outside + tuple(self._user_records[p] for p in paths if p in self._user_records)
@@ -195,12 +153,10 @@ class LiveRelight:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         with self._lock:
             if mode not in self._sessions:
-                s = RelightSession(self.stage_path, max_side=self.max_side, with_fitted=False, mode=mode)
-                s.base_lights = ()  # the app owns the whole light list (see lights())
-                s.user_lights = ()
-                if s.engine is not None:
-                    s.engine = DirectCache(s.engine)
-                self._sessions[mode] = s
+                # the app owns the whole light list (see lights()); the renderer keeps each light's term, so a
+                # drag re-renders one light and a colour or dimmer change none
+                self._sessions[mode] = RelightSession(self.stage_path, max_side=self.max_side, stage_lights=False,
+                                                      mode=mode)
             return self._sessions[mode]
 
     @property
@@ -240,21 +196,9 @@ class LiveRelight:
         key = ("full", ls.mode)
         with self._lock:
             if key not in self._sessions:
-                # the engine keeps one cache file per stage folder: keep the live one beside the full-size one,
-                # so the next start still finds it
-                kept = []
-                for p in (self.stage_path.resolve().parent / CACHE_DIR).glob("relight-*.npz"):
-                    with contextlib.suppress(OSError):
-                        os.link(p, p.with_name(f".{p.name}.keep"))
-                        kept.append(p)
-                try:
-                    s = RelightSession(self.stage_path, max_side=None, with_fitted=False, mode=ls.mode)
-                finally:
-                    for p in kept:
-                        with contextlib.suppress(OSError):
-                            publish(p.with_name(f".{p.name}.keep"), p)
-                s.base_lights, s.user_lights = (), ()
-                self._sessions[key] = s
+                # the transport cache keeps both resolutions' entries (the live session holds its own)
+                self._sessions[key] = RelightSession(self.stage_path, max_side=None, stage_lights=False,
+                                                     mode=ls.mode)
             session = self._sessions[key]
         return self.render(ls, session)[0]
 

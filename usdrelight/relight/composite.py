@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import hole_fill
+from ..neural.model import hole_fill
 
 MODES = ("neural", "ratio", "add")
 

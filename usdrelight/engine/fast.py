@@ -1,0 +1,166 @@
+"""The fast deterministic relight renderer: the transport layer's prepared surface (:mod:`usdrelight.transport`,
+cached by content) plus lights, each light set in a fraction of a second.
+
+Per light set: e = E / pi of every light (:mod:`usdrelight.engine.lights`) at the surface seen through each
+pixel centre, then the render of a diffuse scene with one indirect bounce (Mitsuba's max_depth 3):
+D~ = a_px * (e + F @ P @ (a * e)), where F averages the gathered bounce over like neighbours (the transport's
+bounce filter), a is the albedo at the pixel centre and a_px the albedo averaged over the pixel's area with
+misses as 0 (what a box pixel filter sees of a textured or partly covered pixel). Emitters are never seen by
+camera rays; pixels whose centre sees no geometry are 0.
+
+Each light's direct term is kept for unit radiance (keyed by everything but its radiance, :func:`light_key`)
+and scaled by its radiance, so a light that did not change costs nothing in the next frame; lights that sample
+(area lights, a sun with an angular diameter) draw from a random stream seeded by their key, so a frame never
+depends on what was rendered before it. Stages with mesh lights (MeshLightAPI) or non-Lambertian materials are
+refused (:func:`usdrelight.engine.open_renderer` falls back to Mitsuba with one warning).
+"""
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..stage.records import LightRecord, SceneRecord, TextureRecord
+from ..transport.cache import TransportCache, TransportSettings, prepare_transport
+from .aovs import Aovs, nonnegative
+from .lights import distant_light, dome_light, planar_light, point_light, sphere_light
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    """Knobs of the fast renderer (the transport's are part of its cache key; ``area_samples``,
+    ``max_depth`` and ``direct_terms`` are not)."""
+
+    max_side: int | None = 512
+    """Longer image side in pixels (None: the stage's full resolution)."""
+    env_shape: tuple = (8, 16)
+    """Latlong cells of the environment basis (rows, columns)."""
+    env_samples: int = 128
+    """Cosine-weighted visibility rays per pixel for the environment basis."""
+    indirect_samples: int = 32
+    """Bounce rays per pixel for the one-bounce gather (then smoothed over 3 x 3 like neighbours)."""
+    area_samples: int = 16
+    """Shadow rays per pixel for sphere, disk, rect and wide distant lights."""
+    max_depth: int = 3
+    """2: direct light only; 3: plus one indirect bounce (as Mitsuba's path tracer)."""
+    seed: int = 0
+    """Seed of the stratified sample shifts (renders are deterministic for a seed)."""
+    direct_terms: int = 24
+    """Most per-light direct terms kept between frames (each (N, 3) float64 over the valid pixels)."""
+
+    @property
+    def transport(self) -> TransportSettings:
+        """The transport layer's part of these settings."""
+        return TransportSettings(self.max_side, tuple(self.env_shape), self.env_samples, self.indirect_samples,
+                                 seed=self.seed)
+
+
+def light_key(light: LightRecord) -> bytes:
+    """Everything but the radiance that decides a light's direct term, as bytes (a cache key)."""
+    tex = light.texture
+    values = (light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
+              light.treat_as_point, light.cone_angle_deg, light.cone_softness,
+              None if tex is None else (tex.path, tex.color_space, tex.scale, tex.bias, tex.channel))
+    return repr(values).encode() + np.asarray(light.to_world, np.float64).tobytes()
+
+
+def _opaque_lambertian(m) -> bool:
+    """Lambertian with a constant opacity of 1 (translucency and cutouts are Mitsuba's, not the fast engine's)."""
+    return m.is_lambertian and not isinstance(m.opacity, TextureRecord) and m.opacity >= 1.0
+
+
+class FastRenderer:
+    """Prepare once (or load from ``cache``), then :meth:`render` any light set of the same stage.
+
+    ``cache``: where prepared transports are kept (None: none); the renderer holds a lease on its entry until
+    :meth:`close`, so no other session evicts it meanwhile."""
+
+    name = "fast"
+
+    def __init__(self, rec: SceneRecord, settings: EngineSettings = EngineSettings(),
+                 cache: TransportCache | None = None):
+        if rec.camera is None:
+            raise UsdRelightError("the stage has no camera to render from")
+        mesh_lights = [light.path for light in rec.lights if light.kind == "mesh"]
+        if mesh_lights:
+            raise UsdRelightError(f"the fast renderer does not render mesh lights (MeshLightAPI on {mesh_lights[0]})")
+        unsupported = sorted({m.path for m in rec.meshes if not _opaque_lambertian(m.material)}
+                             | {s.path for s in rec.shapes if not _opaque_lambertian(s.material)})
+        if unsupported:
+            raise UsdRelightError(f"the fast renderer handles opaque Lambertian materials only ({unsupported[0]} is "
+                                  f"not)")
+        self.settings = settings
+        self.prepared, self._lease = prepare_transport(rec, settings.transport, cache)
+        self.transport = self.prepared.transport
+        self.surface = self.prepared.surface
+        self.key, self.cache_hit = self.prepared.key, self.prepared.cache_hit
+        self.seconds: dict = {"prepare": self.prepared.seconds}
+        self.textures: dict = {}
+        self._terms: dict = {}
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """(width, height) of the renders, pixels."""
+        return self.surface.width, self.surface.height
+
+    @property
+    def terms_kept(self) -> int:
+        """Per-light direct terms kept for the next frames (at most ``settings.direct_terms``)."""
+        return len(self._terms)
+
+    def close(self) -> None:
+        """Release the lease on the cache entry (it may be evicted from now on)."""
+        if self._lease is not None:
+            self._lease.release()
+
+    def _direct_unit(self, light: LightRecord, rng) -> np.ndarray:
+        """(N, 3) E / pi of ``light`` at unit radiance at the valid pixels."""
+        s, tr = self.settings.area_samples, self.transport
+        if light.kind == "sphere" and light.treat_as_point:
+            return point_light(tr, light)
+        if light.kind == "sphere":
+            return sphere_light(tr, light, s, rng)
+        if light.kind in ("disk", "rect"):
+            return planar_light(tr, light, s, rng)
+        if light.kind == "distant":
+            return distant_light(tr, light, s, rng)
+        if light.kind == "dome":
+            return dome_light(tr, light, self.textures)
+        raise UsdRelightError(f"the fast renderer cannot render a {light.kind} light ({light.path})")
+
+    def direct(self, light: LightRecord) -> np.ndarray:
+        """(N, 3) E / pi of one light at the valid pixels (its unit-radiance term kept between calls)."""
+        key = light_key(light)
+        term = self._terms.pop(key, None)
+        if term is None:
+            seed = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") ^ self.settings.seed
+            term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed))
+        self._terms[key] = term  # most recently used last
+        while len(self._terms) > max(self.settings.direct_terms, 0):
+            self._terms.pop(next(iter(self._terms)))
+        return term * np.asarray(light.radiance, np.float64)[None, :]
+
+    def render(self, lights, max_depth: int | None = None) -> Aovs:
+        """Render the prepared stage under ``lights`` (LightRecords, world space, metres)."""
+        prep, surf = self.prepared, self.surface
+        depth = self.settings.max_depth if max_depth is None else max_depth
+        sec: dict = {}
+        e = np.zeros((surf.n_pixels, 3))
+        for light in lights:
+            t = time.perf_counter()
+            e += self.direct(light)
+            sec[light.kind] = sec.get(light.kind, 0.0) + time.perf_counter() - t
+        t = time.perf_counter()
+        a = surf.albedo
+        # the surface seen at the pixel centre reflects e (+ the bounce); the pixel averages albedo and coverage
+        # over its area, as a box pixel filter does
+        light_out = e + prep.smooth @ (self.transport.P @ (a * e)) if depth >= 3 else e
+        radiance = nonnegative(prep.pixel_albedo * light_out)
+        sec["bounce"] = time.perf_counter() - t
+        valid = np.zeros((surf.height, surf.width), bool)
+        valid[surf.idx[:, 0], surf.idx[:, 1]] = True
+        coverage = surf.image(prep.coverage[:, None])[..., 0]
+        return Aovs(surf.image(radiance), surf.image(a), valid, coverage, sec)

@@ -1,0 +1,216 @@
+"""A stage opened for relighting: its lights + new lights -> D~ (a renderer) -> the relit photo (a mode).
+
+:class:`RelightSession` is the Python API for tools that keep the renderer alive (a web app, a batch job): open
+a stage once, then :meth:`RelightSession.render` any number of light sets, in memory. New lights use the
+``--light`` syntax (:mod:`usdrelight.stage.light_specs`) or LightRecords; they are never written to the stage.
+The stage's user lights apply unless ``stage_lights=False``; its fitted lights (the photo's own lighting) with
+``with_fitted``.
+
+Modes (:mod:`usdrelight.relight.composite`): ``neural`` (the network on D~, albedo and mask), ``ratio`` (the photo
+times the new render over the fitted render) and ``add`` (the photo plus the render of the added lights).
+
+Renderers (:func:`usdrelight.engine.open_renderer`): ``fast`` (default; light-independent work in the transport
+cache, ``STAGE_DIR/cache``) or ``mitsuba`` (path tracing, the reference). The fast renderer handles Lambertian
+scenes; for others the session falls back to Mitsuba with one warning. Emitters are never visible to camera
+rays in either.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..engine import RENDERERS, EngineSettings, open_renderer
+from ..errors import UsdRelightError
+from ..imageio import read_photo, resize_image
+from ..neural.model import RelightModel, build_input
+from ..stage.layout import FITTED_LIGHTS_SCOPE
+from ..stage.light_specs import parse_lights
+from ..stage.read import read_scene
+from ..stage.validate import open_stage
+from ..transport.cache import TransportCache
+from .composite import MODES, add_composite, ratio_apply, ratio_reference
+
+log = logging.getLogger(__name__)
+DEFAULT_MODE = "auto"
+"""The mode ``relight`` uses unless told otherwise: ``auto`` is ``ratio`` when the photo's own (fitted) lighting
+is kept, at any scale > 0, and ``neural`` when it is switched off (README, "Modes": chosen by
+benchmarks/bench_relit_quality.py: ratio is far ahead when the photo's light stays and behind when it goes)."""
+
+
+def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool) -> str:
+    """The mode that runs: ``auto`` -> ratio when the fitted lights are kept and the photo is known, else neural."""
+    if mode not in ("auto", *MODES):
+        raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
+    if mode != "auto":
+        return mode
+    return "ratio" if fitted_kept and photo_known else "neural"
+
+
+def source_photo_path(stage) -> str:
+    """The resolved path of the photo a stage was built from (RelightProvenanceAPI usdrelight:sourcePhoto), or ""
+    when the stage names none or the file was moved."""
+    root = stage.GetDefaultPrim()
+    attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
+    asset = attr.Get() if attr else None
+    return asset.resolvedPath if asset is not None else ""
+
+
+@dataclass(frozen=True)
+class RelitFrame:
+    """One relit image, in memory (linear RGB, row 0 at the top)."""
+
+    image: np.ndarray
+    """(H, W, 3) the network's relit photo."""
+    diffuse: np.ndarray
+    """(H, W, 3) D~, the diffuse render the network was given."""
+    albedo: np.ndarray
+    """(H, W, 3) albedo AOV."""
+    valid: np.ndarray
+    """(H, W) bool: the pixel sees geometry."""
+    lights: int
+    """Lights rendered (user, fitted when asked, and the frame's own)."""
+    seconds: dict = field(default_factory=dict)
+    """Wall time: render, then hole_fill + network (neural) or composite (ratio, add), total."""
+
+
+class RelightSession:
+    """A stage opened for relighting: prepared once, then rendered for any light set.
+
+    Parameters: ``stage_path`` (the root layer); ``max_side`` (longer side of the frames, pixels; None: the
+    stage's full resolution); ``renderer`` (``fast`` or ``mitsuba``); ``with_fitted`` (render the fitted lights,
+    the photo's own lighting, scaled by ``fitted_scale`` in [0, 1e6]); ``stage_lights`` (False: render only the
+    lights passed to :meth:`render`, for callers that own the whole light list; the fitted lights still define
+    the ``ratio`` reference); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
+    ``max_depth`` (Mitsuba's samples per pixel and path length; the fast renderer's bounce depth);
+    ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto``, ``neural``, ``ratio``,
+    ``add``); ``cache`` (the transport cache; default ``STAGE_DIR/cache``).
+
+    Use it as a context manager, or call :meth:`close`, to release its hold on the cache entry."""
+
+    def __init__(self, stage_path, *, max_side: int | None = 512, renderer: str = "fast", with_fitted: bool = False,
+                 stage_lights: bool = True, model_path=None, spp: int = 32, max_depth: int = 3,
+                 settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
+                 cache: TransportCache | None = None):
+        if renderer not in RENDERERS:
+            raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
+        if spp < 1 or max_depth < 2:
+            raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+        if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
+            raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
+        t0 = time.perf_counter()
+        self.stage_path = Path(stage_path)
+        stage = open_stage(stage_path)
+        rec = read_scene(stage)
+        if rec.camera is None:
+            raise UsdRelightError(f"{stage_path} has no camera")
+        fitted = tuple(l for l in rec.lights if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        self.fitted_lights = fitted
+        """The fitted lights (the photo's own lighting), unscaled."""
+        self.user_lights = tuple(l for l in rec.lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        """The stage's other lights (the user's layer and any others)."""
+        # the photo's own lighting, dimmed (day to night) or brightened by ``fitted_scale``
+        scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
+        self.base_lights = (self.user_lights + (scaled if with_fitted else ())) if stage_lights else ()
+        """What every frame renders besides the lights passed to :meth:`render`."""
+        self._stage_lights = stage_lights
+        self.scene = rec.with_camera(rec.camera.limited(max_side))
+        self._source_photo = source_photo_path(stage)
+        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "")
+        self.max_depth, self.mode = max_depth, mode
+        self._model_path = model_path
+        self.model = self.photo = None
+        self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
+        self._prepare_mode(mode)
+        self.seconds = {"read": time.perf_counter() - t0}
+        cache = cache if cache is not None else TransportCache.for_stage(self.stage_path)
+        self.engine = open_renderer(rec, renderer, max_side=max_side, spp=spp, max_depth=max_depth,
+                                    settings=settings, cache=cache)
+        """The renderer (:class:`usdrelight.engine.Renderer`)."""
+        self.seconds["prepare"] = time.perf_counter() - t0
+
+    def __enter__(self) -> RelightSession:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the renderer's hold on its transport cache entry."""
+        self.engine.close()
+
+    @property
+    def renderer(self) -> str:
+        """``fast`` or ``mitsuba``: what renders (after any fallback)."""
+        return self.engine.name
+
+    def _prepare_mode(self, mode: str) -> None:
+        """Load what ``mode`` needs (the network; the source photo) once; clear errors when it cannot run."""
+        if mode not in MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
+        if mode == "neural" and self.model is None:
+            self.model = RelightModel(self._model_path)
+        if mode == "ratio" and not self.fitted_lights:
+            raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
+                                  "or choose --mode neural or --mode add")
+        if mode != "neural" and self.photo is None:
+            self.photo = self._photo()
+
+    @property
+    def cache_hit(self) -> bool | None:
+        """Whether the fast renderer found its prepared data in the cache (None with Mitsuba)."""
+        return self.engine.cache_hit
+
+    def source_photo(self) -> np.ndarray | None:
+        """The source photo at the render resolution (read once), or None when the stage names none."""
+        if self.photo is None and self._source_photo:
+            self.photo = self._photo()
+        return self.photo
+
+    def _photo(self) -> np.ndarray:
+        """The source photo at the render resolution."""
+        path = self._source_photo
+        if not path:
+            raise UsdRelightError(f"modes ratio and add need the stage's source photo (usdrelight:sourcePhoto), "
+                                  f"which {self.stage_path} does not name or which was moved")
+        k = self.scene.camera.intrinsics
+        return resize_image(read_photo(path), k.width, k.height)
+
+    def render(self, lights=(), mode: str | None = None) -> RelitFrame:
+        """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
+        in the session's mode or in ``mode`` (neural, ratio or add; what it needs is loaded on first use).
+        In ``add`` mode the fitted lights are not rendered: the photo already holds their light."""
+        t0 = time.perf_counter()
+        mode = mode or self.mode
+        self._prepare_mode(mode)
+        added = parse_lights(lights)
+        all_lights = list(self.base_lights) + added
+        if mode == "add":
+            all_lights = list(self.user_lights if self._stage_lights else ()) + added
+        if not all_lights and mode != "add":
+            raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
+                                  "or pass --with-fitted")
+        aovs = self.engine.render(all_lights)
+        beauty, albedo, valid = aovs.beauty, aovs.albedo, aovs.valid
+        sec = {"render": time.perf_counter() - t0}
+        t = time.perf_counter()
+        if mode == "neural":
+            x = build_input(beauty, albedo, valid)
+            sec["hole_fill"] = time.perf_counter() - t
+            t = time.perf_counter()
+            image = self.model(x)
+            sec["network"] = time.perf_counter() - t
+        elif mode == "ratio":
+            if self._ratio_reference is None:
+                fitted = self.engine.render(list(self.fitted_lights)).beauty
+                self._ratio_reference = ratio_reference(self.photo, fitted, valid)
+            image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
+            sec["composite"] = time.perf_counter() - t
+        else:
+            image = add_composite(self.photo, beauty)
+            sec["composite"] = time.perf_counter() - t
+        sec["total"] = time.perf_counter() - t0
+        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec)

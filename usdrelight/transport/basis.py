@@ -1,0 +1,180 @@
+"""Light-independent transport on a visible surface, linear in the lighting.
+
+* Point light at l: g(x) = V(x, l) max(0, n . (l - p)) / (pi |l - p|^3)  (Lambert: L = a I cos / (pi r^2)),
+  with |l - p| clamped to ``r_min`` so a light on a surface stays finite.
+* Environment: a latlong grid of ``env_shape`` cells (:mod:`.sampling` convention); h_j(x) = fraction of
+  ``env_samples`` stratified cosine-weighted directions that leave the scene through cell j (so a Lambertian
+  surface of albedo a under cell radiances E_j sends L = a sum_j E_j h_j).
+* One indirect bounce (what Mitsuba's max_depth 3 renders): each pixel sends ``indirect_samples``
+  cosine-weighted rays; a hit y on the 2.5D mesh is visible from the camera, so its direct light is the one
+  already computed at the pixel it projects to. That gives a sparse gather matrix P: the light leaving the
+  surface after one bounce is a * (e + P (a * e)) for direct E / pi = e.
+* :func:`bounce_filter`: joint-bilateral averaging over like neighbours, for the Monte Carlo noise of H and P.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..mitsuba.runtime import load_mitsuba
+from .sampling import cosine_directions, direction_to_cell, rays, stratified
+from .surface import VisibleSurface
+
+
+@dataclass
+class LightTransport:
+    """The light-independent transport of a :class:`VisibleSurface` (see the module docstring)."""
+
+    surface: VisibleSurface
+    """The surface it was built for."""
+    env_shape: tuple
+    """(rows, columns) of the environment's latlong cell grid; (0, 0) = no environment."""
+    H: np.ndarray
+    """(N, J) environment columns: fraction of cosine-weighted directions leaving through each cell."""
+    P: sp.csr_matrix
+    """(N, N) indirect gather: row x has weight 1/M at the pixel each of its M bounce rays lands on."""
+    r_min: float
+    """Distances to point lights are clamped to this, metres."""
+    eps: float
+    """Secondary-ray origin offset, metres."""
+
+    def point_columns(self, positions: np.ndarray, with_grad: bool = False):
+        """g (N, K), and optionally dg/dl (N, K, 3), for point lights at ``positions`` (K, 3), metres.
+
+        The shadow rays of all lights go to Mitsuba in one batch (up to ~4M rays per call): one kernel launch
+        per call instead of one per light, which dominated on small problems."""
+        surf = self.surface
+        positions = np.asarray(positions, np.float64).reshape(-1, 3)
+        K = len(positions)
+        N = surf.n_pixels
+        g = np.zeros((N, K))
+        grad = np.zeros((N, K, 3)) if with_grad else None
+        if K == 0:
+            return (g, grad) if with_grad else g
+        mi = load_mitsuba()
+        o = surf.origins(self.eps)
+        step = max(1, 4_000_000 // max(N, 1))
+        for k0 in range(0, K, step):
+            ks = slice(k0, min(K, k0 + step))
+            d = positions[ks, None, :] - surf.p[None]  # (k, N, 3)
+            r2 = np.maximum(np.einsum("knj,knj->kn", d, d), self.r_min ** 2)
+            r = np.sqrt(r2)
+            ndl = np.einsum("nj,knj->kn", surf.n, d)
+            kk, nn = np.nonzero(ndl > 0)
+            vis = np.zeros(ndl.shape, bool)
+            if len(kk):
+                rr = r[kk, nn]
+                occl = np.array(surf.mi_scene.ray_test(rays(mi, o[nn], d[kk, nn] / rr[:, None],
+                                                            np.maximum(rr - 2 * self.eps, 0))), bool)
+                vis[kk[~occl], nn[~occl]] = True
+            g[:, ks] = np.where(vis, ndl / (np.pi * r2 * r), 0.0).T
+            if with_grad:
+                # d/dl [n.d / (pi r^3)] = n / (pi r^3) - 3 (n.d) d / (pi r^5)
+                r3 = np.pi * r[..., None] ** 3
+                dg = surf.n[None] / r3 - 3 * ndl[..., None] * d / (r3 * r2[..., None])
+                grad[:, ks] = np.where(vis[..., None], dg, 0.0).transpose(1, 0, 2)
+        return (g, grad) if with_grad else g
+
+    def visible(self, o: np.ndarray, d: np.ndarray, maxt: np.ndarray | None) -> np.ndarray:
+        """Unoccluded flags for rays from ``o`` along unit ``d`` (flattened), up to ``maxt`` metres (None:
+        infinite); the far end is pulled in by 2 eps so a ray to a light on a surface is not blocked by it."""
+        mi = load_mitsuba()
+        m = None if maxt is None else np.maximum(maxt - 2 * self.eps, 0.0)
+        return ~np.array(self.surface.mi_scene.ray_test(rays(mi, o, d, m)), bool)
+
+
+def bounce_filter(surf: VisibleSurface, radius: int = 1, normal_power: float = 8.0, rel_dist: float = 0.02):
+    """(N, N) row-normalised joint-bilateral weights over the (2 radius + 1)^2 pixel neighbourhood: neighbours
+    count by (n . n')^normal_power * exp(-(|p - p'| / (rel_dist |p|))^2), so the Monte Carlo noise of the
+    gathered bounce is averaged within a surface, never across a depth edge or a crease."""
+    H, W = surf.height, surf.width
+    lut = -np.ones((H, W), np.int64)
+    lut[surf.idx[:, 0], surf.idx[:, 1]] = np.arange(surf.n_pixels)
+    rows, cols, vals = [], [], []
+    scale = rel_dist * np.maximum(np.linalg.norm(surf.p, axis=1), 1e-12)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            r, c = surf.idx[:, 0] + dy, surf.idx[:, 1] + dx
+            inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+            j = np.full(surf.n_pixels, -1, np.int64)
+            j[inside] = lut[r[inside], c[inside]]
+            ok = j >= 0
+            i = np.nonzero(ok)[0]
+            j = j[ok]
+            w = np.clip(np.einsum("ij,ij->i", surf.n[i], surf.n[j]), 0.0, 1.0) ** normal_power
+            w *= np.exp(-(np.linalg.norm(surf.p[i] - surf.p[j], axis=1) / scale[i]) ** 2)
+            rows.append(i), cols.append(j), vals.append(w)
+    F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(surf.n_pixels, surf.n_pixels))
+    norm = np.asarray(F.sum(axis=1)).ravel()
+    return sp.diags(1.0 / np.maximum(norm, 1e-300)) @ F
+
+
+def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 128, indirect_samples: int = 8,
+                    seed: int = 0) -> LightTransport:
+    """Trace the environment visibility columns and the indirect gather matrix of ``surf``."""
+    mi = load_mitsuba()
+    rng = np.random.default_rng(seed)
+    N = surf.n_pixels
+    eps = surf.eps
+    o = surf.origins(eps)
+    J = env_shape[0] * env_shape[1]
+    H = np.zeros((N, J))
+    if J:
+        # in chunks to bound memory: N * S rays
+        chunk = max(1, 2_000_000 // env_samples)
+        for s0 in range(0, N, chunk):
+            sl = slice(s0, min(N, s0 + chunk))
+            # float32 throughout: the rays are float32 anyway, and these arrays are the precompute's bulk
+            n_ = surf.n[sl].astype(np.float32)
+            u1, u2 = stratified(len(n_), env_samples, rng)
+            dirs = cosine_directions(n_, u1.astype(np.float32), u2.astype(np.float32)).reshape(-1, 3)
+            orig = np.repeat(o[sl].astype(np.float32), env_samples, axis=0)
+            occl = np.array(surf.mi_scene.ray_test(rays(mi, orig, dirs)), bool)
+            cells = direction_to_cell(dirs, env_shape)
+            flat = np.repeat(np.arange(len(n_)), env_samples) * J + cells
+            H[sl] = np.bincount(flat[~occl], minlength=len(n_) * J).reshape(len(n_), J) / env_samples
+    M = indirect_samples
+    rows_all, cols_all = [], []
+    if M > 0:
+        u1, u2 = stratified(N, M, rng)
+        dirs = cosine_directions(surf.n.astype(np.float32), u1.astype(np.float32),
+                                 u2.astype(np.float32)).reshape(-1, 3)
+        orig = np.repeat(o.astype(np.float32), M, axis=0)
+        si = surf.mi_scene.ray_intersect(rays(mi, orig, dirs))
+        hit = np.array(si.is_valid(), bool)
+        y = np.array(si.p, np.float64).T
+        pix = project_to_pixels(surf, y[hit])
+        src = np.repeat(np.arange(N), M)[hit]
+        lut = -np.ones(surf.height * surf.width, np.int64)
+        lut[surf.flat_index()] = np.arange(N)
+        inside = pix >= 0
+        tgt = np.full(len(pix), -1, np.int64)
+        tgt[inside] = lut[pix[inside]]
+        # accept when the projected pixel's surface point is where the ray hit (visible from the camera)
+        good = tgt >= 0
+        cam = surf.scene.camera.to_world[:3, 3]
+        good[good] &= np.linalg.norm(surf.p[tgt[good]] - y[hit][good], axis=1) < 0.02 * np.linalg.norm(
+            y[hit][good] - cam, axis=1) + 4 * eps
+        rows_all, cols_all = src[good], tgt[good]
+    P = sp.csr_matrix((np.full(len(rows_all), 1.0 / max(M, 1)), (rows_all, cols_all)), shape=(N, N))
+    return LightTransport(surf, tuple(env_shape), H, P, surf.r_min, eps)
+
+
+def project_to_pixels(surf: VisibleSurface, pts: np.ndarray) -> np.ndarray:
+    """Flat pixel index of world points ``pts`` (M, 3) seen by the surface's camera (-1 outside the image or
+    behind)."""
+    cam = surf.scene.camera
+    inv = np.linalg.inv(cam.to_world)
+    q = pts @ inv[:3, :3].T + inv[:3, 3]  # USD camera frame: looks down -Z
+    z = -q[:, 2]
+    k = cam.intrinsics
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = k.cx + k.fx * q[:, 0] / z
+        v = k.cy - k.fy * q[:, 1] / z
+    ok = (z > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    out = np.full(len(pts), -1, np.int64)
+    out[ok] = v[ok].astype(np.int64) * k.width + u[ok].astype(np.int64)
+    return out

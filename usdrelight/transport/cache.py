@@ -1,0 +1,306 @@
+"""The prepared transport of a stage, under one content key, in a cache folder that sessions and processes share.
+
+:func:`prepare_transport` traces the visible surface (:mod:`.surface`), the pixel footprints (area-averaged
+albedo and coverage), the environment basis and the one-bounce gather (:mod:`.basis`) once per
+(geometry, materials' albedo, camera at the render resolution, settings): :func:`scene_key` hashes exactly
+those, texture bytes included, so a changed mesh, camera or texture never reads a stale entry.
+
+:class:`TransportCache` keeps entries as ``transport-<key>.npz`` in one folder (by default
+``STAGE_DIR/cache``):
+
+* a session that loads or writes an entry holds a shared lock on it (:class:`CacheLease`, an ``flock`` on an
+  open file) until it is closed; eviction takes an exclusive lock without waiting and skips what it cannot
+  lock, so it never deletes a file another session or process uses;
+* after each write, entries not used for ``max_age_s`` go, then the least recently used ones until the folder
+  holds at most ``max_bytes`` (a load marks an entry used);
+* entries are written atomically (a reader never sees half a file) and a damaged one is rebuilt.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..atomic import write_bytes_atomic
+from ..mitsuba.render import pixel_footprint
+from ..mitsuba.runtime import load_mitsuba
+from ..stage.records import SceneRecord, TextureRecord
+from .basis import LightTransport, bounce_filter, build_transport
+from .surface import R_MIN_REL, VisibleSurface, geometry_scene, trace_surface
+
+try:  # POSIX; elsewhere entries in use are not protected from another process's eviction
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
+log = logging.getLogger(__name__)
+
+TRANSPORT_VERSION = 3
+"""Bumped whenever the cached arrays or their meaning change (part of every key)."""
+CACHE_DIR = "cache"
+"""The stage-folder sub-folder of :meth:`TransportCache.for_stage`."""
+PATTERNS = ("transport-*.npz", "relight-*.npz")
+"""Files the cache owns in its folder (``relight-*``: entries of versions before 3, evicted by age)."""
+
+
+@dataclass(frozen=True)
+class TransportSettings:
+    """What the prepared transport depends on besides the scene (every field is part of the key)."""
+
+    max_side: int | None = 512
+    """Longer image side in pixels (None: the stage's full resolution)."""
+    env_shape: tuple = (8, 16)
+    """Latlong cells of the environment basis (rows, columns)."""
+    env_samples: int = 128
+    """Cosine-weighted visibility rays per pixel for the environment basis."""
+    indirect_samples: int = 32
+    """Bounce rays per pixel for the one-bounce gather (then averaged over 3 x 3 like neighbours)."""
+    footprint: int = 4
+    """k: k x k camera rays per pixel for its area-averaged albedo and coverage."""
+    seed: int = 0
+    """Seed of the stratified sample shifts (deterministic for a seed)."""
+
+
+@dataclass
+class PreparedTransport:
+    """Everything light-independent that a renderer needs at one resolution."""
+
+    transport: LightTransport
+    """Environment basis (averaged over like neighbours, float16 precision), gather matrix, shadow rays."""
+    pixel_albedo: np.ndarray
+    """(N, 3) albedo averaged over each valid pixel's area, misses counting as 0."""
+    coverage: np.ndarray
+    """(N,) fraction of each valid pixel's area that sees geometry, in [0, 1]."""
+    smooth: sp.csr_matrix
+    """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface."""
+    key: str
+    """The content key (:func:`scene_key`)."""
+    cache_hit: bool
+    """Loaded from the cache rather than traced."""
+    seconds: float
+    """Wall time to prepare or load."""
+
+    @property
+    def surface(self) -> VisibleSurface:
+        """The visible surface."""
+        return self.transport.surface
+
+
+def _hash_array(h, a) -> None:
+    a = np.ascontiguousarray(a)
+    h.update(str((a.dtype.str, a.shape)).encode())
+    h.update(a.tobytes())
+
+
+def _hash_value(h, v) -> None:
+    if isinstance(v, TextureRecord):
+        h.update(v.color_space.encode())
+        h.update(hashlib.sha256(Path(v.path).read_bytes()).digest())
+    else:
+        h.update(repr(v).encode())
+
+
+def scene_key(rec: SceneRecord, settings: TransportSettings) -> str:
+    """Content hash of what the prepared transport depends on: geometry, materials' albedo (texture bytes
+    included), camera at the render resolution, and the settings. Lights are not part of it."""
+    h = hashlib.sha256(f"usdrelight-transport-{TRANSPORT_VERSION}".encode())
+    for m in rec.meshes:
+        for a in (m.points, m.faces, m.normals, m.uv):
+            _hash_array(h, np.zeros(0) if a is None else a)
+        _hash_value(h, m.material.diffuse)
+        h.update(repr((m.material.is_lambertian, m.double_sided)).encode())
+    for s in rec.shapes:
+        h.update(s.kind.encode())
+        _hash_array(h, s.to_world)
+        _hash_value(h, s.material.diffuse)
+    cam = rec.camera.limited(settings.max_side)
+    h.update(repr((cam.intrinsics, cam.near, cam.far)).encode())
+    _hash_array(h, cam.to_world)
+    h.update(repr((settings.max_side, tuple(settings.env_shape), settings.env_samples, settings.indirect_samples,
+                   settings.footprint, settings.seed)).encode())
+    return h.hexdigest()[:24]
+
+
+class CacheLease:
+    """A shared lock on one cache entry: while held, no :class:`TransportCache` evicts the file."""
+
+    def __init__(self, path: Path, fd: int | None):
+        self.path, self._fd = path, fd
+
+    def release(self) -> None:
+        """Let the entry be evicted again (idempotent)."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)  # closing the file drops its flock
+
+    def __del__(self):
+        self.release()
+
+
+class TransportCache:
+    """A folder of prepared transports shared by sessions and processes (see the module docstring)."""
+
+    def __init__(self, folder, max_bytes: int = 2 << 30, max_age_s: float = 30 * 86400.0):
+        self.folder = Path(folder)
+        self.max_bytes, self.max_age_s = int(max_bytes), float(max_age_s)
+
+    @classmethod
+    def for_stage(cls, stage_path, **kwargs) -> TransportCache:
+        """The cache in the stage's folder (``STAGE_DIR/cache``)."""
+        return cls(Path(stage_path).resolve().parent / CACHE_DIR, **kwargs)
+
+    def path(self, key: str) -> Path:
+        return self.folder / f"transport-{key}.npz"
+
+    @staticmethod
+    def _lock(path: Path, exclusive: bool = False) -> int | None:
+        """An open descriptor of ``path`` holding a shared (or, without waiting, exclusive) flock; None when
+        an exclusive lock is not free. OSError when the file cannot be opened."""
+        fd = os.open(path, os.O_RDONLY)
+        if fcntl is None:
+            return fd
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_EX | fcntl.LOCK_NB) if exclusive else fcntl.LOCK_SH)
+        except OSError:
+            os.close(fd)
+            if exclusive:
+                return None
+            raise
+        return fd
+
+    def load(self, key: str) -> tuple[dict, CacheLease] | None:
+        """The arrays of entry ``key`` and a lease on it, or None when there is none or it is unreadable."""
+        path = self.path(key)
+        try:
+            fd = self._lock(path)
+        except OSError:
+            return None
+        try:
+            with os.fdopen(os.dup(fd), "rb") as f, np.load(f, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            with contextlib.suppress(OSError):
+                os.utime(fd)  # used now: evicted last
+        except (OSError, ValueError, KeyError, EOFError) as exc:
+            os.close(fd)
+            log.warning("transport cache entry %s unreadable (%s): rebuilding", path, exc)
+            return None
+        return arrays, CacheLease(path, fd)
+
+    def store(self, key: str, arrays: dict) -> CacheLease | None:
+        """Write entry ``key`` atomically, evict what the limits ask for, and return a lease on the new entry
+        (None when the folder is not writable: the caller just goes without the cache)."""
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        path = self.path(key)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            write_bytes_atomic(path, buf.getvalue())
+            lease = CacheLease(path, self._lock(path))
+        except OSError as exc:  # a read-only stage folder still renders, just without the cache
+            log.warning("cannot write the transport cache %s: %s", path, exc.strerror or exc)
+            return None
+        self.evict(keep={path})
+        return lease
+
+    def entries(self) -> list[tuple[Path, os.stat_result]]:
+        """The cache's files with their status, least recently used first."""
+        out = []
+        for pattern in PATTERNS:
+            for p in self.folder.glob(pattern):
+                with contextlib.suppress(OSError):
+                    out.append((p, p.stat()))
+        return sorted(out, key=lambda e: e[1].st_mtime)
+
+    def evict(self, keep=frozenset()) -> list[Path]:
+        """Delete entries older than ``max_age_s``, then the least recently used until at most ``max_bytes``
+        remain, skipping ``keep`` and every entry a lease holds. Returns the deleted paths."""
+        entries = [(p, st) for p, st in self.entries() if p not in keep]
+        total = sum(st.st_size for _, st in self.entries())
+        now = time.time()
+        deleted = []
+        for p, st in entries:
+            if now - st.st_mtime <= self.max_age_s and total <= self.max_bytes:
+                continue
+            try:
+                fd = self._lock(p, exclusive=True)
+            except OSError:
+                continue  # gone already
+            if fd is None:
+                continue  # in use by a session
+            try:
+                p.unlink()
+                total -= st.st_size
+                deleted.append(p)
+            except OSError:
+                pass
+            finally:
+                os.close(fd)
+        return deleted
+
+
+def _arrays(prep: PreparedTransport, settings: TransportSettings) -> dict:
+    tr, s = prep.transport, prep.surface
+    return dict(width=s.width, height=s.height, idx=s.idx.astype(np.int32), p=s.p, n=s.n, ng=s.ng, albedo=s.albedo,
+                center=s.center, extent=s.extent, pixel_albedo=prep.pixel_albedo, coverage=prep.coverage,
+                H=tr.H.astype(np.float16),
+                P_counts=np.round(tr.P.data * settings.indirect_samples).astype(np.uint16),
+                P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
+                env_shape=np.asarray(tr.env_shape))
+
+
+def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tuple:
+    rec = rec.with_lights(()).with_camera(rec.camera.limited(settings.max_side))
+    W, H = int(d["width"]), int(d["height"])
+    if (W, H) != rec.resolution:
+        raise ValueError("resolution mismatch")
+    surf = VisibleSurface(rec, W, H, d["idx"].astype(np.int64), d["p"], d["n"], d["ng"], d["albedo"], d["center"],
+                          float(d["extent"]), geometry_scene(rec))
+    n = surf.n_pixels
+    # gather weights are ray counts over the bounce samples per pixel
+    P = sp.csr_matrix((d["P_counts"] / settings.indirect_samples, d["P_indices"], d["P_indptr"]), shape=(n, n))
+    tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), d["H"].astype(np.float32), P,
+                        R_MIN_REL * surf.extent, surf.eps)
+    return tr, d["pixel_albedo"], d["coverage"]
+
+
+def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportSettings(),
+                      cache: TransportCache | None = None) -> tuple[PreparedTransport, CacheLease | None]:
+    """The prepared transport of ``rec`` (from ``cache`` when it holds the key, else traced and stored there)
+    and the lease that keeps its cache entry while the caller uses it (None without a cache entry)."""
+    t = time.perf_counter()
+    key = scene_key(rec, settings)
+    found = cache.load(key) if cache is not None else None
+    lease = None
+    if found is not None:
+        arrays, lease = found
+        try:
+            tr, pixel_albedo, coverage = _from_arrays(arrays, rec, settings)
+            smooth = bounce_filter(tr.surface)
+        except (ValueError, KeyError) as exc:
+            log.warning("transport cache entry %s does not fit (%s): rebuilding", cache.path(key), exc)
+            lease.release()
+            found = lease = None
+    if found is None:
+        surf = trace_surface(rec, settings.max_side)
+        raw = build_transport(surf, settings.env_shape, settings.env_samples, settings.indirect_samples,
+                              settings.seed)
+        # the environment basis is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
+        # noise is the largest error of an environment-lit frame), and kept in half precision, as cached
+        smooth = bounce_filter(surf)
+        H = (smooth @ raw.H).astype(np.float16).astype(np.float32)
+        tr = LightTransport(surf, raw.env_shape, H, raw.P, raw.r_min, raw.eps)
+        albedo, coverage = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height, settings.footprint)
+        pixel_albedo, coverage = albedo[surf.flat_index()], coverage[surf.flat_index()]
+    prep = PreparedTransport(tr, pixel_albedo, coverage, smooth, key, found is not None,
+                             time.perf_counter() - t)
+    if found is None and cache is not None:
+        lease = cache.store(key, _arrays(prep, settings))
+    return prep, lease
