@@ -63,13 +63,14 @@ def test_fast_fit_reproduces_the_ground_truth_scene(procedural_stage, tmp_path):
 def test_light_positions_receive_gradients_and_move(procedural_stage):
     from usdrelight.fit.adam import position_gradients
     from usdrelight.fit.fast import fit_fast, initial_positions
+    from usdrelight.fit.transport import fit_transport
 
     prob = load_problem(procedural_stage, max_side=96)
     pos = initial_positions(prob, 4)
     g = position_gradients(prob, pos, intensity=2.0)
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
     assert (np.abs(g).max(1) > 0).sum() >= 2  # not just one lucky light
-    st, _ = fit_fast(prob, 4, (4, 8), iterations=8)
+    st = fit_fast(fit_transport(prob, (4, 8), 128, 32), 4, iterations=8)
     assert np.linalg.norm(st.positions - pos, axis=1).max() > 1e-3 * prob.extent
 
 
@@ -178,7 +179,7 @@ def test_light_initialised_on_a_surface_stays_finite(tmp_path):
     tr = fit_transport(prob, (4, 8), 32, 4)
     g, dg = tr.point_columns(np.concatenate([on_surface, next_to]), with_grad=True)
     assert np.all(np.isfinite(g)) and np.all(np.isfinite(dg))
-    st, _ = fit_fast(prob, 2, (4, 8), 5, transport=tr, positions=np.concatenate([on_surface, next_to]))
+    st = fit_fast(tr, np.concatenate([on_surface, next_to]), 5)
     assert np.all(np.isfinite(st.positions)) and np.all(np.isfinite(st.theta)) and np.isfinite(st.mse)
     from usdrelight.fit.adam import position_gradients
 

@@ -67,16 +67,18 @@ class FitState:
     seconds: float = 0.0
 
 
-def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int = 40, lr_rel: float = 0.03,
-             env_samples: int = 128, indirect_samples: int = 32, seed: int = 0, progress=None,
-             transport: FitTransport | None = None, positions: np.ndarray | None = None,
-             smooth: float = 1e-3, min_distance_rel: float = 0.03, callback=None,
-             patience: int | None = None) -> tuple[FitState, FitTransport]:
-    """Adam on the light positions with intensities and environment at their optimum (VarPro); keeps the best
-    state. ``patience``: stop early once the best MSE has not improved by 0.1% for that many iterations."""
+def fit_fast(tr: FitTransport, positions, iterations: int = 40, *, lr_rel: float = 0.03, smooth: float = 1e-3,
+             min_distance_rel: float = 0.03, patience: int | None = None, progress=None,
+             callback=None) -> FitState:
+    """Adam on the light positions with intensities and environment at their optimum (VarPro) on the transport
+    ``tr`` of a fit problem; keeps the best state. ``positions``: (K, 3) starting positions, metres, or K (the
+    paper's grid, :func:`initial_positions`). ``lr_rel``: Adam's step relative to the scene extent; ``smooth``:
+    the environment's smoothness weight (scale-free); ``min_distance_rel``: lights are kept this fraction of the
+    extent off visible surfaces; ``patience``: stop early once the best MSE has not improved by 0.1% for that
+    many iterations. ``progress(i, n, mse)`` and ``callback(i, seconds, positions, theta)`` per iteration."""
     t0 = time.perf_counter()
-    tr = transport or fit_transport(prob, env_shape, env_samples, indirect_samples, seed)
-    pos = initial_positions(prob, k) if positions is None else np.array(positions, np.float64)
+    prob = tr.problem
+    pos = initial_positions(prob, positions) if np.ndim(positions) == 0 else np.array(positions, np.float64)
     lo, hi = prob.p.min(0), prob.p.max(0)
     box_lo, box_hi = lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo)
     tree = cKDTree(prob.p)
@@ -120,7 +122,7 @@ def fit_fast(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations: int =
     best.curve = curve
     best.iterations = it + 1  # iterations run (fewer than ``iterations`` when stopped early)
     best.seconds = time.perf_counter() - t0
-    return best, tr
+    return best
 
 
 def prune(state: FitState, tr: FitTransport, prob: FitProblem, tol: float = 0.01, smooth: float = 1e-3,
@@ -144,8 +146,7 @@ def prune(state: FitState, tr: FitTransport, prob: FitProblem, tol: float = 0.01
         for i in np.argsort(contrib)[:candidates]:
             rest = np.delete(pos, i, 0)
             if len(rest):
-                st, _ = fit_fast(prob, len(rest), tr.env_shape, refine_iterations, transport=tr, positions=rest,
-                                 smooth=smooth)
+                st = fit_fast(tr, rest, refine_iterations, smooth=smooth)
                 cand = (st.positions, st.theta, st.mse)
             else:
                 th, ms, _ = tr.solve(np.zeros((prob.n_pixels, 0)), smooth=smooth)
@@ -202,8 +203,7 @@ def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations
         if score[j] <= 0:
             break
         trial = np.concatenate([pos, cands[j:j + 1]])
-        st, _ = fit_fast(prob, len(trial), env_shape, refine_iterations, transport=tr, positions=trial, smooth=smooth,
-                         patience=patience)
+        st = fit_fast(tr, trial, refine_iterations, smooth=smooth, patience=patience)
         used += st.iterations
         curve.append([time.perf_counter() - t0, st.mse])
         if np.sqrt(st.mse) > np.sqrt(best.mse) * (1 - tol):
@@ -216,9 +216,7 @@ def fit_fast_greedy(prob: FitProblem, k: int = 16, env_shape=(8, 16), iterations
         if callback is not None:
             callback(len(pos), time.perf_counter() - t0, pos.copy(), theta.copy())
     if len(pos) and iterations > refine_iterations:
-        st, _ = fit_fast(prob, len(pos), env_shape, iterations - refine_iterations, transport=tr, positions=pos,
-                         patience=patience,
-                         smooth=smooth)
+        st = fit_fast(tr, pos, iterations - refine_iterations, smooth=smooth, patience=patience)
         used += st.iterations
         curve.append([time.perf_counter() - t0, st.mse])
         if st.mse < best.mse:
@@ -294,8 +292,8 @@ def fit_fast_coarse_to_fine(prob: FitProblem, k: int = 16, env_shape=(8, 16), it
         if settings.filter_env and tr.H.shape[1]:
             tr = FitTransport.of(tr, H=bounce_filter(prob) @ tr.H)
         t1 = time.perf_counter() - t0
-        full, _ = fit_fast(prob, len(st.positions), env_shape, max(1, settings.polish_iterations),
-                           lr_rel=settings.polish_lr_rel, transport=tr, positions=st.positions, smooth=smooth)
+        full = fit_fast(tr, st.positions, max(1, settings.polish_iterations), lr_rel=settings.polish_lr_rel,
+                        smooth=smooth)
         curve += [[t1 + s, m] for s, m in full.curve]
         if env_shape[0] * env_shape[1] > 0 and (not env_on or prune_tol is not None):
             th, ms, _ = tr.solve(tr.point_columns(full.positions), env=False, smooth=smooth)
