@@ -13,6 +13,8 @@ Mitsuba is ever imported, so ``mitsuba.set_variant("llvm_ad_rgb")`` works withou
 and registers the usdRelight USD schema plugin (:func:`usdrelight.schemas.register`).
 """
 import importlib
+import sys
+import types
 
 from . import schemas
 from ._llvm import configure_drjit_llvm as _configure_drjit_llvm
@@ -32,6 +34,21 @@ def __getattr__(name: str):
         globals()[name] = value  # later look-ups skip this function
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+class _Package(types.ModuleType):
+    """Two sub-packages share a name with a public function (``usdrelight.fit``, ``usdrelight.relight``): the
+    import system records a loaded sub-package as an attribute of its parent, which would hide the function
+    depending on import order. Here the function always keeps the name; the sub-package is reached as usual
+    through ``from usdrelight.fit.run import ...`` or ``from usdrelight.fit import run`` (``sys.modules``)."""
+
+    def __setattr__(self, name, value):
+        if name in API and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 
 def __dir__():

@@ -53,7 +53,8 @@ def aov_kind(var: RenderVarRecord) -> str:
 
 @dataclass(frozen=True)
 class RenderResult:
-    """What ``usdrelight render`` wrote."""
+    """What ``usdrelight render`` (:func:`render_stage`) wrote: one linear float EXR per RenderProduct the stage
+    declares, each stamped with the stage state it was rendered from."""
 
     files: dict
     """RenderProduct prim name -> path of the EXR written."""
@@ -174,7 +175,11 @@ def stale_aov_files(stage, rec, paths: dict) -> list[str]:
 
 def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: int = 3, seed: int = 0,
                  progress=None) -> RenderResult:
-    """Render the products the stage declares (optionally only those named in ``aovs``)."""
+    """Render the RenderProducts the stage's UsdRender settings declare (optionally only those named in ``aovs``)
+    with Mitsuba's path tracer (``spp`` samples per pixel, paths of ``max_depth``, deterministic for ``seed``)
+    into ``out_dir`` (default: the stage's folder), at the settings' resolution. Beauty AOVs are linear
+    radiance in the stage's units of light; albedo, valid, depth (metres along the view axis) and normal
+    (world space) come from one ray per pixel centre."""
     t0 = time.perf_counter()
     stage = open_stage(stage_path)
     rec = read_scene(stage)

@@ -40,7 +40,8 @@ class FrameFiles:
 
 @dataclass(frozen=True)
 class RelightResult:
-    """What ``usdrelight relight`` wrote."""
+    """What ``usdrelight relight`` (:func:`relight`) wrote: the relit frames (linear EXR + sRGB PNG each, and
+    the diffuse render D~), with what rendered them and the time each step took."""
 
     frames: tuple[FrameFiles, ...]
     """One entry per frame (one for a single relight)."""
