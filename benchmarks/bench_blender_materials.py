@@ -8,7 +8,7 @@ the object's pixels, the per-pixel relative RMSE, and the seconds of each render
 Mitsuba | Cycles per material with one exposure per pair.
 
     python benchmarks/bench_blender_materials.py [--spp 256] [--size 96]
-        [--out benchmarks/results/blender_materials.json] [--sheet docs/blender_vs_mitsuba_materials.png]
+        [--out benchmarks/results/blender_materials.json] [--sheet docs/manual/images/blender_vs_mitsuba_materials.png]
 """
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def measure(case: str, work: Path, spp: int) -> dict:
     m = np.array(mi.render(mi.load_file(str(usda.with_suffix(".xml"))), spp=spp), dtype=np.float64)[..., :3]
     t_m = time.perf_counter() - t
     t = time.perf_counter()
-    c = read_map(render_blend(usda.with_suffix(".blend"), usda.with_suffix(".exr"), samples=spp), 3).astype(np.float64)
+    c = read_map(render_blend(usda.with_suffix(".blend"), usda.with_suffix(".exr"), spp=spp), 3).astype(np.float64)
     t_c = time.perf_counter() - t
     mask = scenes.object_mask("panel" if case == "cutout" else "ball")
     return {"material": case, "mean_mitsuba": float(m.mean()), "mean_cycles": float(c.mean()),
@@ -69,7 +69,7 @@ def measure(case: str, work: Path, spp: int) -> dict:
 
 def contact_sheet(rows: list[dict], path: Path) -> None:
     """Mitsuba | Cycles per material, three materials a row, each pair with the Mitsuba image's exposure."""
-    from usdrelight.neural.contact_sheet import write_contact_sheet
+    from usdrelight.relight.contact_sheet import write_contact_sheet
 
     panels = []
     for r in rows:
@@ -84,7 +84,7 @@ def main_bench(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--size", type=int, default=96, help="image width = height in pixels")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "blender_materials.json")
-    ap.add_argument("--sheet", type=Path, default=ROOT / "docs" / "blender_vs_mitsuba_materials.png")
+    ap.add_argument("--sheet", type=Path, default=ROOT / "docs" / "manual" / "images" / "blender_vs_mitsuba_materials.png")
     args = ap.parse_args(argv)
     scenes.W = scenes.H = args.size  # the scene builders and the object mask read these
     rows = []

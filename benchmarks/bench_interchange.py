@@ -255,7 +255,7 @@ def table(rows: list[dict]) -> str:
 def contact_sheet(rows: list[dict], path: Path) -> None:
     """Seed-0 renders, scene by scene: original | round trip | USD alone (each scene tone-mapped with its
     original's 99.5th percentile), two scenes a row, for a person to look at."""
-    from usdrelight.neural.contact_sheet import write_contact_sheet
+    from usdrelight.relight.contact_sheet import write_contact_sheet
 
     panels = []
     for r in (r for r in rows if "_images" in r):

@@ -16,7 +16,7 @@ modes get the fitted lights + that light), ``replace`` (a new point light and sk
 modes get those only) and ``relight`` (a strongly coloured light on the other side and a dim sky; modes get
 those only); each output against the full 3D path-traced ground truth (256 spp): PSNR / SSIM of D~, of each mode
 and of the unchanged photo (how far the new lighting is from the old).
-Writes benchmarks/results/relit_quality.json and docs/relit_contact_sheet.png (per row: photo, D~, neural,
+Writes benchmarks/results/relit_quality.json and docs/manual/images/relit_contact_sheet.png (per row: photo, D~, neural,
 ratio, add). Run after `make setup`: python benchmarks/bench_relit_quality.py [--scenes 8]
 """
 from __future__ import annotations
@@ -41,10 +41,10 @@ from make_example import write_right_view  # noqa: E402
 from usdrelight.fit.run import FitSettings, fit  # noqa: E402
 from usdrelight.imageio import read_photo, resize_image, write_image  # noqa: E402
 from usdrelight.mitsuba.procedural import render_ground_truth  # noqa: E402
-from usdrelight.neural.composite import MODES, add_composite, ratio_composite  # noqa: E402
-from usdrelight.neural.contact_sheet import tonemapped, write_contact_sheet  # noqa: E402
+from usdrelight.relight.composite import MODES, add_composite, ratio_composite  # noqa: E402
+from usdrelight.relight.contact_sheet import tonemapped, write_contact_sheet  # noqa: E402
 from usdrelight.neural.model import RelightModel, build_input  # noqa: E402
-from usdrelight.neural.relight import RelightSession  # noqa: E402
+from usdrelight.relight.session import RelightSession  # noqa: E402
 from usdrelight.neural.synthetic import EVAL_KINDS, light_sets, make_scene  # noqa: E402
 from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 
@@ -203,9 +203,9 @@ def main():
     (HERE / "results").mkdir(exist_ok=True)
     (HERE / "results" / "relit_quality.json").write_text(json.dumps(summary, indent=2) + "\n")
     if sheet:
-        write_contact_sheet(ROOT / "docs" / "relit_contact_sheet.png", sheet, sheet[0][1], columns=2 + len(MODES))
+        write_contact_sheet(ROOT / "docs" / "manual" / "images" / "relit_contact_sheet.png", sheet, sheet[0][1], columns=2 + len(MODES))
     if model_sheet:
-        write_image(ROOT / "docs" / "neural_contact_sheet.png", np.concatenate(model_sheet, 0), "uint8")
+        write_image(ROOT / "docs" / "manual" / "images" / "neural_contact_sheet.png", np.concatenate(model_sheet, 0), "uint8")
     print("real photos: mode | identity PSNR dB / SSIM | darkened % | blacked out %")
     for r in real:
         print(f"{r['photo']:17s} D~      | {r['dtilde_identity_psnr_db']:6.2f} / {r['dtilde_identity_ssim']:.3f} |")

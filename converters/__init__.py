@@ -1,9 +1,25 @@
 """Scene converters (installed as ``usdrelight.converters``).
 
-A converter is a plain module with ``read_from_file`` / ``write_to_file`` (and ``*_string``
-variants where the format is text); :data:`REGISTRY` maps file suffixes to module names, and
-:func:`converter_for` imports the module only when a file of that kind is converted, so optional
-dependencies fail only when used.
+A converter is a plain module (:data:`REGISTRY` maps file suffixes to module names; :func:`converter_for`
+imports the module only when a file of that kind is converted, so optional dependencies fail only when used,
+naming what to install). Every converter module has:
+
+* ``read_from_file(path, **options) -> ReadReport``: the file as a USD stage;
+* ``write_to_file(stage, path, **options) -> WriteReport``: the stage as the file (and what it needs beside it);
+* where the format is text, the twins ``read_from_string(text, base_dir, **options) -> ReadReport`` and
+  ``write_to_string(stage, base_dir, **options) -> WriteReport`` (the document in ``.text``; relative files
+  resolve against, and side files are written under, ``base_dir``);
+* ``NAME`` (for messages), ``SUFFIXES``, ``READ_OPTIONS`` and ``WRITE_OPTIONS``: option name -> default.
+
+Options, one name each across converters: readers take ``usd_path`` (where to create the USD layer; None: in
+memory; the caller saves the root layer); writers that render take ``spp`` (samples per pixel) and
+``max_depth`` (path length as in Mitsuba: 2 = direct light only, 3 = one indirect bounce). An option a
+converter does not know, or an ``spp`` / ``max_depth`` that is not an integer >= 1, is a one-line
+:class:`~usdrelight.errors.UsdRelightError` naming the known options.
+
+The reports (:mod:`.report`) carry the warnings, ``{kind: count}``: what the target cannot hold, one entry
+per kind. Converters never log them; the caller does (``usdrelight convert`` logs a line per kind).
+:func:`usdrelight.converters.convert.convert` chains a reader and a writer by suffix.
 """
 from __future__ import annotations
 
@@ -12,10 +28,13 @@ from pathlib import Path
 
 from usdrelight.errors import UsdRelightError
 
+from .report import ReadReport, WriteReport, check_options
+
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 #: suffix -> module name inside this package.
 REGISTRY: dict[str, str] = {".xml": "mitsuba_xml", ".blend": "blender", ".py": "blender",
                             ".glb": "mesh_files", ".ply": "mesh_files", ".obj": "mesh_files"}
+__all__ = ["REGISTRY", "USD_SUFFIXES", "ReadReport", "WriteReport", "check_options", "converter_for"]
 
 
 def converter_for(path: str | Path):

@@ -1,17 +1,20 @@
 """USD <-> Blender.
 
-``write_to_file(stage, "X.blend")`` builds a real .blend with Blender's Python module (``bpy==5.0.1`` pins
-numpy<2, so it runs in its own environment, ``.venv-blender``, created by ``scripts/setup.sh``; set
-``USDRELIGHT_BLENDER_PYTHON`` to another interpreter with bpy, or have ``blender`` on PATH).
+``write_to_file(stage, "X.blend", **options) -> WriteReport`` builds a real .blend with Blender's Python module
+(``bpy==5.0.1`` pins numpy<2, so it runs in its own environment, ``.venv-blender``, created by
+``scripts/setup.sh``; set ``USDRELIGHT_BLENDER_PYTHON`` to another interpreter with bpy, or have ``blender`` on
+PATH).
 ``write_to_file(stage, "X.py")`` writes the standalone script (plus ``X_data/`` with the meshes) that a user
-runs in their own Blender: ``blender -b --python X.py -- X.blend``.
-``read_from_file("X.blend")`` brings the .blend's lights back as UsdLux (for the user-lights layer), so the
-relight loop closes. Units and frames: :mod:`usdrelight.converters.blender_units`.
+runs in their own Blender: ``blender -b --python X.py -- X.blend``; ``write_to_string(stage, base_dir)`` gives
+that script as the report's ``text``. Writer options (:data:`WRITE_OPTIONS`): ``spp`` (Cycles samples per
+pixel; 64) and ``max_depth`` (path length as in Mitsuba: Cycles bounces = max_depth - 2; 3).
+``read_from_file("X.blend", usd_path=None) -> ReadReport`` brings the .blend's lights back as UsdLux (for the
+user-lights layer), so the relight loop closes (no ``read_from_string``: a .blend is binary).
+Units and frames: :mod:`usdrelight.converters.blender_units`.
 """
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import shutil
@@ -36,10 +39,15 @@ from usdrelight.stage.validate import check_finite
 from .blender_materials import EMISSIVE_WARNING, material_spec
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
                             light_to_blender, spot_blend, stage_units)
+from .report import ReadReport, WriteReport, check_options
 
+NAME = "Blender"
 SUFFIXES = (".blend", ".py")
 TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
-log = logging.getLogger(__name__)
+#: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
+READ_OPTIONS = {"usd_path": None}
+#: Writer options -> defaults: ``spp``, Cycles samples per pixel; ``max_depth``, path length as in Mitsuba.
+WRITE_OPTIONS = {"spp": 64, "max_depth": 3}
 
 
 # ---- finding Blender -------------------------------------------------------------------------
@@ -118,7 +126,7 @@ def _lux_warnings(light, warnings) -> None:
                  "0.67 at 80 deg): more light than UsdLux's fade, up to 1.6x at softness 1"] += 1
 
 
-def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
+def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
     """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``."""
     rec = read_scene(stage)
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
@@ -168,39 +176,44 @@ def scene_payload(stage, data_dir: Path, samples: int = 64, max_depth: int = 3) 
     for kind in (OPACITY_WARNING, EMISSIVE_WARNING):  # Cycles renders both (blender_materials)
         rec.warnings.pop(kind, None)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
-    payload = {"settings": {"resolution": [W, H], "samples": samples, "max_depth": max_depth},
+    payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
                "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis}}
     return payload, dict(rec.warnings)
 
 
-def write_script(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
+def write_script(stage, path, spp: int = 64, max_depth: int = 3) -> WriteReport:
     path = Path(path).absolute()
     data_dir = path.with_name(path.stem + "_data")
-    payload, warnings = scene_payload(stage, data_dir, samples, max_depth)
+    payload, warnings = scene_payload(stage, data_dir, spp, max_depth)
     write_text_atomic(path, TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload)))
-    return {"files": [str(path), str(data_dir)], "warnings": warnings}
+    return WriteReport([str(path), str(data_dir)], warnings)
 
 
-def write_to_file(stage, path, samples: int = 64, max_depth: int = 3) -> dict:
+def write_to_file(stage, path, **options) -> WriteReport:
+    """A .blend built by Blender, or (``.py``) the script that builds it. Options: :data:`WRITE_OPTIONS`."""
+    opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     path = Path(path).absolute()
     if path.suffix.lower() == ".py":
-        return write_script(stage, path, samples, max_depth)
+        return write_script(stage, path, opts["spp"], opts["max_depth"])
     # the .blend is saved beside its final name (so paths made relative by Blender stay valid), then renamed
     with atomic_path(path) as tmp_blend, tempfile.TemporaryDirectory() as td:
         tmp_blend.unlink()  # Blender writes a new file (an existing one would get a .blend1 backup)
         script = Path(td) / "build_scene.py"
-        res = write_script(stage, script, samples, max_depth)
+        res = write_script(stage, script, opts["spp"], opts["max_depth"])
         run_blender(script, str(tmp_blend))
         if not tmp_blend.is_file():
             raise UsdRelightError(f"Blender wrote no file for {path}")
-    return {"files": [str(path)], "warnings": res["warnings"]}
+    return WriteReport([str(path)], res.warnings)
 
 
-def write_to_string(stage, base_dir, samples: int = 64, max_depth: int = 3) -> str:
-    """The standalone Blender script as text (mesh data written to ``base_dir/scene_data``)."""
-    payload, _ = scene_payload(stage, Path(base_dir) / "scene_data", samples, max_depth)
-    return TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload))
+def write_to_string(stage, base_dir, **options) -> WriteReport:
+    """The standalone Blender script as the report's ``text`` (mesh data written to ``base_dir/scene_data``,
+    the report's ``files``). Options: :data:`WRITE_OPTIONS`."""
+    opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
+    data_dir = Path(base_dir).absolute() / "scene_data"
+    payload, warnings = scene_payload(stage, data_dir, opts["spp"], opts["max_depth"])
+    return WriteReport([str(data_dir)], warnings, TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload)))
 
 
 # ---- Blender -> USD (lights) -------------------------------------------------------------------
@@ -278,7 +291,7 @@ def blender_lights(path) -> BlenderLights:
     return lights
 
 
-def read_from_file(path, usd_path=None):
+def read_from_file(path, **options) -> ReadReport:
     """The .blend's lights as a UsdLux layer ``def "Scene" { Lights { User { ... } } }`` in the units and up axis
     of the stage the .blend was made from (recorded by :func:`write_to_file`), so that sublayered into that stage
     every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres.
@@ -286,9 +299,11 @@ def read_from_file(path, usd_path=None):
     Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
     folded into the colour, diffuse / specular factors become UsdLux ``diffuse`` / ``specular``. What UsdLux has
-    no place for is logged, one line per kind (``UNREAD``)."""
+    no place for is in the report's warnings, one per kind (``UNREAD``). Options: :data:`READ_OPTIONS` (the
+    layer at ``usd_path``, or in memory)."""
     from pxr import Gf, UsdGeom, UsdLux
 
+    usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
     lights = blender_lights(path)
     up, mpu = stage_units(getattr(lights, "stage", None))
     warnings = Counter()
@@ -345,9 +360,7 @@ def read_from_file(path, usd_path=None):
         UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
     stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: read alone or sublayered over /Scene's Xform
     check_finite(stage, str(path))
-    for kind, n in warnings.items():
-        log.warning("%s: %d", kind, n)
-    return stage
+    return ReadReport(stage, dict(warnings))
 
 
 RENDER_SCRIPT = r'''
@@ -364,11 +377,12 @@ bpy.ops.render.render(write_still=True)
 '''
 
 
-def render_blend(path, out_exr, samples: int | None = None) -> Path:
-    """Render a .blend with Cycles (its own settings) to a linear EXR; returns the EXR path."""
+def render_blend(path, out_exr, spp: int | None = None) -> Path:
+    """Render a .blend with Cycles (its own settings; ``spp``: samples per pixel instead of the .blend's) to a
+    linear EXR; returns the EXR path."""
     with tempfile.TemporaryDirectory() as td:
         script = Path(td) / "render.py"
         script.write_text(RENDER_SCRIPT)
-        args = [str(Path(path).absolute()), str(Path(out_exr).absolute())] + ([str(samples)] if samples else [])
+        args = [str(Path(path).absolute()), str(Path(out_exr).absolute())] + ([str(spp)] if spp else [])
         run_blender(script, *args)
     return Path(out_exr)

@@ -1,54 +1,76 @@
 """``usdrelight convert SRC DST``: dispatch by suffix through the registry of :mod:`usdrelight.converters`.
 
 USD files (.usd/.usda/.usdc/.usdz) are opened by USD itself; other formats go through the converter
-registered for their suffix. USD -> USD flattens the composed stage.
+registered for their suffix. USD -> USD flattens the composed stage; X -> USD saves the reader's layer at DST;
+X -> Y reads into a stage in memory and writes it. The options are the writer's (``spp``, ``max_depth``: see
+:mod:`usdrelight.converters`); writing USD takes none.
 """
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.validate import check_finite, open_stage
 
-from . import USD_SUFFIXES, converter_for
+from . import USD_SUFFIXES, check_options, converter_for
 
 
 def _is_usd(path: Path) -> bool:
     return path.suffix.lower() in USD_SUFFIXES
 
 
-ConvertReport = dict
-"""What :func:`convert` wrote: {"files": [written paths], "warnings": {kind: count}} (a record soon)."""
+@dataclass(frozen=True)
+class ConvertReport:
+    """What :func:`convert` wrote, and what each direction could not carry."""
+
+    files: list[str] = field(default_factory=list)
+    """Paths written: DST first, then what the writer put beside it (meshes, textures, a script's data folder)."""
+    read_warnings: dict[str, int] = field(default_factory=dict)
+    """What USD cannot hold of SRC (the reader's), ``{kind: count}`` in the order first met; empty when SRC is
+    USD."""
+    write_warnings: dict[str, int] = field(default_factory=dict)
+    """What DST's format cannot represent of the stage (the writer's), ``{kind: count}``; empty when DST is
+    USD."""
+
+    def to_dict(self) -> dict:
+        """The report as JSON-ready plain data: ``{"files", "read_warnings", "write_warnings"}``."""
+        return asdict(self)
 
 
 def convert(src, dst, **options) -> ConvertReport:
-    """Convert ``src`` to ``dst``; returns {"files": [written paths], "warnings": {kind: count}}."""
+    """Convert ``src`` to ``dst``, each format chosen by its suffix; ``options`` go to DST's writer (``spp``,
+    ``max_depth``; each writer's defaults otherwise). UsdRelightError (one line) for a missing or unknown file
+    kind, or an option the writer does not know, before anything is read."""
     src, dst = Path(src), Path(dst)
     if not src.exists():
         raise UsdRelightError(f"file not found: {src}")
     if src.resolve() == dst.resolve():
         raise UsdRelightError("source and destination are the same file")
-    if not _is_usd(src):
-        converter_for(src)  # fail early on unknown suffixes
-    if not _is_usd(dst):
-        converter_for(dst)
+    reader = None if _is_usd(src) else converter_for(src)  # fail early on unknown suffixes
+    writer = None if _is_usd(dst) else converter_for(dst)
+    if writer is None:
+        check_options("USD writer", options, {})
+    else:
+        check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    if _is_usd(src):
+    if reader is None:
         stage = open_stage(src)
-        if _is_usd(dst):
+        if writer is None:
             check_finite(stage, str(src))  # a flattened copy carries no NaN/Inf either
             with atomic_path(dst) as tmp:
                 if not stage.Flatten().Export(str(tmp)):
                     raise UsdRelightError(f"cannot write {dst}")
-            return {"files": [str(dst)], "warnings": {}}
-        return converter_for(dst).write_to_file(stage, dst, **options)
-    mod = converter_for(src)
-    if _is_usd(dst):
+            return ConvertReport([str(dst)])
+        out = writer.write_to_file(stage, dst, **options)
+        return ConvertReport(list(out.files), write_warnings=dict(out.warnings))
+    if writer is None:
         with atomic_path(dst) as tmp:
             tmp.unlink()  # USD creates the layer as a new file
-            stage = mod.read_from_file(src, usd_path=tmp)  # held: the layer lives as long as its stage
-            stage.GetRootLayer().Save()
-        return {"files": [str(dst)], "warnings": {}}
-    stage = mod.read_from_file(src)
-    return converter_for(dst).write_to_file(stage, dst, **options)
+            read = reader.read_from_file(src, usd_path=tmp)  # held: the layer lives as long as its stage
+            read.stage.GetRootLayer().Save()
+        return ConvertReport([str(dst)], read_warnings=dict(read.warnings))
+    read = reader.read_from_file(src)
+    out = writer.write_to_file(read.stage, dst, **options)
+    return ConvertReport(list(out.files), dict(read.warnings), dict(out.warnings))

@@ -1,21 +1,21 @@
 """USD stage <-> mesh files for tools that do not read USD: glTF binary (.glb), PLY and OBJ, through trimesh.
 
-``write_to_file(stage, "X.glb")``: every mesh of the stage in world space (metres; Y up, as glTF
+``write_to_file(stage, "X.glb") -> WriteReport``: every mesh of the stage in world space (metres; Y up, as glTF
 wants), with its normals, UVs and material as glTF PBR: metallic, roughness and the base colour, a factor
 or the albedo texture embedded as an sRGB 8-bit PNG (a Lambertian UsdPreviewSurface becomes metallic 0,
 roughness 1). ``.ply`` / ``.obj`` carry geometry, normals and UVs only (the material is named in a warning).
 Cameras and lights have no place in these formats and are named in a warning.
 
-``read_from_file("X.glb", usd_path=None)``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
+``read_from_file("X.glb", usd_path=None) -> ReadReport``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
 points, triangles, normals and ``st``, and a UsdPreviewSurface from its PBR material; an embedded base-colour
 texture is written as ``textures/<mesh>_baseColor.png`` beside ``usd_path`` (kept as a constant mean colour,
-with a warning, for an in-memory stage).
+with a warning, for an in-memory stage). Neither takes any other option (:data:`READ_OPTIONS`,
+:data:`WRITE_OPTIONS`); the formats are binary, so there are no ``*_string`` twins.
 
 UVs: USD's st, trimesh's uv and OBJ's vt all have t = 0 at the bottom of the image (trimesh flips for glTF).
 """
 from __future__ import annotations
 
-import logging
 from collections import Counter
 from pathlib import Path
 
@@ -30,9 +30,14 @@ from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import MaterialRecord, TextureRecord
 from usdrelight.stage.validate import check_finite
 
-log = logging.getLogger(__name__)
+from .report import ReadReport, WriteReport, check_options
 
+NAME = "mesh files"
 SUFFIXES = (".glb", ".ply", ".obj")
+#: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
+READ_OPTIONS = {"usd_path": None}
+#: Writer options: none (the formats carry no render settings).
+WRITE_OPTIONS: dict = {}
 ROOT = "/World"
 
 
@@ -71,8 +76,9 @@ def _pbr_material(trimesh, mat: MaterialRecord, warnings: Counter):
     return trimesh.visual.material.PBRMaterial(**kw)
 
 
-def write_to_file(stage, path) -> dict:
-    """Write the stage's meshes to ``path`` (.glb, .ply or .obj); returns {"files", "warnings"}."""
+def write_to_file(stage, path, **options) -> WriteReport:
+    """Write the stage's meshes to ``path`` (.glb, .ply or .obj); the report names what the format cannot hold."""
+    check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     trimesh = _trimesh()
     path = Path(path).absolute()
     rec = read_scene(stage)
@@ -103,7 +109,7 @@ def write_to_file(stage, path) -> dict:
     else:
         data = trimesh.exchange.obj.export_obj(scene, include_normals=True, include_texture=False).encode("utf-8")
     write_bytes_atomic(path, data)
-    return {"files": [str(path)], "warnings": dict(warnings)}  # logged by the CLI, a line per kind
+    return WriteReport([str(path)], dict(warnings))  # logged by the CLI, a line per kind
 
 
 def _author_material(stage, mesh_prim, name: str, material, usd_dir: Path | None, warnings: Counter) -> None:
@@ -136,9 +142,12 @@ def _author_material(stage, mesh_prim, name: str, material, usd_dir: Path | None
     UsdShade.MaterialBindingAPI.Apply(mesh_prim).Bind(mat)
 
 
-def read_from_file(path, usd_path=None):
-    """The meshes of a .glb/.ply/.obj file as a Usd.Stage (at ``usd_path`` when given, else in memory)."""
+def read_from_file(path, **options) -> ReadReport:
+    """The meshes of a .glb/.ply/.obj file as a Usd.Stage (at the ``usd_path`` option when given, else in
+    memory); the report names what USD did not get (non-mesh geometry, embedded textures of a stage in memory)."""
     from pxr import Gf, Kind, Sdf, UsdGeom, Vt
+
+    usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
 
     trimesh = _trimesh()
     path = Path(path)
@@ -187,6 +196,4 @@ def read_from_file(path, usd_path=None):
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
         _author_material(stage, m.GetPrim(), name, getattr(mesh.visual, "material", None), usd_dir, warnings)
     check_finite(stage, path.name)
-    for kind, n in warnings.items():
-        log.warning("%s: %d", kind, n)
-    return stage
+    return ReadReport(stage, dict(warnings))

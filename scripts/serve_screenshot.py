@@ -1,11 +1,11 @@
-"""Screenshot of `usdrelight serve` for the README: docs/serve_screenshot.png.
+"""Screenshot of `usdrelight serve` for the README: docs/manual/images/serve_screenshot.png.
 
 Opens the app on the motorcycle stage (after `make demo`) in headless Chromium (Debian's /usr/bin/chromium via
 Playwright), with a night set-up made through the app's own methods: the fitted lighting dimmed to 15%, a warm
 spot light from the left, a faint blue dome, the split view at 30% (original photo left of the line). Nothing is
 saved to the stage.
 
-    python scripts/serve_screenshot.py [--stage out/motorcycle/scene.usda] [-o docs/serve_screenshot.png]
+    python scripts/serve_screenshot.py [--stage out/motorcycle/scene.usda] [-o docs/manual/images/serve_screenshot.png]
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from usdrelight.serve.state import quat_pointing_along  # noqa: E402
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--stage", type=Path, default=ROOT / "out" / "motorcycle" / "scene.usda")
-    ap.add_argument("-o", "--output", type=Path, default=ROOT / "docs" / "serve_screenshot.png")
+    ap.add_argument("-o", "--output", type=Path, default=ROOT / "docs" / "manual" / "images" / "serve_screenshot.png")
     args = ap.parse_args(argv)
     with ServeApp(args.stage, port=0, max_side=512) as app:
         dome = app.add_light("dome")

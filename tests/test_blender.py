@@ -22,7 +22,7 @@ def test_closed_forms_in_cycles(cli, tmp_path, light):
     stage.GetRootLayer().Save()
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
     assert rc == 0, err
-    img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", samples=32), 3)
+    img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", spp=32), 3)
     np.testing.assert_allclose(_centre(img), expected, rtol=0.05)
 
 
@@ -32,7 +32,7 @@ def test_textured_dome_orientation_in_cycles(cli, tmp_path):
     tex = asymmetric_latlong()
     dome_view_stage(tmp_path / "s.usda", tex, yaw_deg=30.0)
     assert cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")[0] == 0
-    img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", samples=16), 3)
+    img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", spp=16), 3)
     assert np.abs(img - expected_dome_view(tmp_path / "s.usda", tex)).mean() < 0.03
     assert np.abs(img - expected_dome_view(tmp_path / "s.usda", tex[::-1, ::-1])).mean() > 0.1
 
@@ -57,7 +57,7 @@ def test_built_stage_with_fitted_lights_renders_like_mitsuba(cli, tmp_path):
     mitsuba = read_map(render_stage(out / "scene.usda", tmp_path / "m", aovs=["diffuse", "valid"], spp=256).files["diffuse"], 3)
     valid = read_map(tmp_path / "m" / "renders" / "valid.exr", 1)[..., 0] > 0.5
     assert cli("convert", out / "scene.usda", tmp_path / "s.blend")[0] == 0
-    cycles = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", samples=256), 3)
+    cycles = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", spp=256), 3)
     assert cycles.shape == mitsuba.shape
     m, c = mitsuba[valid].mean(), cycles[valid].mean()
     assert c == pytest.approx(m, rel=0.05)
@@ -125,7 +125,7 @@ def test_standalone_script_builds_the_same_blend(cli, tmp_path):
     assert cli("convert", tmp_path / "s.usda", tmp_path / "scene.py")[0] == 0
     assert (tmp_path / "scene_data" / "mesh0.npz").is_file()
     run_blender(tmp_path / "scene.py", str(tmp_path / "from_script.blend"))
-    img = read_map(render_blend(tmp_path / "from_script.blend", tmp_path / "x.exr", samples=16), 3)
+    img = read_map(render_blend(tmp_path / "from_script.blend", tmp_path / "x.exr", spp=16), 3)
     np.testing.assert_allclose(_centre(img), 0.4, rtol=0.05)
 
 
@@ -151,5 +151,5 @@ def test_area_lights_agree_between_cycles_and_mitsuba(cli, tmp_path, kind):
     stage.GetRootLayer().Save()
     mitsuba = read_map(render_stage(tmp_path / "s.usda", tmp_path / "m", spp=512).files["color"], 3)
     assert cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")[0] == 0
-    cycles = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", samples=512), 3)
+    cycles = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", spp=512), 3)
     assert cycles.mean() == pytest.approx(mitsuba.mean(), rel=0.05)

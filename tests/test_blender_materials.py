@@ -158,11 +158,11 @@ def render_both(cli, usda, xml_usda=None):
     """Mitsuba image of ``xml_usda`` (default ``usda``) converted to XML, Cycles image of ``usda`` as .blend,
     and the two converters' warnings."""
     xml, blend = usda.with_suffix(".xml"), usda.with_suffix(".blend")
-    wx = cli.json("convert", xml_usda or usda, xml)["warnings"]
-    wb = cli.json("convert", usda, blend)["warnings"]
+    wx = cli.json("convert", xml_usda or usda, xml)["write_warnings"]
+    wb = cli.json("convert", usda, blend)["write_warnings"]
     mi = load_mitsuba()
     m = np.array(mi.render(mi.load_file(str(xml)), spp=SPP))[..., :3]
-    c = read_map(render_blend(blend, usda.with_suffix(".exr"), samples=SPP), 3)
+    c = read_map(render_blend(blend, usda.with_suffix(".exr"), spp=SPP), 3)
     return m, c, wx, wb
 
 
@@ -258,9 +258,9 @@ def test_textured_scalars_render_as_their_constants(cli, tmp_path):
         mat.CreateSurfaceOutput().ConnectToSource(sh.ConnectableAPI(), "surface")
         panel(stage, mat)  # a quad with st (a Sphere gprim has none)
         stage.GetRootLayer().Save()
-        wb = cli.json("convert", tmp_path / f"{name}.usda", tmp_path / f"{name}.blend")["warnings"]
+        wb = cli.json("convert", tmp_path / f"{name}.usda", tmp_path / f"{name}.blend")["write_warnings"]
         assert not [w for w in wb if "textured" in w or "ignored" in w], wb
-        img = read_map(render_blend(tmp_path / f"{name}.blend", tmp_path / f"{name}.exr", samples=SPP), 3)
+        img = read_map(render_blend(tmp_path / f"{name}.blend", tmp_path / f"{name}.exr", spp=SPP), 3)
         means[name] = img[object_mask("panel")].mean(0)
     print("textured scalars: object mean", means)
     np.testing.assert_allclose(means["textured"], means["constant"], rtol=0.01)  # measured 0.1%

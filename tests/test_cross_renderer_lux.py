@@ -171,11 +171,11 @@ SCENES = {"point": point, "spot": spot, "sphere": sphere, "disk": disk, "rect": 
 def render_both(cli, usda):
     """(Mitsuba image of the XML, Cycles image of the .blend, XML warnings, .blend warnings)."""
     xml, blend = usda.with_suffix(".xml"), usda.with_suffix(".blend")
-    wx = cli.json("convert", usda, xml)["warnings"]
-    wb = cli.json("convert", usda, blend)["warnings"]
+    wx = cli.json("convert", usda, xml)["write_warnings"]
+    wb = cli.json("convert", usda, blend)["write_warnings"]
     mi = load_mitsuba()
     m = np.array(mi.render(mi.load_file(str(xml)), spp=SPP))[..., :3]
-    c = read_map(render_blend(blend, usda.with_suffix(".exr"), samples=SPP), 3)
+    c = read_map(render_blend(blend, usda.with_suffix(".exr"), spp=SPP), 3)
     return m, c, wx, wb
 
 
@@ -261,8 +261,8 @@ def test_unrepresented_usdlux_attributes_are_warned(cli, tmp_path):
     sun = _light(stage, UsdLux.DistantLight, "/World/Lights/Sun", 1.0)
     sun.CreateAngleAttr(2.0)
     stage.GetRootLayer().Save()
-    wx = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.xml")["warnings"]
-    wb = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.blend")["warnings"]
+    wx = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.xml")["write_warnings"]
+    wb = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.blend")["write_warnings"]
     both = ("ShapingAPI focus", "ShapingAPI IES", "CylinderLight", "ShadowAPI", "light/shadow linking",
             "diffuse/specular multipliers")
     for key in both:

@@ -125,7 +125,7 @@ def mitsuba_image(cli, usda):
 def cycles_image(cli, usda):
     blend = usda.with_suffix(".blend")
     assert cli("convert", usda, blend)[0] == 0
-    return read_map(render_blend(blend, usda.with_suffix(".cycles.exr"), samples=16), 3)
+    return read_map(render_blend(blend, usda.with_suffix(".cycles.exr"), spp=16), 3)
 
 
 def check_checker(img, uv_max, wrap, xf=None, rtol=0.03, what=""):
@@ -217,13 +217,13 @@ def test_black_and_mixed_wraps(cli, tmp_path, checker_file):
     assert beyond.max() < 1e-3, beyond.max()
     inside = c[H // 2 + 4:-4, 4:W // 2 - 4].mean()  # s, t in (0, 1): the checker, mean (0.2 + 0.8) / 2 E / pi
     assert abs(inside / (0.5 * (LOW + HIGH) * E / np.pi) - 1) < 0.15, inside
-    w = cli.json("convert", usda, tmp_path / "s.xml")["warnings"]
+    w = cli.json("convert", usda, tmp_path / "s.xml")["write_warnings"]
     assert any("wrap 'black'" in k for k in w), w
     stage = Usd.Stage.Open(str(usda))
     tex = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/M/Tex"))
     tex.GetInput("wrapT").Set("repeat")
     stage.Save()
-    w = cli.json("convert", usda, tmp_path / "t.xml")["warnings"]
+    w = cli.json("convert", usda, tmp_path / "t.xml")["write_warnings"]
     assert any("wrapS 'black' != wrapT 'repeat'" in k for k in w), w
 
 

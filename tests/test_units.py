@@ -112,7 +112,7 @@ def _mitsuba_xml(cli, usda, spp):
 def _cycles(cli, usda, spp):
     blend = usda.with_suffix(".blend")
     cli.json("convert", usda, blend)
-    return read_map(render_blend(blend, usda.with_suffix(".cycles.exr"), samples=spp), 3)
+    return read_map(render_blend(blend, usda.with_suffix(".cycles.exr"), spp=spp), 3)
 
 
 @pytest.mark.parametrize("kind", ["point", "sphere", "rect"])

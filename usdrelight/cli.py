@@ -156,7 +156,7 @@ def cmd_neural(args) -> int:
 
 
 def cmd_relight(args) -> int:
-    from .neural.relight import relight
+    from .relight.run import relight
 
     res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
                   max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode,
@@ -200,11 +200,13 @@ def cmd_batch(args) -> int:
 def cmd_convert(args) -> int:
     from .converters.convert import convert
 
-    res = convert(args.src, args.dst)
-    for kind, n in sorted(res.get("warnings", {}).items()):  # what the target cannot represent: a line per kind
+    options = {k: v for k, v in (("spp", args.spp), ("max_depth", args.max_depth)) if v is not None}
+    res = convert(args.src, args.dst, **options)  # only the options given: each writer keeps its defaults
+    for kind, n in res.read_warnings.items():  # what USD cannot hold of SRC: a line per kind, in the order met
         log.warning("%s: %d", kind, n)
-    summary = {"src": str(args.src), "dst": str(args.dst), "warnings": res.get("warnings", {}),
-               "files": res.get("files", [])}
+    for kind, n in sorted(res.write_warnings.items()):  # what DST cannot represent: a line per kind
+        log.warning("%s: %d", kind, n)
+    summary = {"src": str(args.src), "dst": str(args.dst), **res.to_dict()}
     _emit(args, summary, f"wrote {args.dst}")
     return 0
 
@@ -343,6 +345,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Convert SRC to DST, each format chosen by its suffix.")
     c.add_argument("src", type=Path)
     c.add_argument("dst", type=Path)
+    c.add_argument("--spp", type=_positive_int, metavar="N",
+                   help="samples per pixel the written scene renders with (Mitsuba XML, Blender; default 64)")
+    c.add_argument("--max-depth", type=_positive_int, metavar="N",
+                   help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce; Mitsuba XML, "
+                        "Blender; default 3)")
     c.set_defaults(func=cmd_convert)
 
     sv = sub.add_parser("serve", parents=[common, reads], help="interactive relighting web app (the serve extra)",

@@ -1,11 +1,16 @@
 """Mitsuba 3 XML <-> USD (a converter: ``read_from_file`` / ``write_to_file`` and their ``*_string`` twins).
 
-``write_to_file(stage, path)`` / ``write_to_string(stage, base_dir)``: a USD stage -> Mitsuba XML, meshes
-written as binary PLY into ``meshes/`` next to the XML, textures referenced relatively (:mod:`.write`).
+``write_to_file(stage, path, **options) -> WriteReport`` / ``write_to_string(stage, base_dir, **options) ->
+WriteReport`` (the XML in ``.text``): a USD stage -> Mitsuba XML, meshes written as binary PLY into ``meshes/``
+next to the XML, textures referenced relatively (:mod:`.write`). Options (:data:`WRITE_OPTIONS`): ``spp``
+(the sampler's sample_count, samples per pixel; 64) and ``max_depth`` (the integrator's path length as in
+Mitsuba: 2 = direct light only, 3 = one indirect bounce; 3); values the XML reader kept (a sampler, an
+integrator) take precedence when the stage carries them.
 
-``read_from_file(path, usd_path=None)`` / ``read_from_string(text, base_dir, usd_path=None)``: a Mitsuba
-scene file as people write them -> a USD stage, created at ``usd_path`` or in memory (:mod:`.parse` reads
-the XML, :mod:`.to_usd` and :mod:`.materials` author the stage).
+``read_from_file(path, **options) -> ReadReport`` / ``read_from_string(text, base_dir, **options) ->
+ReadReport``: a Mitsuba scene file as people write them -> a USD stage, created at the ``usd_path`` option or
+in memory (:data:`READ_OPTIONS`); the report carries what USD cannot hold, one warning per kind (:mod:`.parse`
+reads the XML, :mod:`.to_usd` and :mod:`.materials` author the stage).
 
 Modules: ``common`` (tags, the Plugin record, paths, prim names, sensor field of view) is shared; the others import it, never
 each other, except that ``to_usd`` drives ``parse`` and ``materials``.
@@ -16,25 +21,32 @@ from pathlib import Path
 
 from usdrelight.errors import UsdRelightError
 
+from ..report import ReadReport, check_options
 from .parse import read_scene_file
 from .to_usd import build_stage
-from .write import write_to_file, write_to_string
+from .write import WRITE_OPTIONS, write_to_file, write_to_string
 
+NAME = "Mitsuba XML"
 SUFFIXES = (".xml",)
-__all__ = ["SUFFIXES", "read_from_file", "read_from_string", "write_to_file", "write_to_string"]
+#: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
+READ_OPTIONS = {"usd_path": None}
+__all__ = ["NAME", "SUFFIXES", "READ_OPTIONS", "WRITE_OPTIONS", "read_from_file", "read_from_string",
+           "write_to_file", "write_to_string"]
 
 
-def read_from_string(text: str, base_dir, usd_path=None):
-    """Parse Mitsuba XML text; relative files resolve against ``base_dir``. Returns a Usd.Stage."""
-    stage, _ = build_stage(text, "<string>", Path(base_dir).absolute(), usd_path)
-    return stage
+def read_from_string(text: str, base_dir, **options) -> ReadReport:
+    """Parse Mitsuba XML text; relative files resolve against ``base_dir``. Options: :data:`READ_OPTIONS`."""
+    opts = check_options(f"{NAME} reader", options, READ_OPTIONS)
+    stage, warnings = build_stage(text, "<string>", Path(base_dir).absolute(), opts["usd_path"])
+    return ReadReport(stage, dict(warnings))
 
 
-def read_from_file(path, usd_path=None):
-    """Parse a Mitsuba scene file into a Usd.Stage (at ``usd_path`` when given, else in memory)."""
+def read_from_file(path, **options) -> ReadReport:
+    """Parse a Mitsuba scene file into a Usd.Stage (at the ``usd_path`` option when given, else in memory)."""
+    opts = check_options(f"{NAME} reader", options, READ_OPTIONS)
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     text = read_scene_file(path)
-    stage, _ = build_stage(text, str(path), path.parent.absolute(), usd_path)
-    return stage
+    stage, warnings = build_stage(text, str(path), path.parent.absolute(), opts["usd_path"])
+    return ReadReport(stage, dict(warnings))

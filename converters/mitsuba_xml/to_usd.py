@@ -8,7 +8,6 @@ later XML export, kept in the prim's ``customData["mitsuba"]``.
 from __future__ import annotations
 
 import json
-import logging
 import math
 from collections import Counter
 from pathlib import Path
@@ -30,8 +29,6 @@ from usdrelight.stage.validate import check_finite
 from .common import Plugin, PrimNamer, horizontal_fov, rel_path, spot_texture_mean
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
-
-log = logging.getLogger(__name__)
 
 ROOT = "/World"
 #: Shapes an area emitter turns into a Mesh with UsdLux MeshLightAPI (Mitsuba's cube is a mesh too).
@@ -330,7 +327,8 @@ def _scalar_props(p: Plugin | None, default_type: str) -> dict:
 
 
 def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
-    """Parse a scene document and build its stage (at ``usd_path``, or in memory); returns (stage, warnings)."""
+    """Parse a scene document and build its stage (at ``usd_path``, or in memory); returns (stage, warnings):
+    ``warnings`` a Counter {kind: count} in the order first met (the converter's report carries it)."""
     from pxr import Kind
 
     schemas.register()
@@ -362,6 +360,4 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
         kept = {**({"integrator": integrator} if integrator is not None else {}), **b.sampling}
         b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(kept, sort_keys=True))
     check_finite(stage, source)  # e.g. a float64 beyond float32 would be written as Inf
-    for kind, n in warnings.items():
-        log.warning("%s: %d", kind, n)
     return stage, warnings

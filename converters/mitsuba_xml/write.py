@@ -29,7 +29,13 @@ from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import TextureRecord
 
+from ..report import WriteReport, check_options
 from .common import TAG_OF, VECTOR_KEYS, rel_path
+
+#: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
+#: integrator's path length as in Mitsuba (2 = direct light only, 3 = one indirect bounce). A sampler or
+#: integrator the XML reader kept in the stage's RenderSettings is written back instead.
+WRITE_OPTIONS = {"spp": 64, "max_depth": 3}
 
 
 def _fmt(x: float) -> str:
@@ -129,15 +135,18 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
         _to_xml(el, k, v, base, files)
 
 
-def write_to_string(stage, base_dir, spp: int = 64, max_depth: int = 3) -> tuple[str, list, Counter]:
-    """Returns ``(xml_text, written_files, warnings)``; meshes go to ``base_dir/meshes``."""
+def write_to_string(stage, base_dir, **options) -> WriteReport:
+    """The XML in the report's ``text``; meshes (and copied or baked textures) go under ``base_dir``, listed in
+    ``files``. Options: :data:`WRITE_OPTIONS`."""
+    opts = check_options("Mitsuba XML writer", options, WRITE_OPTIONS)
     base = Path(base_dir).absolute()
     rec = read_scene(stage)
     integrator = None
     settings_extra = _custom_mitsuba(stage, rec)
     if settings_extra.get("integrator"):
         integrator = settings_extra["integrator"]
-    d = scene_dict(rec, spp=spp, max_depth=max_depth, mesh_dir=base / "meshes", integrator=integrator)
+    d = scene_dict(rec, spp=opts["spp"], max_depth=opts["max_depth"], mesh_dir=base / "meshes",
+                   integrator=integrator)
     _restore_sampling(settings_extra, d)
     _restore_extras(stage, d)
     _restore_material_extras(stage, rec, d)
@@ -155,14 +164,15 @@ def write_to_string(stage, base_dir, spp: int = 64, max_depth: int = 3) -> tuple
     ET.indent(root, space="    ")
     comment = ("<!-- Written by usdrelight from a USD stage. Units: UsdLux radiance L = intensity * 2^exposure * "
                "color; point lights: intensity = L [W/sr]; directional: irradiance = L. -->\n")
-    return comment + ET.tostring(root, encoding="unicode") + "\n", files, rec.warnings
+    return WriteReport(files, dict(rec.warnings), comment + ET.tostring(root, encoding="unicode") + "\n")
 
 
-def write_to_file(stage, path, spp: int = 64, max_depth: int = 3) -> dict:
+def write_to_file(stage, path, **options) -> WriteReport:
+    """Write the stage as Mitsuba XML at ``path`` (meshes and textures beside it). Options: :data:`WRITE_OPTIONS`."""
     path = Path(path).absolute()
-    text, files, warnings = write_to_string(stage, path.parent, spp, max_depth)
-    write_text_atomic(path, text)
-    return {"files": [str(path)] + files, "warnings": dict(warnings)}
+    res = write_to_string(stage, path.parent, **options)
+    write_text_atomic(path, res.text)
+    return WriteReport([str(path)] + res.files, res.warnings)
 
 
 def _custom_mitsuba(stage, rec) -> dict:
