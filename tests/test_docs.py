@@ -63,6 +63,7 @@ def _env() -> dict:
     env = dict(os.environ)
     env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
     env["NO_MKDOCS_2_WARNING"] = "1"
+    env["PYTHONFAULTHANDLER"] = "1"  # a crash of a command shows its Python stack in the failure message
     return env
 
 
