@@ -4,9 +4,12 @@ the interactive frame time.
 For each scene (the procedural ground-truth scene at 256 x 192, the motorcycle at 512 px after `make demo`):
 * reference: Mitsuba, max_depth 3 (one bounce), emitters hidden from camera rays, 4096 spp (64 passes of 64);
 * Mitsuba at 16 / 64 / 256 / 1024 spp (seconds: render only, the scene loaded once; load time reported apart);
-* fast: prepare (cold, then from the cache) and per-frame render; relative RMSE over valid pixels.
-Then, on the motorcycle: per-frame times (render + hole fill + network) with 1..8 point/spot lights + a dome,
-and prepare / frame times at 256, 512 px and full size. Writes benchmarks/results/relight.json.
+* fast: prepare (cold, then from the cache) and per-frame render with every light rendered (``frame_seconds``)
+  and with the lights' direct terms kept from the frame before (``frame_cached_seconds``: nothing moved);
+  relative RMSE over valid pixels.
+Then, on the motorcycle: per-frame times (render + hole fill + network) with 1..8 point/spot lights added to the
+fitted ones, the added lights moving every frame (rendered anew) and the fitted ones kept, and prepare / frame
+times at 256, 512 px and full size (one light moving). Writes benchmarks/results/relight.json.
 
     python benchmarks/bench_relight.py [--stage out/motorcycle/scene.usda] [--quick]
 """
@@ -70,21 +73,27 @@ def error_vs_time(name: str, rec, lights, max_side, spps, ref_passes: int) -> di
     ref, ref_sec = mts.render(64 * ref_passes, seed=7)
     with tempfile.TemporaryDirectory() as td:
         t = time.perf_counter()
-        fr = FastRenderer(rec, EngineSettings(max_side=max_side), TransportCache(td))
+        # direct_terms=0: every light is rendered every frame (the worst case; frame_cached_seconds: none changed)
+        fr = FastRenderer(rec, EngineSettings(max_side=max_side, direct_terms=0), TransportCache(td))
         cold = time.perf_counter() - t
         t = time.perf_counter()
-        FastRenderer(rec, EngineSettings(max_side=max_side), TransportCache(td))
+        kept = FastRenderer(rec, EngineSettings(max_side=max_side), TransportCache(td))
         warm = time.perf_counter() - t
     fr.render(lights)  # first call compiles the ray kernels
     t = time.perf_counter()
     out = fr.render(lights)
     frame = time.perf_counter() - t
+    kept.render(lights)
+    t = time.perf_counter()
+    np.testing.assert_allclose(kept.render(lights).beauty, out.beauty, rtol=1e-4, atol=1e-6)
+    frame_cached = time.perf_counter() - t
     valid = out.valid
     rows = []
     for spp in spps:
         img, sec = mts.render(spp, seed=1)
         rows.append({"spp": spp, "seconds": sec, "rel_rmse": rel_rmse(img, ref, valid)})
     fast = {"prepare_cold_seconds": cold, "prepare_cached_seconds": warm, "frame_seconds": frame,
+            "frame_cached_seconds": frame_cached,
             "rel_rmse": rel_rmse(out.beauty, ref, valid)}
     # Mitsuba's samples for the fast renderer's error: error ~ spp^-1/2 between the two measured points around it
     # (log-log interpolation), and its render time there, interpolated the same way
@@ -102,6 +111,13 @@ def error_vs_time(name: str, rec, lights, max_side, spps, ref_passes: int) -> di
             "mitsuba_load_seconds": mts.load_seconds, "mitsuba": rows, "fast": fast}
 
 
+def _moved(spec: str, dx: float) -> str:
+    """A ``--light`` spec with its position moved by ``dx`` metres along x."""
+    kind, pos, *rest = spec.split(":")
+    x, y, z = (float(v) for v in pos.split(","))
+    return ":".join([kind, f"{x + dx:.4f},{y},{z}", *rest])
+
+
 def frame_times(stage: Path, max_side, light_counts, repeats: int = 5) -> list:
     sess = RelightSession(stage, max_side=max_side, with_fitted=True)
     base = len(sess.base_lights)
@@ -113,8 +129,8 @@ def frame_times(stage: Path, max_side, light_counts, repeats: int = 5) -> list:
     sess.render(specs[:1])  # warm-up (kernel compilation)
     for k in light_counts:
         times = []
-        for _ in range(repeats):
-            f = sess.render(specs[:k])
+        for rep in range(repeats):  # the added lights move every frame (rendered anew); the fitted ones stay
+            f = sess.render([_moved(s, 0.01 * (rep + 1)) for s in specs[:k]])
             times.append(f.seconds)
         med = {key: float(np.median([t[key] for t in times])) for key in times[0]}
         rows.append({"added_lights": k, "lights_total": base + k, **{f"{key}_seconds": v for key, v in med.items()}})
@@ -156,7 +172,7 @@ def main() -> None:
             sess = RelightSession(stage, max_side=side, with_fitted=True, settings=EngineSettings())
             cold = time.perf_counter() - t
             sess.render(["point:0.6,0.4,-1.2:4,3.6,3"])
-            f = [sess.render(["point:0.6,0.4,-1.2:4,3.6,3"]).seconds for _ in range(3)]
+            f = [sess.render([_moved("point:0.6,0.4,-1.2:4,3.6,3", 0.01 * (i + 1))]).seconds for i in range(3)]
             h, w = sess.render([]).image.shape[:2] if sess.base_lights else (0, 0)
             out["scaling"].append({"max_side": side, "resolution": [w, h], "pixels": w * h,
                                    "prepare_seconds": cold, "cache_hit": sess.cache_hit,
@@ -176,10 +192,10 @@ def main() -> None:
         print(f"   Mitsuba reaches the fast error at ~{f['mitsuba_spp_at_equal_error']:.0f} spp "
               f"(~{f['mitsuba_seconds_at_equal_error']:.1f} s): {f['speedup_per_frame']:.0f}x the fast frame time")
     print(f"\nframe times at {out['frames']['resolution']} (median of 5; seconds)")
-    print("added lights | total lights | render | hole fill | network | total")
+    steps = [k for k in out["frames"]["rows"][0] if k.endswith("_seconds")]  # render, the mode's steps, total
+    print(" | ".join(["added lights", "total lights", *(k.removesuffix("_seconds") for k in steps)]))
     for r in out["frames"]["rows"]:
-        print(f"{r['added_lights']:>12} | {r['lights_total']:>12} | {r['render_seconds']:.3f} | "
-              f"{r['hole_fill_seconds']:.3f} | {r['network_seconds']:.3f} | {r['total_seconds']:.3f}")
+        print(" | ".join([f"{r['added_lights']:>12}", f"{r['lights_total']:>12}", *(f"{r[k]:.3f}" for k in steps)]))
     print("\nmax side | pixels | prepare (cold) | frame render | frame total")
     for r in out["scaling"]:
         print(f"{str(r['max_side']):>8} | {r['pixels']:>6} | {r['prepare_seconds']:.2f} | "
