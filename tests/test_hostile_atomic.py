@@ -189,6 +189,8 @@ def test_the_layout_before_versions_is_migrated_and_user_files_kept(cli, inputs,
         shutil.move(str(vdir / name), str(out / name))
     shutil.rmtree(out / VERSIONS)
     text = (out / "scene.usda").read_text().replace(f"./{VERSIONS}/{vdir.name}/", "./")
+    # the layout before versions also named the source photo by its absolute path, outside the folder
+    text = text.replace("@./source/photo.png@", f"@{(inputs / 'a.png').resolve()}@")
     (out / "scene.usda").write_text(text)
     (out / "textures" / "mine.png").write_bytes(b"user")
     (tmp_path / ".out.tmp-abc123").mkdir()

@@ -11,6 +11,7 @@ import logging
 from dataclasses import replace
 
 from ..errors import UsdRelightError
+from ..mitsuba.render import check_spp
 from ..stage.records import SceneRecord
 from ..transport.cache import TransportCache
 from .aovs import Aovs, Renderer
@@ -30,8 +31,9 @@ def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | N
     lights, non-Lambertian materials) gets Mitsuba, with one warning naming why."""
     if renderer not in RENDERERS:
         raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
-    if spp < 1 or max_depth < 2:
-        raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+    check_spp(spp)
+    if max_depth < 2:
+        raise UsdRelightError("max_depth must be >= 2")
     if renderer == "fast":
         try:
             return FastRenderer(rec, replace(settings or EngineSettings(), max_side=max_side, max_depth=max_depth),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from ..errors import UsdRelightError
-from ..mitsuba.render import render_record
+from ..mitsuba.render import check_spp, render_record
 from ..stage.records import SceneRecord
 from .aovs import Aovs, nonnegative
 
@@ -20,8 +20,9 @@ class MitsubaRenderer:
                  seed: int = 0):
         if rec.camera is None:
             raise UsdRelightError("the stage has no camera to render from")
-        if spp < 1 or max_depth < 2:
-            raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+        check_spp(spp)
+        if max_depth < 2:
+            raise UsdRelightError("max_depth must be >= 2")
         self.scene = rec.with_lights(()).with_camera(rec.camera.limited(max_side))
         self.spp, self.max_depth, self.seed = spp, max_depth, seed
         self.seconds: dict = {"prepare": 0.0}

@@ -17,9 +17,10 @@ import numpy as np
 from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
-from ..mitsuba.render import render_record
+from ..mitsuba.render import check_spp, render_record
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
+from ..stage.usdz import refuse_usdz
 from .adam import fit_adam
 from .fast import FastSettings, fit_fast_coarse_to_fine
 from .problem import FitProblem, load_problem
@@ -148,6 +149,7 @@ def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, pro
     fit fails with "being written by PID N" instead of interleaving). ``report_dir``: also write
     fit_report.json and a plot of error against run time there. ``progress(i, n, mse)`` is called per step.
     Returns the :class:`~usdrelight.fit.result.FitReport` (MSE and PSNR in the linear units of D, seconds)."""
+    refuse_usdz(stage_path, "fit")
     with stage_lock(Path(stage_path).absolute().parent):
         return _fit_unlocked(stage_path, settings or FitSettings(), report_dir, progress)
 
@@ -155,6 +157,8 @@ def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, pro
 def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> FitReport:
     method, lights, env_res, iterations = settings.method, settings.lights, settings.env_res, settings.iterations
     max_side, verify_spp, seed, fast_settings = settings.max_side, settings.verify_spp, settings.seed, settings.fast
+    if verify_spp:
+        check_spp(verify_spp, "--verify-spp")
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
     t_all = time.perf_counter()

@@ -126,12 +126,40 @@ def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, w
     return out
 
 
+MAX_SPP = 1 << 16
+"""Most samples per pixel of one render (a bound with a clear error instead of an hours-long run)."""
+PASS_SAMPLES = 1 << 25
+"""Most camera samples Mitsuba traces at once: larger renders are split into passes of equal weight per sample
+(Mitsuba's wavefront would otherwise hold every sample of the image in memory at once)."""
+
+
+def check_spp(spp: int, what: str = "--spp") -> int:
+    """``spp`` when 1 <= spp <= :data:`MAX_SPP`; UsdRelightError (one line) otherwise."""
+    if not isinstance(spp, (int, np.integer)) or isinstance(spp, bool) or not 1 <= spp <= MAX_SPP:
+        raise UsdRelightError(f"{what} must be an integer in [1, {MAX_SPP}], got {spp!r}")
+    return int(spp)
+
+
+def render_passes(mi, scene, spp: int, seed: int, pixels: int) -> np.ndarray:
+    """(H, W, C) float32 mean of ``spp`` samples per pixel, rendered in passes of at most :data:`PASS_SAMPLES`
+    samples (pass i uses seed + i; a render that fits one pass is Mitsuba's own render at ``seed``)."""
+    per_pass = max(1, min(spp, PASS_SAMPLES // max(pixels, 1)))
+    acc, done, i = None, 0, 0
+    while done < spp:
+        n = min(per_pass, spp - done)
+        img = np.array(mi.render(scene, spp=n, seed=seed + i), dtype=np.float64) * n
+        acc = img if acc is None else acc + img
+        done, i = done + n, i + 1
+    return (acc / spp).astype(np.float32)
+
+
 def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int = 3, seed: int = 0,
                   hide_emitters: bool = False) -> dict:
     """Render the quantities in ``wanted`` (beauty and/or GEOMETRIC names) for a scene record.
 
     ``hide_emitters``: camera rays do not see emitters directly (the environment through holes in a 2.5D
     mesh, for instance); their light still reaches the surfaces."""
+    check_spp(spp)
     mi = load_mitsuba()
     if rec.camera is None:
         raise UsdRelightError("the stage has no camera to render from")
@@ -140,7 +168,7 @@ def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int =
     scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=spp, max_depth=max_depth, integrator=integrator), mi))
     out = {}
     if "beauty" in wanted:
-        img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32)[..., :3]
+        img = render_passes(mi, scene, spp, seed, W * H)[..., :3]
         out["beauty"] = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     geo = wanted - {"beauty"}
     if geo:
@@ -192,8 +220,9 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     unknown = [n for n in names if n not in declared]
     if unknown:
         raise UsdRelightError(f"AOV(s) {unknown} are not declared by {stage_path} (declared: {list(declared)})")
-    if spp < 1 or max_depth < 1:
-        raise UsdRelightError("--spp and --max-depth must be >= 1")
+    check_spp(spp)
+    if max_depth < 1:
+        raise UsdRelightError("--max-depth must be >= 1")
     products = [declared[n] for n in names]
     wanted = {aov_kind(v) for p in products for v in p.vars}
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent

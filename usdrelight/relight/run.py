@@ -68,16 +68,27 @@ def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame) -> FrameFiles:
     return FrameFiles(exr, png, diffuse, frame.lights, sec)
 
 
+MAX_FRAMES = 10_000
+"""Most frames of one ``--sequence`` (checked before anything renders or is written)."""
+MAX_SEQUENCE_BYTES = 16 << 20
+"""Largest LIGHTS.json read."""
+
+
 def read_sequence(path) -> list[list[str]]:
-    """LIGHTS.json: a JSON list of frames, each a list of ``--light`` strings."""
+    """LIGHTS.json: a JSON list of at most :data:`MAX_FRAMES` frames, each a list of ``--light`` strings."""
     path = Path(path)
     try:
+        if path.stat().st_size > MAX_SEQUENCE_BYTES:
+            raise UsdRelightError(f"the light sequence {path} is over {MAX_SEQUENCE_BYTES >> 20} MiB")
         frames = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise UsdRelightError(f"cannot read the light sequence {path}: {type(exc).__name__}") from None
     if not isinstance(frames, list) or not frames or not all(
             isinstance(f, list) and all(isinstance(s, str) for s in f) for f in frames):
         raise UsdRelightError(f"{path}: expected a non-empty JSON list of frames, each a list of --light strings")
+    if len(frames) > MAX_FRAMES:
+        raise UsdRelightError(f"{path} has {len(frames)} frames: at most {MAX_FRAMES} in one sequence "
+                              f"(split it into several runs)")
     return frames
 
 

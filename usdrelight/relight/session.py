@@ -26,7 +26,9 @@ import numpy as np
 from ..engine import RENDERERS, EngineSettings, open_renderer
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
+from ..mitsuba.render import check_spp
 from ..neural.model import RelightModel, build_input
+from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
 from ..stage.read import read_scene
@@ -51,8 +53,9 @@ def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool) -> str:
 
 
 def source_photo_path(stage) -> str:
-    """The resolved path of the photo a stage was built from (RelightProvenanceAPI usdrelight:sourcePhoto), or ""
-    when the stage names none or the file was moved."""
+    """The resolved path of the photo a stage was built from (RelightProvenanceAPI usdrelight:sourcePhoto: a copy
+    inside the stage folder since builds copy it there), or "" when the stage names none or the file is gone.
+    It is read under the same confinement as textures (:func:`usdrelight.safe_paths.check_read`)."""
     root = stage.GetDefaultPrim()
     attr = root.GetAttribute("usdrelight:sourcePhoto") if root else None
     asset = attr.Get() if attr else None
@@ -97,8 +100,9 @@ class RelightSession:
                  cache: TransportCache | None = None):
         if renderer not in RENDERERS:
             raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
-        if spp < 1 or max_depth < 2:
-            raise UsdRelightError("spp must be >= 1 and max_depth >= 2")
+        check_spp(spp)
+        if max_depth < 2:
+            raise UsdRelightError("max_depth must be >= 2")
         if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
             raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
         t0 = time.perf_counter()
@@ -119,6 +123,7 @@ class RelightSession:
         self._stage_lights = stage_lights
         self.scene = rec.with_camera(rec.camera.limited(max_side))
         self._source_photo = source_photo_path(stage)
+        self._stage_folder = stage_folder(stage)
         mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "")
         self.max_depth, self.mode = max_depth, mode
         self._model_path = model_path
@@ -176,6 +181,7 @@ class RelightSession:
         if not path:
             raise UsdRelightError(f"modes ratio and add need the stage's source photo (usdrelight:sourcePhoto), "
                                   f"which {self.stage_path} does not name or which was moved")
+        check_read(path, self._stage_folder, "source photo (usdrelight:sourcePhoto)")
         k = self.scene.camera.intrinsics
         return resize_image(read_photo(path), k.width, k.height)
 

@@ -19,6 +19,8 @@ FITTED_LIGHTS = "lights_fitted.usda"
 USER_LIGHTS = "lights_user.usda"
 ALBEDO_TEXTURE = "textures/albedo.exr"
 DIFFUSE_TARGET = "estimates/diffuse.exr"
+SOURCE_PHOTO = "source/photo"
+"""The copy of the photo a stage was built from (its suffix appended): the stage folder is self-contained."""
 FITTED_ENV_TEXTURE = "lights/fitted_env.exr"
 
 ROOT = "/Scene"

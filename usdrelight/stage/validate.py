@@ -9,6 +9,7 @@ from pathlib import Path
 from .. import schemas
 from ..errors import UsdRelightError
 from ..native_io import captured_stderr
+from .usdz import is_usdz, unpack_usdz
 
 
 @dataclass(frozen=True)
@@ -28,16 +29,18 @@ class Finding:
 def open_stage(path: str | Path):
     """Open a stage (with usdrelight's schema registered); one-line error when it cannot be opened or does not
     compose cleanly: a sublayer, reference or payload that is missing, unreadable, malformed or cyclic is an
-    error (USD itself would skip it with a warning and go on without, e.g., the user's lights)."""
+    error (USD itself would skip it with a warning and go on without, e.g., the user's lights). A .usdz package
+    is unpacked into a private temporary folder and opened from there (:func:`usdrelight.stage.usdz.unpack_usdz`)."""
     from pxr import Tf, Usd
 
     schemas.register()
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"stage not found: {path}")
+    layer = unpack_usdz(path) if is_usdz(path) else path  # a package is read as a folder (:mod:`.usdz`)
     with captured_stderr() as native:  # USD's warnings become the one error line below (or are replayed)
         try:
-            stage = Usd.Stage.Open(str(path))
+            stage = Usd.Stage.Open(str(layer))
         except Tf.ErrorException as exc:
             stage, failure = None, str(exc).strip().splitlines()
         else:

@@ -131,11 +131,12 @@ def rebased_root(stage_dir, new_vid: str) -> Callable[[Path], None]:
 
     old = version_prefix(referenced_version(stage_dir))
     new = version_prefix(new_vid)
-    mapping = {old + name: new + name for name in REFERENCED}
 
     def modify(path: str) -> str:
         rel = path[2:] if path.startswith("./") else path
-        return "./" + mapping[rel] if rel in mapping else path
+        if old:  # every file of the old version (its carried-over copy has the same name in the new one)
+            return "./" + new + rel[len(old):] if rel.startswith(old) else path
+        return "./" + new + rel if rel in REFERENCED else path  # the layout before versions
 
     def write(target: Path) -> None:
         layer = Sdf.Layer.OpenAsAnonymous(str(Path(stage_dir) / SCENE))

@@ -28,7 +28,7 @@ from .camera import author_usd_camera, opencv_to_usd
 from .create import author_lambertian, author_render_settings, author_uv_texture, create_stage, \
     define_preview_material
 from .layout import (ALBEDO_TEXTURE, CAMERA, DIFFUSE_TARGET, FITTED_LIGHTS, GEOMETRY, MATERIAL, MESH, PHOTO,
-                     ROOT, SCENE, USER_LIGHTS, USER_LIGHTS_SCOPE)
+                     ROOT, SCENE, SOURCE_PHOTO, USER_LIGHTS, USER_LIGHTS_SCOPE)
 from .versions import prepare_version, publish_version, version_prefix
 
 log = logging.getLogger(__name__)
@@ -111,7 +111,7 @@ def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs, prefix:
     _author_material(stage, prefix)
     root.AddAppliedSchema(schemas.PROVENANCE_API)
     root.GetAttribute("usdrelight:version").Set(__version__)
-    root.GetAttribute("usdrelight:sourcePhoto").Set(Sdf.AssetPath(str(est.photo.path.resolve())))
+    root.GetAttribute("usdrelight:sourcePhoto").Set(Sdf.AssetPath("./" + prefix + source_photo_name(est.photo.path)))
     root.GetAttribute("usdrelight:geometryEstimator").Set(est.geometry.source)
     root.GetAttribute("usdrelight:albedoEstimator").Set(est.decomposition.source)
     root.GetAttribute("usdrelight:diffuseTarget").Set(Sdf.AssetPath("./" + prefix + DIFFUSE_TARGET))
@@ -120,6 +120,12 @@ def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs, prefix:
     # Sublayers last, so the prims above are authored as full definitions in this layer.
     layer.subLayerPaths = ["./" + USER_LIGHTS, "./" + prefix + FITTED_LIGHTS, "./" + prefix + GEOMETRY]
     layer.Save()
+
+
+def source_photo_name(photo: Path) -> str:
+    """Where a version folder keeps its copy of ``photo`` (:data:`~usdrelight.stage.layout.SOURCE_PHOTO` and the
+    photo's suffix, lower case)."""
+    return SOURCE_PHOTO + Path(photo).suffix.lower()
 
 
 def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=BUILD_AOVS) -> BuiltStage:
@@ -156,6 +162,9 @@ def _write_version(est: PhotoEstimates, mesh: PixelMesh, outdir: Path, aovs) -> 
         (tmp / "estimates").mkdir()
         write_image(tmp / ALBEDO_TEXTURE, est.decomposition.albedo, "half")
         write_image(tmp / DIFFUSE_TARGET, est.decomposition.diffuse, "float")
+        # the photo itself, byte for byte: the ratio and add composites read it, and the folder moves as one
+        (tmp / source_photo_name(est.photo.path)).parent.mkdir()
+        shutil.copyfile(est.photo.path, tmp / source_photo_name(est.photo.path))
         _write_geometry(tmp / GEOMETRY, mesh)
         _write_light_layer(tmp / FITTED_LIGHTS, "Fitted lights (usdrelight fit); rewritten by build and fit.")
         sizes = {p.relative_to(tmp).as_posix(): p.stat().st_size for p in tmp.rglob("*") if p.is_file()}

@@ -1,0 +1,125 @@
+"""Legal-but-odd inputs end cleanly (issue 25): self-contained stage folders, the source photo under the read
+confinement, .usdz stages, huge sample counts, long sequences, control characters in names, and converters that
+leave nothing but their outputs. Each asserts the exit status, the one line and the files on disk."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd
+
+from conftest import EXAMPLES, build_procedural, make_photo
+
+from usdrelight.imageio import read_map
+
+
+def _one_error(rc, err, *words):
+    assert rc == 2, err
+    assert err.count("\n") == 1 and err.startswith("usdrelight: error:"), err
+    assert "Traceback" not in err and "unexpected" not in err, err
+    for w in words:
+        assert w in err, (w, err)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """The procedural example built and fitted (small), in a folder of its own."""
+    from usdrelight.fit.run import FitSettings, fit
+
+    stage = build_procedural(tmp_path_factory.mktemp("fitted") / "st")
+    fit(stage, FitSettings(lights=2, iterations=8, max_side=64, verify_spp=0))
+    return stage
+
+
+def test_the_stage_folder_carries_its_photo_and_moves_as_one(cli, fitted, tmp_path):
+    stage = Usd.Stage.Open(str(fitted))
+    asset = stage.GetDefaultPrim().GetAttribute("usdrelight:sourcePhoto").Get()
+    assert asset.path.startswith("./versions/") and asset.path.endswith("/source/photo.exr"), asset.path
+    assert (fitted.parent / asset.path).read_bytes() == (EXAMPLES / "procedural" / "photo.exr").read_bytes()
+    moved = tmp_path / "elsewhere" / "st"
+    shutil.copytree(fitted.parent, moved, symlinks=True)
+    rc, out, err = cli("relight", moved / "scene.usda", "--with-fitted", "--max-side", "48", "-o", tmp_path / "r",
+                       "--json")
+    assert rc == 0, err
+    assert json.loads(out)["mode"] == "ratio"
+    # the fitted lights kept and nothing added: the photo itself comes back
+    relit = read_map(tmp_path / "r" / "relit.exr", 3)
+    assert relit.shape[:2] == (36, 48) and np.all(np.isfinite(relit)) and relit.mean() > 0
+
+
+def test_a_source_photo_outside_the_stage_folder_is_refused(cli, fitted, tmp_path):
+    work = tmp_path / "st"
+    shutil.copytree(fitted.parent, work, symlinks=True)
+    outside = make_photo(tmp_path / "outside.png", 24, 32)
+    layer = Sdf.Layer.FindOrOpen(str(work / "scene.usda"))
+    layer.GetAttributeAtPath("/Scene.usdrelight:sourcePhoto").default = Sdf.AssetPath(str(outside))
+    layer.Save()
+    rc, _, err = cli("relight", work / "scene.usda", "--with-fitted", "--max-side", "48", "-o", tmp_path / "r")
+    _one_error(rc, err, "outside.png", "outside the scene's folder", "--allow-path")
+    assert not (tmp_path / "r").exists()
+    rc, _, err = cli("relight", work / "scene.usda", "--with-fitted", "--max-side", "48", "-o", tmp_path / "r",
+                     "--allow-path", tmp_path)
+    assert rc == 0, err
+
+
+def test_a_usdz_stage_renders_relights_and_converts_and_refuses_fit(cli, fitted, tmp_path):
+    from pxr import UsdUtils
+
+    usdz = tmp_path / "pkg" / "scene.usdz"
+    usdz.parent.mkdir()
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(fitted)), str(usdz))
+    rc, out, err = cli("render", usdz, "--spp", "2", "-o", tmp_path / "aovs", "--json")
+    assert rc == 0, err
+    files = json.loads(out)["files"]
+    assert files and all(str(tmp_path / "aovs") in f for f in files.values())
+    rc, out, err = cli("relight", usdz, "--with-fitted", "--max-side", "48", "-o", tmp_path / "r", "--json")
+    assert rc == 0, err
+    assert (tmp_path / "r" / "relit.png").is_file()
+    rc, _, err = cli("convert", usdz, tmp_path / "x" / "scene.xml")
+    assert rc == 0, err
+    assert (tmp_path / "x" / "scene.xml").is_file()
+    before = sorted(p.name for p in usdz.parent.iterdir())
+    rc, _, err = cli("fit", usdz)
+    _one_error(rc, err, "scene.usdz", "read-only")
+    assert sorted(p.name for p in usdz.parent.iterdir()) == before
+
+
+def test_a_huge_sample_count_is_one_clear_line(cli, fitted, tmp_path):
+    rc, _, err = cli("render", fitted, "--spp", "100000000", "-o", tmp_path / "aovs")
+    _one_error(rc, err, "--spp", "100000000")
+    assert not (tmp_path / "aovs").exists()
+    rc, _, err = cli("relight", fitted, "--renderer", "mitsuba", "--spp", "100000000", "--with-fitted",
+                     "-o", tmp_path / "r")
+    _one_error(rc, err, "100000000")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_long_sequence_is_refused_before_anything_is_written(cli, fitted, tmp_path):
+    seq = tmp_path / "lights.json"
+    seq.write_text(json.dumps([["point:0,1,-2:1,1,1"]] * 100_000))
+    rc, _, err = cli("relight", fitted, "--sequence", seq, "-o", tmp_path / "r")
+    _one_error(rc, err, "100000 frames", "10000")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("name", ["new\nline.png", "tab\there.png", "bell\x07.png"])
+def test_control_characters_in_a_photo_name_are_handled(cli, tmp_path, name):
+    """A photo whose name has a control character builds (the name is only ever a file name) or is refused with one
+    line that does not print the raw control character."""
+    photo = make_photo(tmp_path / name, 24, 32)
+    rc, _, err = cli("build", photo, "--fov-x", "60", "-o", tmp_path / "o")
+    if rc == 0:
+        assert (tmp_path / "o" / "scene.usda").is_file()
+    else:
+        _one_error(rc, err)
+        assert not any(c in err[:-1] for c in "\t\x07") and not (tmp_path / "o").exists()
+
+
+def test_a_blend_export_leaves_no_backup_or_hidden_file(cli, fitted, tmp_path):
+    out = tmp_path / "b"
+    for _ in range(2):  # the second run replaces the first .blend
+        rc, _, err = cli("convert", fitted, out / "y.blend")
+        assert rc == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["y.blend"]
