@@ -5,5 +5,7 @@ records.py  the typed records: options, one photo's job, one manifest row, the r
 task.py     what a worker does for one photo (build, fit, render into a temp folder, then publish)
 manifest.py input hashing, the manifest file, what a re-run may skip
 run.py      the Dask client side: LocalCluster or an existing scheduler, submission, progress, summary
+guard.py    what is refused before anything starts (too many workers, a second batch on one output folder)
+            and the loopback check of the LocalCluster's dashboard
 args.py     the command-line arguments (argparse only); console.py: progress bar and summary in a terminal
 """

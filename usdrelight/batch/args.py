@@ -10,8 +10,9 @@ from .records import BatchOptions
 DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth.exr, NAME.intrinsics.json, "
                "NAME.albedo.exr ...): build the stage into OUT_DIR/NAME, fit its lights, with --pairs render the "
                "training pair, on Dask (an embedded LocalCluster or --scheduler); OUT_DIR/manifest.jsonl lists every "
-               "photo. A re-run skips unchanged photos. Exit 0 when every photo ended done or recorded failed, "
-               "2 when the batch cannot run.")
+               "photo. A re-run skips unchanged photos. Files that cannot be processed (a control character in the "
+               "name, a link out of PHOTO_DIR ...) are reported and listed as refused. One batch per OUT_DIR at a "
+               "time. Exit 0 when every photo ended done or recorded failed, 2 when the batch cannot run.")
 
 
 def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.ArgumentParser:
@@ -23,7 +24,8 @@ def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.Arg
     bt.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR")
     where = bt.add_mutually_exclusive_group()
     where.add_argument("--workers", type=_positive_int, default=d.workers,
-                       help="worker processes of the embedded Dask LocalCluster, 1 thread each (default %(default)s)")
+                       help="worker processes of the embedded Dask LocalCluster, 1 thread each (default 2; at most "
+                            "one per CPU core and per 2 GiB of available memory: more is refused)")
     where.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler, e.g. tcp://host:8786")
     bt.add_argument("--pairs", action="store_true", help="also render the training pair (D~, albedo, valid)")
     bt.add_argument("--max-side", type=_positive_int, default=d.max_side, help="longer image side of the fit")
@@ -36,7 +38,8 @@ def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.Arg
                     help="LocalCluster: how often a photo whose worker died is tried again (default %(default)s)")
     bt.add_argument("--retry-failed", action="store_true",
                     help="redo photos recorded failed on an input error even when their inputs are unchanged")
-    bt.add_argument("--no-dashboard", action="store_true", help="no Dask dashboard for the LocalCluster")
+    bt.add_argument("--no-dashboard", action="store_true",
+                    help="no Dask dashboard for the LocalCluster (by default one on 127.0.0.1, a free port)")
     bt.set_defaults(func=func)
     return bt
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from .args import options_from_args
@@ -18,12 +19,19 @@ def run_command(args, console, emit) -> int:
         task = bar.add_task("photos", total=None)
 
         def on_cluster(scheduler, dashboard):
-            console.print(f"dask scheduler {scheduler}, dashboard {dashboard or '(none)'}", highlight=False)
+            console.print(f"dask scheduler {scheduler}, dashboard {dashboard or '(none)'}", highlight=False,
+                          markup=False, emoji=False, soft_wrap=True)
+
+        def on_refused(name, reason):  # one line each, however long (a logged warning would wrap)
+            console.print(f"batch: {name!r} not processed: {reason}", highlight=False, markup=False,
+                          emoji=False, soft_wrap=True)
 
         def progress(n, total, rec):
-            bar.update(task, completed=n, total=total, description=f"{rec.name}: {rec.status}")
+            bar.update(task, completed=n, total=total, description=f"{escape(rec.name)}: {rec.status}")
 
-        res = run_batch(args.photos, args.output, options_from_args(args), progress=progress, on_cluster=on_cluster)
+        res = run_batch(args.photos, args.output, options_from_args(args), progress=progress, on_cluster=on_cluster,
+                        on_refused=on_refused)
+    refused = f", {res.refused} file(s) not processed" if res.refused else ""
     emit(args, res.to_dict(), f"batch: {res.done} done, {res.failed} failed, {res.skipped} skipped of {res.photos} "
-                              f"photo(s) in {res.seconds:.1f} s; manifest {res.manifest}")
+                              f"photo(s){refused} in {res.seconds:.1f} s; manifest {res.manifest}")
     return 0

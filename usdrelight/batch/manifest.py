@@ -15,8 +15,9 @@ from pathlib import Path
 
 from .. import __version__
 from ..atomic import write_text_atomic
+from ..errors import UsdRelightError
 from ..neural.pairs import MANIFEST, photo_inputs
-from .records import MANIFEST_FIELDS_VERSION, BatchOptions, PhotoJob, PhotoRecord
+from .records import MANIFEST_FIELDS_VERSION, REFUSED, BatchOptions, PhotoJob, PhotoRecord
 
 log = logging.getLogger(__name__)
 RECORD = "batch.json"
@@ -42,9 +43,17 @@ def input_hash(files, options: BatchOptions) -> str:
 
 
 def make_job(photo: Path, out_dir: Path, options: BatchOptions) -> PhotoJob:
-    photo = Path(photo).resolve()
-    files = tuple(p.resolve() for p in photo_inputs(photo))
-    return PhotoJob(photo.stem, photo, files, input_hash(files, options), Path(out_dir).resolve(), options)
+    """The job of ``photo``, an entry of the photo folder: named, and its sidecars found, by the entry's own
+    name (a symbolic link's, never its target's). UsdRelightError when a sidecar leads out of the folder or
+    an input cannot be read."""
+    photo = Path(photo).parent.resolve() / Path(photo).name
+    files = tuple(photo_inputs(photo))
+    try:
+        digest = input_hash(files, options)
+    except OSError as exc:
+        name = Path(exc.filename).name if exc.filename else photo.name
+        raise UsdRelightError(f"cannot read {name!r}: {exc.strerror or exc}") from None
+    return PhotoJob(photo.stem, photo, files, digest, Path(out_dir).resolve(), options)
 
 
 def read_manifest(out_dir: Path) -> dict[str, PhotoRecord]:
@@ -58,7 +67,8 @@ def read_manifest(out_dir: Path) -> dict[str, PhotoRecord]:
             except (ValueError, TypeError):
                 log.warning("manifest: ignoring an unreadable line")
                 continue
-            rows[rec.name] = rec
+            if rec.status != REFUSED:  # refused files are listed again by every run
+                rows[rec.name] = rec
     return rows
 
 

@@ -7,6 +7,9 @@ from pathlib import Path
 
 MANIFEST_FIELDS_VERSION = 1
 """Bumped when the manifest's meaning changes (part of every input hash)."""
+REFUSED = "refused"
+"""Manifest status of a file of the photo folder that is not processed (its ``error`` says why: a control
+character in its name, a symbolic link out of the folder ...); every run lists them again."""
 
 
 @dataclass(frozen=True)
@@ -25,8 +28,9 @@ class BatchOptions:
     """Also render the training pair (D~, albedo, valid) into ``NAME/renders``."""
     spp: int = 64
     """Samples per pixel of the pair's D~ render."""
-    workers: int = 2
-    """LocalCluster worker processes (1 thread each); not hashed."""
+    workers: int | None = None
+    """LocalCluster worker processes (1 thread each); None: 2, or fewer on a machine with fewer cores or
+    too little memory (:func:`usdrelight.batch.guard.resolve_workers`); not hashed."""
     scheduler: str | None = None
     """Address of an existing Dask scheduler (``tcp://host:8786``) instead of a LocalCluster; not hashed."""
     retries: int = 2
@@ -34,7 +38,7 @@ class BatchOptions:
     retry_failed: bool = False
     """Redo photos recorded failed on an input error even when their inputs are unchanged; not hashed."""
     dashboard: bool = True
-    """Start the LocalCluster's dashboard (a random free port); not hashed."""
+    """Start the LocalCluster's dashboard (a random free port on 127.0.0.1); not hashed."""
 
     def hashed(self) -> dict:
         """The options that change a photo's outputs (the rest only schedule the work)."""
@@ -65,18 +69,19 @@ class PhotoRecord:
     """One line of ``manifest.jsonl`` (also ``out_dir/NAME/batch.json`` for a finished photo)."""
 
     name: str
-    """The photo's file stem (its folder in the output)."""
+    """The photo's file stem (its folder in the output); a refused file's whole name."""
     status: str
-    """done | failed."""
+    """done | failed | refused (not processed, see :data:`REFUSED`)."""
     input_hash: str
     """:attr:`PhotoJob.input_hash` of the run that made this record."""
     photo: str
     """The photo file (absolute path)."""
     error: str | None = None
-    """One line: why it failed (None when done)."""
+    """One line: why it failed or was refused (None when done)."""
     error_kind: str | None = None
     """input (a usdrelight error: bad file, no valid depth, fit error; not retried while the inputs are
-    unchanged) | crash (the worker died or an unexpected exception; retried on the next run)."""
+    unchanged) | crash (the worker died or an unexpected exception; retried on the next run); None when
+    done or refused."""
     fit_mse: float | None = None
     """Masked MSE of the fit's model against D (linear RGB)."""
     fit_psnr_db: float | None = None
@@ -121,7 +126,7 @@ class BatchSummary:
     manifest: str
     """Path of ``manifest.jsonl``."""
     photos: int
-    """Photos in the input folder."""
+    """Photos in the input folder that can be processed (refused files not counted)."""
     done: int
     """Photos processed in this run that ended done."""
     failed: int
@@ -143,8 +148,11 @@ class BatchSummary:
     """The Dask dashboard's address, when there is one."""
     workers: int
     """Workers the cluster had when the run started."""
+    refused: int = 0
+    """Files of the photo folder not processed (listed in ``per_photo`` and the manifest with their reason)."""
     per_photo: list = field(default_factory=list)
-    """[{name, outcome (done | failed | skipped), seconds, build_seconds, fit_seconds, fit_psnr_db, error}]."""
+    """[{name, outcome (done | failed | skipped | refused), seconds, build_seconds, fit_seconds, fit_psnr_db,
+    error}]; a refused file's error says why."""
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -2,8 +2,14 @@
 LocalCluster (worker processes, 1 thread each) or connect to an existing scheduler, submit one task per
 photo, record each result in the manifest as it arrives, and summarise.
 
-Exit status (cli): 0 when every photo ended done, skipped or recorded failed; 2 when the batch itself cannot
-run (no such folder, no photos, unreachable scheduler): :class:`usdrelight.errors.UsdRelightError`.
+Before anything starts (guard.py): ``--workers`` within the machine's cores and memory, the output folder's
+lock (one batch per folder), the photo folder confined (``list_photos``: links out of it, control characters
+in names ... are refused, each reported once per run and listed in the manifest as ``refused``). The
+LocalCluster listens on 127.0.0.1 only; the dashboard's address is read from its bound socket.
+
+Exit status (cli): 0 when every photo ended done, skipped or recorded failed (refused files included); 2 when
+the batch itself cannot run (no such folder, no photos, too many workers, the output folder in use,
+unreachable scheduler): :class:`usdrelight.errors.UsdRelightError`.
 """
 from __future__ import annotations
 
@@ -13,13 +19,16 @@ from pathlib import Path
 
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import MANIFEST, list_photos
+from .guard import LOOPBACK, check_path_text, loopback_dashboard, output_lock, resolve_workers
 from .manifest import make_job, read_manifest, remove_leftovers, reusable, write_manifest
-from .records import BatchOptions, BatchSummary, PhotoJob, PhotoRecord
+from .records import REFUSED, BatchOptions, BatchSummary, PhotoJob, PhotoRecord
 from .task import process_photo
 
 log = logging.getLogger(__name__)
 PHOTO_RESOURCE = "photo"
 """Dask worker resource: a worker with ``photo=1`` runs one photo at a time and holds no queue of them."""
+RESERVED = frozenset({MANIFEST})
+"""Names of the output folder that no photo may take."""
 
 
 def _dask():
@@ -32,7 +41,7 @@ def _dask():
     return dask, distributed
 
 
-def _client(options: BatchOptions):
+def _client(options: BatchOptions, workers: int):
     """(client, the LocalCluster or None when connected to ``options.scheduler``)."""
     dask, distributed = _dask()
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
@@ -41,15 +50,14 @@ def _client(options: BatchOptions):
             return Client(options.scheduler, timeout="10s"), None
         except (OSError, TimeoutError) as exc:
             raise UsdRelightError(f"cannot reach the Dask scheduler {options.scheduler}: {exc}") from None
-    if options.workers < 1:
-        raise UsdRelightError(f"--workers must be >= 1, got {options.workers}")
     # a worker that dies mid-photo makes the tasks it holds 'suspicious'; after `retries` more deaths a task
     # fails. The PHOTO resource (1 per worker) keeps waiting photos on the scheduler, so a dying worker holds
-    # only the photo it runs and never marks a queued one.
+    # only the photo it runs and never marks a queued one. Everything listens on loopback: the dashboard
+    # too (a bare ":0" would bind it to every interface).
     with dask.config.set({"distributed.scheduler.allowed-failures": options.retries}):
-        cluster = LocalCluster(n_workers=options.workers, threads_per_worker=1, processes=True,
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                                resources={PHOTO_RESOURCE: 1},
-                               dashboard_address=":0" if options.dashboard else None,
+                               dashboard_address=f"{LOOPBACK}:0" if options.dashboard else None,
                                silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
@@ -62,29 +70,60 @@ def _crash_record(job: PhotoJob, exc: BaseException) -> PhotoRecord:
 
 
 def run_batch(photo_dir, out_dir, options: BatchOptions = BatchOptions(), progress=None,
-              on_cluster=None) -> BatchSummary:
+              on_cluster=None, on_refused=None) -> BatchSummary:
     """Process every photo of ``photo_dir`` into ``out_dir`` (see the module docstring).
     ``progress(done, total, record)`` after each photo; ``on_cluster(scheduler, dashboard)`` once the cluster
-    is up (the dashboard is None when there is none)."""
+    is up (the dashboard is None when there is none); ``on_refused(file_name, reason)`` once per refused
+    file (default: a logged warning)."""
     t0 = time.perf_counter()
-    if not Path(photo_dir).is_dir():
+    workers = 0 if options.scheduler else resolve_workers(options.workers)
+    photo_dir, out = Path(photo_dir), Path(out_dir)
+    check_path_text(photo_dir, "photo folder")
+    check_path_text(out, "output folder")
+    if not photo_dir.is_dir():
         raise UsdRelightError(f"photo folder not found: {photo_dir}")
-    photos = list_photos(photo_dir)
-    out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise UsdRelightError(f"output {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    if Path(photo_dir).resolve() == out.resolve():
-        raise UsdRelightError("the output folder must not be the photo folder")
+    real_out = out.resolve()
+    if photo_dir.resolve() == real_out or real_out in photo_dir.resolve().parents:
+        raise UsdRelightError("the photo folder must not be the output folder or inside it")
+    refused: list = []
+    photos = list_photos(photo_dir, refused)
+    refused += [(p, f"{p.stem!r} is a name the output folder keeps for itself") for p in photos
+                if p.stem in RESERVED]
+    photos = [p for p in photos if p.stem not in RESERVED]
     names = [p.stem for p in photos]
-    if len(set(names)) != len(names):
-        raise UsdRelightError(f"{photo_dir}: two photos share a name ({', '.join(sorted(set(n for n in names if names.count(n) > 1)))})")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise UsdRelightError(f"{photo_dir}: two photos share a name ({', '.join(twice)})")
+    with output_lock(out):
+        return _locked(photos, refused, out, options, workers, progress, on_cluster, on_refused, t0)
+
+
+def _refused_record(path: Path, reason: str) -> PhotoRecord:
+    return PhotoRecord(path.name, REFUSED, "", str(path.parent.resolve() / path.name), error=reason)
+
+
+def _locked(photos, refused, out, options, workers, progress, on_cluster, on_refused, t0) -> BatchSummary:
+    """run_batch's work while it holds the output folder's lock."""
     remove_leftovers(out)
     previous = read_manifest(out)
     rows: dict[str, PhotoRecord] = {}
-    per_photo, todo = [], []
+    per_photo, todo, jobs = [], [], []
     for p in photos:
-        job = make_job(p, out, options)
+        try:
+            jobs.append(make_job(p, out, options))
+        except UsdRelightError as exc:  # a sidecar out of the folder, an unreadable input
+            refused.append((p, one_line(exc)))
+    for p, reason in sorted(refused):
+        rec = _refused_record(p, reason)
+        rows["\0" + rec.name] = rec  # apart from the photos' rows: a refused file's name is no photo's name
+        per_photo.append(_entry(rec, REFUSED))
+        if on_refused is not None:
+            on_refused(p.name, reason)
+        else:
+            log.warning("batch: %r not processed: %s", p.name, reason)
+    for job in jobs:
         kept = reusable(job, previous.get(job.name))
         if kept is not None:
             rows[job.name] = kept
@@ -93,11 +132,12 @@ def run_batch(photo_dir, out_dir, options: BatchOptions = BatchOptions(), progre
             todo.append(job)
             if job.name in previous:
                 rows[job.name] = previous[job.name]
-    summary = BatchSummary(out_dir=str(out.resolve()), manifest=str(out.resolve() / MANIFEST), photos=len(photos), done=0, failed=0,
-                           skipped=len(photos) - len(todo), manifest_done=0, manifest_failed=0, seconds=0.0,
-                           cluster_seconds=0.0, scheduler=None, dashboard=None, workers=0, per_photo=per_photo)
+    summary = BatchSummary(out_dir=str(out.resolve()), manifest=str(out.resolve() / MANIFEST), photos=len(jobs),
+                           done=0, failed=0, skipped=len(jobs) - len(todo), manifest_done=0, manifest_failed=0,
+                           seconds=0.0, cluster_seconds=0.0, scheduler=None, dashboard=None, workers=0,
+                           refused=len(refused), per_photo=per_photo)
     if todo:
-        _run(todo, options, rows, summary, out, progress, on_cluster, len(photos) - len(todo), len(photos))
+        _run(todo, options, workers, rows, summary, out, progress, on_cluster, len(jobs) - len(todo), len(jobs))
     write_manifest(out, rows)
     remove_leftovers(out)
     summary.manifest_done = sum(r.status == "done" for r in rows.values())
@@ -113,13 +153,14 @@ def _entry(rec: PhotoRecord, outcome: str) -> dict:
             "error": rec.error}
 
 
-def _run(todo, options, rows, summary, out, progress, on_cluster, done0, total) -> None:
+def _run(todo, options, workers, rows, summary, out, progress, on_cluster, done0, total) -> None:
     t = time.perf_counter()
-    client, cluster = _client(options)
+    client, cluster = _client(options, workers)
     try:
         summary.cluster_seconds = time.perf_counter() - t
         summary.scheduler = client.scheduler.address
-        summary.dashboard = client.dashboard_link if (cluster is None or options.dashboard) else None
+        # the LocalCluster's dashboard as its socket is bound (not the link Dask formats from the scheduler)
+        summary.dashboard = client.dashboard_link if cluster is None else loopback_dashboard(cluster, options.dashboard)
         summary.workers = len(client.scheduler_info(n_workers=-1)["workers"])
         if on_cluster is not None:
             on_cluster(summary.scheduler, summary.dashboard)

@@ -24,6 +24,10 @@ TEST_KILL_ENV = "USDRELIGHT_BATCH_TEST_KILL"
 """Test-only hook, ``NAME:TIMES[,NAME:TIMES...]``: the worker processing photo NAME kills its own process
 (SIGKILL) halfway through, after the build, the first TIMES times (counted by marker files
 ``OUT_DIR/.test-kill-NAME.I`` holding the killed process's id)."""
+TEST_HOLD_ENV = "USDRELIGHT_BATCH_TEST_HOLD"
+"""Test-only hook, ``NAME``: the worker processing photo NAME, after the build, writes
+``OUT_DIR/.test-hold-NAME`` and waits (at most 120 s) until ``OUT_DIR/.test-go-NAME`` exists: a batch held
+mid-photo, with its temp folder, for tests of what a second batch may touch."""
 
 
 def _one_line(exc: BaseException) -> str:
@@ -51,6 +55,20 @@ def _test_kill_hook(job: PhotoJob) -> None:
             os.kill(os.getpid(), signal.SIGKILL)
 
 
+def _test_hold_hook(job: PhotoJob) -> None:
+    if os.environ.get(TEST_HOLD_ENV) != job.name:
+        return
+    (job.out_dir / f".test-hold-{job.name}").write_text(f"{os.getpid()}\n")
+    deadline = time.monotonic() + 120
+    while not (job.out_dir / f".test-go-{job.name}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def _after_build(job: PhotoJob) -> None:
+    _test_kill_hook(job)
+    _test_hold_hook(job)
+
+
 def process_photo(job: PhotoJob) -> PhotoRecord:
     """Build, fit and (with ``pairs``) render one photo into ``out_dir/NAME``. Never raises for a bad photo:
     a usdrelight error (bad file, no valid depth, fit error) or an unexpected exception becomes a failed
@@ -63,7 +81,7 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
     try:
         work = make_pair_files(job.photo, tmp, max_side=o.max_side, fit_iterations=o.iterations, spp=o.spp,
                                lights=o.lights, verify_spp=o.verify_spp, render=o.pairs,
-                               after_build=lambda: _test_kill_hook(job))
+                               after_build=lambda: _after_build(job))
         fit = work.fit
         rec.status = "done"
         rec.fit_mse, rec.fit_psnr_db, rec.fit_mse_rel = fit.mse, fit.psnr_db, work.fit_mse_rel
@@ -85,8 +103,13 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
 
 
 def _replace(tmp: Path, final: Path) -> None:
-    """Publish ``tmp`` as ``final``; an existing ``final`` is moved aside first and removed after."""
+    """Publish ``tmp`` as ``final``; an existing ``final`` is moved aside first and removed after. Only a
+    batch's own photo folder (a folder holding ``batch.json``) is replaced: anything else under that name
+    (your folder, a file, a symbolic link) is a UsdRelightError and stays as it is."""
     old = None
+    if final.is_symlink() or (final.exists() and not (final / RECORD).is_file()):
+        raise UsdRelightError(f"{final} exists and is not a batch photo folder (no {RECORD}): not replaced; "
+                              f"move it away and rerun with --retry-failed")
     if final.exists():
         old = final.with_name(f".{final.name}.old-{os.getpid()}-{time.monotonic_ns()}")
         publish(final, old)

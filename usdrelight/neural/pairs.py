@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from ..fit.result import FitReport
 from ..fit.run import FitSettings, fit
 from ..imageio import read_map, read_photo
 from ..mitsuba.render import render_stage
+from ..safe_paths import check_read
 from ..stage.build import BuildOptions, build
 
 log = logging.getLogger(__name__)
@@ -49,16 +51,74 @@ class Pair:
     """Fit MSE divided by the photo's mean squared value (comparable across exposures)."""
 
 
-def list_photos(data_dir) -> list[Path]:
+SIDECAR_KINDS = ("depth", "points", "intrinsics", "albedo", "shading")
+"""``NAME.KIND.ext`` (KIND one of these) is a sidecar estimate of photo NAME (:func:`build_options`), not a photo."""
+MAX_NAME_BYTES = 200
+"""Longest photo name (file stem, UTF-8 bytes) :func:`list_photos` accepts: output folders add to it."""
+_BIDI = frozenset("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+
+
+def _name_problem(stem: str) -> str | None:
+    """Why a photo named ``stem`` is not processed (None when it is): names that print as something else."""
+    for ch in stem:
+        if unicodedata.category(ch) in ("Cc", "Zl", "Zp") or ch in _BIDI:
+            return f"its name has a control character (U+{ord(ch):04X})"
+    try:
+        size = len(stem.encode("utf-8"))
+    except UnicodeEncodeError:
+        return "its name is not valid UTF-8"
+    if stem.startswith("."):
+        return "a hidden file (its name starts with '.')"
+    if size > MAX_NAME_BYTES:
+        return f"its name is longer than {MAX_NAME_BYTES} bytes"
+    return None
+
+
+def _file_problem(folder: Path, path: Path) -> str | None:
+    """Why ``path`` (an entry of ``folder``) is not read: a link out of the folder, or not a regular file."""
+    try:
+        check_read(path, folder, "photo")
+    except UsdRelightError:
+        return "a symbolic link that leads outside the photo folder"
+    if not path.is_file():
+        return "not a regular file (a folder, a dangling link, a pipe or a device)"
+    return None
+
+
+def list_photos(data_dir, refused: list | None = None) -> list[Path]:
+    """The photos of a training (or ``batch``) folder, sorted: its files with a photo suffix that are not a
+    sidecar (``NAME.KIND.ext``, KIND in :data:`SIDECAR_KINDS`). A name may hold dots: ``a.b.png`` is photo
+    ``a.b`` (its depth is ``a.b.depth.exr``). Not returned, each appended to ``refused`` as ``(path, reason)``
+    (logged as a warning when ``refused`` is None): names with control characters, hidden, not UTF-8 or
+    over :data:`MAX_NAME_BYTES`; symbolic links that lead outside the folder; what is not a regular file; a
+    sidecar-named file whose photo is not there. A link inside the folder is a photo named by the link."""
     d = Path(data_dir)
     if not d.is_dir():
         raise UsdRelightError(f"training folder not found: {d}")
-    out = []
+    out, bad, sidecars, stems = [], [], [], set()
     for p in sorted(d.iterdir()):
-        if p.suffix.lower() in PHOTO_SUFFIXES and p.stem.count(".") == 0:
+        if p.suffix.lower() not in PHOTO_SUFFIXES:
+            continue
+        head, _, kind = p.stem.rpartition(".")
+        if head and kind in SIDECAR_KINDS:
+            sidecars.append((p, head, kind))
+            continue
+        stems.add(p.stem)
+        reason = _name_problem(p.stem) or _file_problem(d, p)
+        if reason:
+            bad.append((p, reason))
+        else:
             out.append(p)
+    bad += [(p, f"named like the {kind} sidecar of a photo {head!r} that is not in the folder")
+            for p, head, kind in sidecars if head not in stems]
+    for p, reason in sorted(bad):
+        if refused is None:
+            log.warning("%r: not used: %s", p.name, reason)
+        else:
+            refused.append((p, reason))
     if not out:
-        raise UsdRelightError(f"no photos in {d} (expected NAME.png/.jpg/.tif/.exr)")
+        first = f" ({len(bad)} file(s) not used, e.g. {bad[0][0].name!r}: {bad[0][1]})" if bad else ""
+        raise UsdRelightError(f"no photos in {d} (expected NAME.png/.jpg/.tif/.exr){first}")
     return out
 
 
@@ -84,9 +144,18 @@ def build_options(photo: Path) -> BuildOptions:
 
 
 def photo_inputs(photo: Path) -> list[Path]:
-    """The photo and every sidecar file it is built from (what a change of must redo the pair)."""
+    """The photo and every sidecar file it is built from (what a change of must redo the pair). A sidecar
+    that is a symbolic link leading outside the photo's folder is a UsdRelightError naming it."""
+    photo = Path(photo)
     o = build_options(photo)
-    return [Path(photo)] + [Path(q) for q in (o.depth, o.points, o.intrinsics, o.albedo, o.shading) if q]
+    sidecars = [Path(q) for q in (o.depth, o.points, o.intrinsics, o.albedo, o.shading) if q]
+    for q in sidecars:
+        try:
+            check_read(q, photo.parent, "sidecar")
+        except UsdRelightError:
+            raise UsdRelightError(f"sidecar {q.name!r} is a symbolic link that leads outside the photo "
+                                  f"folder") from None
+    return [photo] + sidecars
 
 
 @dataclass(frozen=True)
