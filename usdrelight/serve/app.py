@@ -6,11 +6,14 @@ One process serves one stage. The app holds the user's editable lights (:class:`
 split view against the original photo and the time of each frame). Every change (a widget, a gizmo drag) asks
 the :class:`FrameLoop` for a frame; only the newest request is rendered.
 
-Safety: the server binds 127.0.0.1 unless ``host`` says otherwise; no widget takes a file path: HDRIs are
-copies of those named on the command line (``--hdri``) or uploads, both stored under fixed names in the stage's
-folder (:mod:`.files`; so the saved layer stays readable under the scene-folder confinement of
-:mod:`usdrelight.safe_paths`); saving writes only ``lights_user.usda``, exporting only
-``STAGE_DIR/serve/export/relit.{exr,png}``; viser's public share links are refused.
+Safety: the server binds 127.0.0.1 unless ``host`` says otherwise and answers only requests whose Host and
+Origin are its own (and, beyond loopback, that carry the run's token: :mod:`.guard`); every value a client
+sends is checked on the server (:mod:`.gui`); uploads are bounded before they are buffered (:mod:`.uploads`);
+no widget takes a file path: HDRIs are copies of those named on the command line (``--hdri``) or uploads, both
+stored under fixed names in the stage's folder (:mod:`.files`; so the saved layer stays readable under the
+scene-folder confinement of :mod:`usdrelight.safe_paths`); saving writes only ``lights_user.usda`` (saves
+from several tabs wait for each other), exporting only ``STAGE_DIR/serve/export/relit.{exr,png}``; viser's
+public share links are refused.
 """
 from __future__ import annotations
 
@@ -27,16 +30,21 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..relight.composite import MODES
+from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
 from .files import export_relit, read_user_states, store_upload, write_user_layer
-from .gui import Gui
+from .guard import Guard, guarded
+from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
 from .live import FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
 from .scene_view import SceneView, scene_size
-from .state import LightState, quat_pointing_along, unique_name
+from .state import KINDS, LightState, checked_vector, quat_pointing_along, unique_name
+from .uploads import MAX_UPLOAD_BYTES, UploadGate
 
 log = logging.getLogger(__name__)
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
+SAVE_WAIT = 10.0
+"""Seconds a save waits for another writer of the stage (another process holding its lock)."""
 
 
 def _import_viser():
@@ -71,6 +79,7 @@ class ServeApp:
 
     def __init__(self, stage_path, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, hdris=(),
                  max_side: int | None = 512, mode: str | None = None):
+        refuse_usdz(stage_path, "serve")  # the app saves lights_user.usda into the stage's folder
         viser = _import_viser()
         t0 = time.perf_counter()
         self.stage_path = Path(stage_path)
@@ -80,6 +89,8 @@ class ServeApp:
         for p in hdris:
             p = Path(p)
             try:
+                if p.stat().st_size > MAX_UPLOAD_BYTES:
+                    raise UsdRelightError(f"--hdri {p}: over {MAX_UPLOAD_BYTES >> 20} MiB")
                 content = p.read_bytes()
             except OSError as exc:
                 raise UsdRelightError(f"--hdri {p}: {exc.strerror or exc}") from None
@@ -105,10 +116,22 @@ class ServeApp:
         self._lock = threading.RLock()
         self._shown_cond = threading.Condition()
         self._busy = threading.Lock()
+        self._save_lock = threading.Lock()  # saves from several tabs run one after the other
+        self._upload_lock = threading.Lock()
         photo = self.live.photo()
         self.photo_display = to_display(photo) if photo is not None else None
+        self.gui = None
+        self.uploads = UploadGate(on_refuse=self._upload_refused)
+        self.guard = Guard(host, self.uploads)
         with contextlib.redirect_stdout(sys.stderr):  # viser prints a banner; stdout is for summaries
-            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+            try:
+                with guarded(self.guard):
+                    self.server = viser.ViserServer(host=host, port=port, verbose=False)
+            except BaseException:
+                if getattr(self, "server", None) is not None:
+                    self.server.stop()
+                self.live.close()
+                raise
         self.host, self.port = host, self.server.get_port()
         if port and self.port != port:
             log.warning("port %d is in use: serving on %d", port, self.port)
@@ -126,8 +149,10 @@ class ServeApp:
     # ---- lifecycle -----------------------------------------------------------------------------
     @property
     def url(self) -> str:
+        """The address to open (with ``?token=...`` when the server listens beyond loopback)."""
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}/"
+        query = f"?token={self.guard.token}" if self.guard.token_required else ""
+        return f"http://{host}:{self.port}/{query}"
 
     def stop(self) -> None:
         """Stop rendering and serving (idempotent)."""
@@ -181,6 +206,8 @@ class ServeApp:
         return LightState(name, "dome", intensity=0.2, position=tuple(centre))
 
     def add_light(self, kind: str) -> str:
+        if kind not in KINDS:
+            raise UsdRelightError(f"unknown light kind {kind!r} ({', '.join(KINDS)})")
         with self._lock:
             name = unique_name(kind, set(self.states) | self.managed | self.reserved)
             s = self.default_light(kind, name)
@@ -212,51 +239,71 @@ class ServeApp:
         return s
 
     def move_light(self, name: str, position, wxyz) -> None:
-        """A gizmo moved: the light follows (the gizmo's own path of the update)."""
+        """A gizmo moved: the light follows (the gizmo's own path of the update). A position or rotation a
+        client sent that is not finite (or is beyond :data:`.state.POSITION_LIMIT`) is refused: the gizmo goes
+        back to the light."""
         with self._lock:
             if name not in self.states:
                 return
-            s = self.states[name].with_(position=tuple(position), rotation=tuple(wxyz))
-            self.states[name] = s
+            try:
+                s = self.states[name].with_(position=checked_vector(position, "a position"),
+                                            rotation=tuple(finite(q, "a rotation") for q in wxyz))
+            except (UsdRelightError, TypeError, ValueError) as exc:
+                log.warning("a gizmo move of %s was not applied: %s", name, exc)
+                s = None
+            else:
+                self.states[name] = s
+        if s is None:
+            current = self.states.get(name)
+            if current is not None:
+                self.view.set_light(current)
+            return
         self.update()
         self.gui.light_moved(s)
 
     def set_fitted(self, on: bool | None = None, dimmer: float | None = None) -> None:
+        """Fitted lights on/off and their dimmer (clamped to [0, 1]; NaN/Inf refused)."""
+        dimmer = None if dimmer is None else clamp(dimmer, DIMMER, "the dimmer")
         with self._lock:
             if on is not None:
                 self.fitted_on = bool(on)
             if dimmer is not None:
-                self.dimmer = max(0.0, float(dimmer))
-        self._refresh()
+                self.dimmer = dimmer
+        self._refresh(("fitted_on",) * (on is not None) + ("dimmer",) * (dimmer is not None))
 
     def set_mode(self, mode: str) -> None:
         if mode not in MODES:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         with self._lock:
             self.mode = mode
-        self._refresh()
+        self._refresh(("mode",))
 
     def set_display(self, split: float | None = None, exposure: float | None = None) -> None:
+        """The split line and the display exposure (clamped to their sliders' ranges; NaN/Inf refused)."""
+        split = None if split is None else clamp(split, SPLIT, "the split")
+        exposure = None if exposure is None else clamp(exposure, DISPLAY_EXPOSURE, "the display exposure")
         if split is not None:
-            self.split = float(split)
+            self.split = split
         if exposure is not None:
-            self.exposure = float(exposure)
-        self._refresh()
+            self.exposure = exposure
+        self._refresh(("split",) * (split is not None) + ("exposure",) * (exposure is not None))
 
-    def _refresh(self) -> None:
+    def _refresh(self, keys) -> None:
         if getattr(self, "gui", None) is not None:
-            self.gui.refresh()
+            self.gui.refresh(keys)  # only the widgets of this change: another one may be on its way
         self.update()
 
     # ---- files ---------------------------------------------------------------------------------
     def save(self) -> Path:
-        """Write the editable lights to lights_user.usda (only that file, atomically)."""
-        with self._lock:
-            states, managed = list(self.states.values()), set(self.managed)
-        path = write_user_layer(self.stage_dir, states, managed, self.hdris)
-        with self._lock:
-            self.managed = managed | {s.name for s in states}
-        return path
+        """Write the editable lights to lights_user.usda (only that file, atomically). Saves of this app run
+        one at a time; one waits up to :data:`SAVE_WAIT` s for another process writing the stage."""
+        with self._save_lock:
+            with self._lock:
+                states, managed = list(self.states.values()), set(self.managed)
+            path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT)
+            with self._lock:
+                self.managed = managed | {s.name for s in states}
+            return path
 
     def export(self) -> tuple[Path, Path]:
         """The relit photo at full resolution -> STAGE_DIR/serve/export/relit.exr + relit.png."""
@@ -265,8 +312,13 @@ class ServeApp:
             return export_relit(self.stage_dir, image)
 
     def upload_hdri(self, client_name: str, content: bytes) -> str:
-        """Store an uploaded HDRI under its fixed name; returns the label it gets in the HDRI lists."""
-        label, path = store_upload(self.stage_dir, client_name, content)
+        """Store an uploaded HDRI under its fixed name (one at a time; bounds: :mod:`.uploads`); returns the
+        label it gets in the HDRI lists."""
+        try:
+            with self._upload_lock:
+                label, path = store_upload(self.stage_dir, client_name, content)
+        finally:
+            self.uploads.release()  # the next upload may start
         with self._lock:
             for known, p in self.hdris.items():
                 if Path(p) == path:
@@ -275,6 +327,10 @@ class ServeApp:
             self.hdris[label] = path
             self.live.hdris[label] = path
         return label
+
+    def _upload_refused(self, reason: str) -> None:
+        if self.gui is not None:
+            self.gui.upload_refused(reason)
 
     # ---- frames --------------------------------------------------------------------------------
     def _frustum_image(self):

@@ -3,7 +3,9 @@
 Safety: every path here is fixed by the server or derived from the stage's own folder; nothing a browser
 sends is ever used as (part of) a path. Uploads are stored under ``STAGE_DIR/serve/uploads/`` with a name made
 from their content hash (the client's file name only chooses between the accepted suffixes ``.exr`` and
-``.hdr`` and gives a display label); exports go to ``STAGE_DIR/serve/export/relit.{exr,png}``.
+``.hdr`` and gives a display label), and only within the bounds of :mod:`.uploads` (size, then the image size
+its header declares, then OpenImageIO's reading of that header, before any pixel is decoded); exports go to
+``STAGE_DIR/serve/export/relit.{exr,png}``.
 
 The user-lights layer (``lights_user.usda``) is rewritten atomically (:mod:`usdrelight.atomic`): the app
 replaces the lights it manages under /Scene/Lights/User and keeps every other opinion of that layer (lights it
@@ -11,27 +13,28 @@ cannot edit, documentation, anything else a user authored). No other layer is to
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import re
+import time
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import stage_lock, write_bytes_atomic, write_text_atomic
+from ..atomic import LOCK_NAME, stage_lock, write_bytes_atomic, write_text_atomic
 from ..errors import UsdRelightError
-from ..imageio import read_photo
+from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
 from .state import LightState, matrix_to_quat
+from .uploads import MAX_HDRI_MEGAPIXELS, check_declared, check_hdri_header
 
 log = logging.getLogger(__name__)
 SERVE_DIR = "serve"
 UPLOADS = "serve/uploads"
 EXPORTS = "serve/export"
-HDRI_SUFFIXES = (".exr", ".hdr")
-MAX_UPLOAD_BYTES = 256 * 1024 * 1024
 
 
 def hdri_label(text: str) -> str:
@@ -42,16 +45,20 @@ def hdri_label(text: str) -> str:
 
 def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path]:
     """Keep an uploaded HDRI: (label, path). The path is ``STAGE_DIR/serve/uploads/hdri-<sha256[:16]>.<exr|hdr>``
-    whatever the client called the file; the file must decode as an image."""
-    suffix = Path(str(client_name)).suffix.lower()
-    if suffix not in HDRI_SUFFIXES:
-        raise UsdRelightError(f"an HDRI upload must be {' or '.join(HDRI_SUFFIXES)}")
-    if not content or len(content) > MAX_UPLOAD_BYTES:
-        raise UsdRelightError(f"an HDRI upload must hold 1 byte to {MAX_UPLOAD_BYTES >> 20} MiB")
+    whatever the client called the file; the file must be at most MAX_UPLOAD_BYTES, declare at most
+    MAX_HDRI_MEGAPIXELS in its header (checked before decoding) and decode as a finite RGB image."""
+    suffix = check_declared(client_name, len(content))
+    try:
+        check_hdri_header(content, suffix)
+    except UsdRelightError as exc:
+        raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
     digest = hashlib.sha256(content).hexdigest()[:16]
     path = Path(stage_dir).resolve() / UPLOADS / f"hdri-{digest}{suffix}"
     write_bytes_atomic(path, content)
     try:
+        w, h = check_image_size(path)  # OpenImageIO's reading of the header, before any pixel
+        if w * h / 1e6 > MAX_HDRI_MEGAPIXELS:
+            raise UsdRelightError(f"{w}x{h} is over the limit of {MAX_HDRI_MEGAPIXELS:g} megapixels")
         img = read_photo(path)
         if img.ndim != 3 or not np.all(np.isfinite(img)):
             raise UsdRelightError("not a finite RGB image")
@@ -222,16 +229,40 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
     return layer.ExportToString()
 
 
-def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None) -> Path:
-    """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file."""
+@contextlib.contextmanager
+def _locked(folder: Path, wait: float):
+    """:func:`usdrelight.atomic.stage_lock` of ``folder``, retried for up to ``wait`` seconds while another
+    writer (a process, or another thread of this one) holds it."""
+    end, misses = time.monotonic() + wait, 0
+    with contextlib.ExitStack() as stack:
+        while True:
+            try:
+                stack.enter_context(stage_lock(folder))
+                break
+            except UsdRelightError:
+                if time.monotonic() >= end:
+                    raise
+                if not (folder / LOCK_NAME).exists():  # released meanwhile, or not a lock at all (permissions)
+                    misses += 1
+                    if misses > 3:
+                        raise
+                    continue
+                misses = 0
+            time.sleep(0.05)
+        yield
+
+
+def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None, wait: float = 0.0) -> Path:
+    """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file. The
+    stage lock is taken first (every stage writer holds it), waiting up to ``wait`` seconds for another
+    writer ("stage ... is being written by PID N" after that)."""
     target = Path(stage_dir).resolve() / USER_LIGHTS
-    text = user_layer_text(stage_dir, states, managed, hdri_paths)
-    with stage_lock(target.parent):  # the lock every stage writer holds ("being written by PID N" otherwise)
-        write_text_atomic(target, text)
     from pxr import Sdf
 
-    cached = Sdf.Layer.Find(str(target))
-    if cached is not None:  # a stage open in this process sees the new file
-        cached.Reload(force=True)
+    with _locked(target.parent, wait):  # read, edit and replace under the lock: no other writer's change is lost
+        write_text_atomic(target, user_layer_text(stage_dir, states, managed, hdri_paths))
+        cached = Sdf.Layer.Find(str(target))
+        if cached is not None:  # a stage open in this process sees the new file
+            cached.Reload(force=True)
     log.info("saved %d light(s) to %s", len(states), target)
     return target

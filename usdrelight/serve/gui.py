@@ -5,22 +5,66 @@ Widget units: colours are shown as sRGB 8-bit (stored linear, :func:`.state.colo
 UsdLux ``intensity`` (W/sr for point/spot, W/m^2 for sun, radiance for dome) and exposure UsdLux ``exposure``
 in stops; positions and directions are in the stage's frame and units; angles in degrees. No widget takes a
 file path or any free text.
+
+Every value a client sends is checked here, on the server, before it reaches a light or a file (a client can
+send any value, whatever range its widget shows): numbers must be finite (NaN/Inf is refused and the widget
+shows the light's value again), slider values are clamped to the slider's range as the server built it (not
+the range the client reports), positions stay within :data:`.state.POSITION_LIMIT`, choices must be among the
+server's own options. Slider ranges grow to include the stage's own values (a light with exposure 12 gets an
+exposure slider up to 12). A refused value is one status line, never a traceback.
 """
 from __future__ import annotations
 
 import logging
+import math
 import threading
 
 import numpy as np
 
 from ..errors import UsdRelightError
 from ..relight.composite import MODES
-from .state import KINDS, color_from_picker, picker_from_color, quat_pointing_along
+from .state import (KINDS, checked_direction, checked_vector, color_from_picker, picker_from_color,
+                    quat_pointing_along)
 
 log = logging.getLogger(__name__)
 NONE = "(none)"
 COLOUR_ONLY = "(colour only)"
 MIN_VIEW_WIDTH = 400
+DIMMER = (0.0, 1.0)
+SPLIT = (0.0, 1.0)
+DISPLAY_EXPOSURE = (-6.0, 6.0)
+#: light field -> (widget key, default range, step); the range grows to include the light's own value
+SLIDERS = {"intensity": ("intensity", (0.0, 10.0), 0.01), "exposure": ("exposure", (-10.0, 10.0), 0.1),
+           "cone_angle": ("cone", (1.0, 90.0), 0.5), "softness": ("softness", (0.0, 1.0), 0.01),
+           "angle": ("angle", (0.0, 10.0), 0.05)}
+
+
+def finite(value, what: str) -> float:
+    """``value`` as a finite float, or UsdRelightError."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise UsdRelightError(f"{what} must be a number") from None
+    if not math.isfinite(x):
+        raise UsdRelightError(f"{what} must be finite")
+    return x
+
+
+def clamp(value, bounds, what: str) -> float:
+    """A finite ``value`` clamped to ``bounds`` (NaN/Inf: UsdRelightError)."""
+    return min(max(finite(value, what), bounds[0]), bounds[1])
+
+
+def slider_range(field: str, value: float) -> tuple[float, float, float]:
+    """(low, high, shown value) of a light's slider: the default range, grown to hold ``value``."""
+    lo, hi = SLIDERS[field][1]
+    shown = round(float(value), 4)
+    if field == "intensity":
+        hi = max(hi, round(4.0 * shown, 1))
+    lo, hi = min(lo, math.floor(shown)), max(hi, math.ceil(shown))
+    if field == "cone_angle":
+        lo = min(SLIDERS[field][1][0], shown)  # a cone is > 0
+    return float(lo), float(hi), shown
 
 
 class Gui:
@@ -33,30 +77,33 @@ class Gui:
         self._sync = threading.local()
         self._editor = None
         self._fields: dict = {}
+        self._ranges: dict = {}  # widget key -> (light field, (low, high)) of the editor's sliders
         self.widgets: dict = {}
         self.image_panel()
         with gui.add_folder("Output"):
             mode = gui.add_dropdown("Mode", MODES, initial_value=app.mode,
                                     hint="neural: the network on the render; ratio: photo x new / fitted render; "
                                          "add: photo + added lights")
-            mode.on_update(self._guard(lambda e: app.set_mode(mode.value)))
+            mode.on_update(self._guard(lambda e: app.set_mode(str(mode.value)), "mode"))
             self.widgets["mode"] = mode
         with gui.add_folder("Photo's lighting"):
             on = gui.add_checkbox("Fitted lights", True, hint="the lights `usdrelight fit` found (day)")
             dim = gui.add_slider("Fitted dimmer", 0.0, 1.0, 0.01, 1.0, hint="1 = as photographed, 0 = night")
-            on.on_update(self._guard(lambda e: app.set_fitted(on=on.value)))
+            on.on_update(self._guard(lambda e: app.set_fitted(on=bool(on.value))))
             self.widgets.update(fitted_on=on, dimmer=dim)
-            dim.on_update(self._guard(lambda e: app.set_fitted(dimmer=dim.value)))
+            dim.on_update(self._guard(lambda e: app.set_fitted(dimmer=clamp(dim.value, DIMMER, "the dimmer")),
+                                      "dimmer"))
         with gui.add_folder("3D view"):
             through = gui.add_checkbox("From the camera", False, hint="look through the stage's camera")
             show = gui.add_checkbox("Fitted lights", True, hint="show the fitted point lights")
-            through.on_update(lambda e: e.client is not None and app.view.look_through_camera(e.client,
-                                                                                            through.value))
-            show.on_update(lambda e: app.view.show_fitted(show.value))
+            through.on_update(self._guard(lambda e: e.client is not None and app.view.look_through_camera(
+                e.client, bool(through.value))))
+            show.on_update(self._guard(lambda e: app.view.show_fitted(bool(show.value))))
         with gui.add_folder("Lights"):
             self.kind = gui.add_dropdown("New light", KINDS, initial_value="point")
             add = gui.add_button("Add light")
-            add.on_click(lambda e: app.add_light(self.kind.value))
+            add.on_click(self._guard(lambda e: app.add_light(str(self.kind.value))))
+            self.widgets["add"] = add
             names = tuple(app.states) or (NONE,)
             self.selected = gui.add_dropdown("Selected", names, initial_value=names[0])
             self.selected.on_update(self._guard(lambda e: self._rebuild_editor()))
@@ -66,18 +113,30 @@ class Gui:
             export = gui.add_button("Export relit", hint="full resolution: serve/export/relit.exr + .png")
             upload = gui.add_upload_button("Upload HDRI", mime_type=".exr,.hdr", hint=".exr or .hdr latlong")
             self.status = gui.add_markdown(f"HDRIs: {', '.join(app.hdris) or 'none (--hdri or upload)'}")
+        self.widgets.update(save=save, export=export, upload=upload, kind=self.kind)
         save.on_click(lambda e: self._run("save", self._save))
         export.on_click(lambda e: self._run("export", self._export))
         upload.on_upload(lambda e: self._run("upload", lambda: self._upload(upload.value)))
         self._rebuild_editor()
 
     # ---- helpers ---------------------------------------------------------------------------------
-    def _guard(self, fn):
-        """Run ``fn`` for the user's changes only, not while the app itself sets widget values."""
+    def _guard(self, fn, key: str | None = None):
+        """Run ``fn`` for the user's changes only, not while the app itself sets widget values; a refused value
+        is one status line (and output widget ``key`` shows the app's value again)."""
         def wrapped(event):
-            if not getattr(self._sync, "on", False):
+            if getattr(self._sync, "on", False):
+                return
+            try:
                 fn(event)
+            except (UsdRelightError, TypeError, ValueError, OverflowError) as exc:
+                self._refused(exc)
+                if key is not None:
+                    self.refresh((key,))
         return wrapped
+
+    def _refused(self, exc) -> None:
+        self.status.content = f"**not applied:** {exc}"
+        log.warning("a client's value was not applied: %s", exc)
 
     def _set(self, handle, value) -> None:
         self._sync.on = True
@@ -90,7 +149,7 @@ class Gui:
         self.status.content = f"{what} ..."
         try:
             self.status.content = fn()
-        except UsdRelightError as exc:
+        except (UsdRelightError, OSError, ValueError, MemoryError) as exc:
             self.status.content = f"**{what} failed:** {exc}"
             log.warning("%s failed: %s", what, exc)
 
@@ -103,9 +162,12 @@ class Gui:
         return f"Exported {exr.parent.name}/{exr.name} and {png.name}"
 
     def _upload(self, uploaded) -> str:
-        label = self.app.upload_hdri(uploaded.name, uploaded.content)
+        label = self.app.upload_hdri(str(uploaded.name), uploaded.content)
         self._rebuild_editor()
         return f"HDRI {label} added"
+
+    def upload_refused(self, reason: str) -> None:
+        self.status.content = f"**upload refused:** {reason}"
 
     # ---- image panel -----------------------------------------------------------------------------
     def image_panel(self) -> None:
@@ -116,21 +178,23 @@ class Gui:
             self.image = gui.add_image(np.zeros((h, w, 3), np.uint8), label="relit", format="jpeg",
                                        jpeg_quality=90)
             self.timing = gui.add_markdown("frame: -")
-            split = gui.add_slider("Split", 0.0, 1.0, 0.01, 0.0, hint="original photo left of the line",
+            split = gui.add_slider("Split", *SPLIT, 0.01, 0.0, hint="original photo left of the line",
                                    disabled=app.photo_display is None)
-            expo = gui.add_slider("Display exposure", -6.0, 6.0, 0.1, 0.0, hint="stops, view only")
-        split.on_update(self._guard(lambda e: app.set_display(split=split.value)))
-        expo.on_update(self._guard(lambda e: app.set_display(exposure=expo.value)))
+            expo = gui.add_slider("Display exposure", *DISPLAY_EXPOSURE, 0.1, 0.0, hint="stops, view only")
+        split.on_update(self._guard(lambda e: app.set_display(split=clamp(split.value, SPLIT, "the split")),
+                                    "split"))
+        expo.on_update(self._guard(lambda e: app.set_display(
+            exposure=clamp(expo.value, DISPLAY_EXPOSURE, "the display exposure")), "exposure"))
         self.widgets.update(split=split, exposure=expo)
         panel.dock_right()
         panel.set_width(max(420, min(720, w + 40)))
 
-    def refresh(self) -> None:
-        """Show the app's output settings in their widgets (after a change made from Python)."""
+    def refresh(self, keys=None) -> None:
+        """Show the app's output settings (those named in ``keys``, default all) in their widgets."""
         app = self.app
         for key, value in (("mode", app.mode), ("fitted_on", app.fitted_on), ("dimmer", app.dimmer),
                            ("split", app.split), ("exposure", app.exposure)):
-            if key in self.widgets:
+            if key in self.widgets and (keys is None or key in keys):
                 self._set(self.widgets[key], value)
 
     def show_frame(self, img, frame) -> None:
@@ -166,7 +230,7 @@ class Gui:
         gui, app = self.gui, self.app
         if self._editor is not None:
             self._editor.remove()
-        self._fields = {}
+        self._fields, self._ranges = {}, {}
         name = self.selected.value
         s = app.states.get(name)
         with self.editor_slot:
@@ -174,53 +238,82 @@ class Gui:
         if s is None:
             return
         f = self._fields
+        hints = {"intensity": {"point": "W/sr", "spot": "W/sr", "sun": "W/m^2", "dome": "radiance"}[s.kind],
+                 "exposure": "stops", "cone_angle": "half-angle, degrees",
+                 "angle": "angular diameter, degrees (the Sun: 0.53)"}
+        labels = {"intensity": "Intensity", "exposure": "Exposure", "cone_angle": "Cone angle",
+                  "softness": "Softness", "angle": "Angle"}
+        fields = ["intensity", "exposure"] + {"spot": ["cone_angle", "softness"], "sun": ["angle"]}.get(s.kind, [])
         with self._editor:
             f["enabled"] = gui.add_checkbox("On", s.enabled)
             f["colour"] = gui.add_rgb("Colour", picker_from_color(s.color))
-            top = max(10.0, 4.0 * s.intensity)
-            f["intensity"] = gui.add_slider("Intensity", 0.0, round(top, 1), 0.01, round(min(s.intensity, top), 4),
-                                            hint={"point": "W/sr", "spot": "W/sr", "sun": "W/m^2",
-                                                  "dome": "radiance"}[s.kind])
-            f["exposure"] = gui.add_slider("Exposure", -10.0, 10.0, 0.1, round(s.exposure, 1), hint="stops")
+            for field in fields[:2]:
+                self._slider(field, labels[field], s, hints.get(field))
             if s.kind in ("point", "spot"):
                 f["position"] = gui.add_vector3("Position", tuple(round(v, 4) for v in s.position), step=0.01)
             if s.kind in ("spot", "sun"):
                 f["direction"] = gui.add_vector3("Direction", tuple(round(float(v), 4) for v in s.direction),
                                                  step=0.01)
-            if s.kind == "spot":
-                f["cone"] = gui.add_slider("Cone angle", 1.0, 90.0, 0.5, round(min(max(s.cone_angle, 1.0), 90.0), 4),
-                                           hint="half-angle, degrees")
-                f["softness"] = gui.add_slider("Softness", 0.0, 1.0, 0.01, round(s.softness, 4))
-            if s.kind == "sun":
-                f["angle"] = gui.add_slider("Angle", 0.0, 10.0, 0.05, round(min(s.angle, 10.0), 4),
-                                            hint="angular diameter, degrees (the Sun: 0.53)")
+            for field in fields[2:]:
+                self._slider(field, labels[field], s, hints.get(field))
             if s.kind == "dome":
                 options = (COLOUR_ONLY, *app.hdris)
                 f["hdri"] = gui.add_dropdown("HDRI", options, initial_value=s.hdri or COLOUR_ONLY)
             remove = gui.add_button("Remove light", color="red")
-        remove.on_click(lambda e: app.remove_light(name))
+        remove.on_click(self._guard(lambda e: app.remove_light(name)))
         for key, handle in f.items():
             handle.on_update(self._guard(lambda e, key=key, name=name: self._edit(name, key)))
 
+    def _slider(self, field: str, label: str, s, hint) -> None:
+        key, _, step = SLIDERS[field]
+        lo, hi, shown = slider_range(field, getattr(s, field))
+        self._ranges[key] = (field, (lo, hi))
+        self._fields[key] = self.gui.add_slider(label, lo, hi, step, shown, hint=hint)
+
     def _edit(self, name: str, key: str) -> None:
         f, app = self._fields, self.app
-        if name not in app.states:
+        if name not in app.states or key not in f or self.selected.value != name:
             return
         v = f[key].value
         try:
             if key == "enabled":
-                app.set_light(name, sync_gui=False, enabled=bool(v))
+                changes = {"enabled": bool(v)}
             elif key == "colour":
-                app.set_light(name, sync_gui=False, color=color_from_picker(v))
-            elif key in ("intensity", "exposure", "softness", "angle"):
-                app.set_light(name, sync_gui=False, **{key: float(v)})
-            elif key == "cone":
-                app.set_light(name, sync_gui=False, cone_angle=float(v))
+                changes = {"color": color_from_picker(checked_vector(v, "a colour", 255))}
+            elif key in self._ranges:
+                field, bounds = self._ranges[key]
+                x = clamp(v, bounds, field.replace("_", " "))
+                if x != float(v):
+                    self._set(f[key], x)  # the client sent a value beyond the slider: show the one applied
+                changes = {field: x}
             elif key == "position":
-                app.set_light(name, sync_gui=False, position=tuple(float(x) for x in v))
+                changes = {"position": checked_vector(v, "a position")}
             elif key == "direction":
-                app.set_light(name, sync_gui=False, rotation=quat_pointing_along(v))
+                changes = {"rotation": quat_pointing_along(checked_direction(v))}
             elif key == "hdri":
-                app.set_light(name, sync_gui=False, hdri="" if v == COLOUR_ONLY else v)
-        except UsdRelightError as exc:
-            self.status.content = f"**not applied:** {exc}"
+                if v != COLOUR_ONLY and v not in app.hdris:
+                    raise UsdRelightError(f"unknown HDRI {v!r}")
+                changes = {"hdri": "" if v == COLOUR_ONLY else str(v)}
+            else:
+                return
+            app.set_light(name, sync_gui=False, **changes)
+        except (UsdRelightError, TypeError, ValueError, OverflowError) as exc:
+            self._refused(exc)
+            try:
+                self._show_light(name)
+            except RuntimeError:  # the editor was rebuilt meanwhile (its widgets removed)
+                pass
+
+    def _show_light(self, name: str) -> None:
+        """Put the editor's widgets back to the values of light ``name`` (after a refused edit)."""
+        s = self.app.states.get(name)
+        if s is None or self.selected.value != name:
+            return
+        f = self._fields
+        values = {"enabled": s.enabled, "colour": picker_from_color(s.color),
+                  "position": tuple(round(v, 4) for v in s.position),
+                  "direction": tuple(round(float(v), 4) for v in s.direction), "hdri": s.hdri or COLOUR_ONLY}
+        values.update({key: round(float(getattr(s, field)), 4) for key, (field, _) in self._ranges.items()})
+        for key, value in values.items():
+            if key in f:
+                self._set(f[key], value)

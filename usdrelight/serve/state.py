@@ -33,6 +33,11 @@ from ..stage.records import LightRecord, TextureRecord
 
 KINDS = ("point", "spot", "sun", "dome")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+MAX_RADIANCE = 1e30
+"""Largest intensity x 2^exposure x colour a light may have (far beyond any real light, far below float32's
+3.4e38, so no renderer sum or USD float overflows)."""
+POSITION_LIMIT = 1e6
+"""Largest |coordinate| of a light position a client may set (stage units)."""
 
 
 def _f32(x) -> float:
@@ -76,6 +81,29 @@ def quat_pointing_along(direction) -> tuple:
     if not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
         raise UsdRelightError("a light direction must be finite and non-zero")
     return matrix_to_quat(frame_pointing_along(d))
+
+
+def checked_vector(values, what: str, limit: float = POSITION_LIMIT) -> tuple:
+    """Three finite floats of at most ``limit`` in magnitude (a client's position or direction), or
+    UsdRelightError."""
+    try:
+        v = tuple(float(x) for x in values)
+    except (TypeError, ValueError, OverflowError):
+        raise UsdRelightError(f"{what} must be three numbers") from None
+    if len(v) != 3 or not all(np.isfinite(v)):
+        raise UsdRelightError(f"{what} must be three finite numbers")
+    if max(abs(x) for x in v) > limit:
+        raise UsdRelightError(f"{what} must stay within {limit:g} of the origin")
+    return v
+
+
+def checked_direction(values) -> tuple:
+    """A client's direction: three finite numbers, not all zero (scaled so the largest is +-1)."""
+    v = np.asarray(checked_vector(values, "a direction", float("inf")))
+    peak = float(np.max(np.abs(v)))
+    if peak == 0:
+        raise UsdRelightError("a light direction must not be zero")
+    return tuple(float(x) for x in v / peak)
 
 
 def picker_from_color(color) -> tuple:
@@ -133,6 +161,12 @@ class LightState:
             raise UsdRelightError(f"light {self.name}: colour and intensity must be >= 0")
         if not (0 < self.cone_angle <= 180 and 0 <= self.softness <= 1 and 0 <= self.angle <= 180):
             raise UsdRelightError(f"light {self.name}: cone angle in (0, 180], softness in [0, 1], angle in [0, 180]")
+        try:
+            peak = _f32(self.intensity) * 2.0 ** _f32(self.exposure) * max(color)
+        except OverflowError:
+            peak = float("inf")
+        if not peak <= MAX_RADIANCE:
+            raise UsdRelightError(f"light {self.name}: intensity x 2^exposure x colour is over {MAX_RADIANCE:g}")
         q = np.asarray(self.rotation, np.float64)
         if np.linalg.norm(q) == 0:
             raise UsdRelightError(f"light {self.name}: the rotation quaternion must not be zero")
