@@ -225,3 +225,20 @@ def test_fit_cli_can_skip_the_verification_render(cli, tmp_path):
     with pytest.raises(SystemExit) as exc:  # argparse refuses it before anything runs
         cli("fit", stage, "--verify-spp", "-1")
     assert exc.value.code == 2
+
+
+def test_fit_runs_under_dasks_malloc_settings(tmp_path):
+    """Dask exports MALLOC_TRIM_THRESHOLD_=65536 to its processes and their children; under it Mitsuba's
+    shadow-ray queries read a freed buffer and the fit died with SIGSEGV (usdrelight._llvm.keep_small_frees_mapped)."""
+    import os
+    import subprocess
+    import sys
+
+    stage = tmp_path / "st"
+    from conftest import build_procedural
+
+    build_procedural(stage)
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536", "PYTHONFAULTHANDLER": "1"}
+    r = subprocess.run([sys.executable, "-m", "usdrelight", "fit", str(stage / "scene.usda"), "--max-side", "96",
+                        "--lights", "2", "--verify-spp", "0"], capture_output=True, text=True, env=env, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]

@@ -18,6 +18,7 @@ import types
 
 from . import schemas
 from ._llvm import configure_drjit_llvm as _configure_drjit_llvm
+from ._llvm import keep_small_frees_mapped as _keep_small_frees_mapped
 from .errors import UsdRelightError
 
 __version__ = "0.1.0"
@@ -56,6 +57,7 @@ def __dir__():
 
 
 _configure_drjit_llvm()
+_keep_small_frees_mapped()
 # Register the usdRelight schema plugin now: USD reads its schema registry only once per process, so it
 # must know the plugin before the first stage is opened or created.
 try:

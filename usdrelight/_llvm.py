@@ -43,3 +43,24 @@ def configure_drjit_llvm() -> str | None:
     if path:
         os.environ["DRJIT_LIBLLVM_PATH"] = path
     return path
+
+
+def keep_small_frees_mapped() -> bool:
+    """Undo ``MALLOC_TRIM_THRESHOLD_`` / ``MALLOC_MMAP_THRESHOLD_`` settings for this process (glibc only).
+
+    Dask sets ``MALLOC_TRIM_THRESHOLD_=65536`` in its processes' environment (and so in every subprocess they
+    start), which freezes glibc's mmap threshold at 128 KiB: every freed buffer above that is unmapped at once.
+    Under that setting Mitsuba's shadow-ray queries (``Scene.ray_test`` in the LLVM variant) read a freed
+    buffer and crash the process with SIGSEGV (reproduced with drjit 1.5 / Mitsuba 3.9 on the procedural fit;
+    tests/test_fit.py). glibc's default lets the threshold grow to 32 MiB, where the same queries run; these
+    ``mallopt`` calls restore that (mmap threshold 32 MiB, trim threshold 128 MiB). Returns whether applied."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(-3, 32 << 20)) and bool(libc.mallopt(-1, 128 << 20))  # M_MMAP_/M_TRIM_THRESHOLD
+    except (OSError, AttributeError):  # not glibc
+        return False
