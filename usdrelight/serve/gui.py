@@ -75,6 +75,7 @@ class Gui:
         gui = app.server.gui
         self.gui = gui
         self._sync = threading.local()
+        self._restoring = threading.Lock()
         self._editor = None
         self._fields: dict = {}
         self._ranges: dict = {}  # widget key -> (light field, (low, high)) of the editor's sliders
@@ -126,12 +127,14 @@ class Gui:
         def wrapped(event):
             if getattr(self._sync, "on", False):
                 return
+            handle = self.widgets.get(key) if key is not None else None
+            sent = handle.value if handle is not None else None
             try:
                 fn(event)
             except (UsdRelightError, TypeError, ValueError, OverflowError) as exc:
+                if handle is not None:
+                    self._restore(handle, sent, self._app_values()[key])
                 self._refused(exc)
-                if key is not None:
-                    self.refresh((key,))
         return wrapped
 
     def _refused(self, exc) -> None:
@@ -144,6 +147,15 @@ class Gui:
             handle.value = value
         finally:
             self._sync.on = False
+
+    def _restore(self, handle, sent, value) -> None:
+        """Show ``value`` (the app's) in ``handle`` after the client value ``sent`` was refused or clamped,
+        unless a newer client value replaced ``sent`` meanwhile: viser stores each client value in the widget
+        before its callback runs (in a thread of its own), so writing over a newer one would make that
+        callback read ours and drop the client's change unjudged."""
+        with self._restoring:
+            if handle.value is sent:
+                self._set(handle, value)
 
     def _run(self, what: str, fn) -> None:
         self.status.content = f"{what} ..."
@@ -189,11 +201,14 @@ class Gui:
         panel.dock_right()
         panel.set_width(max(420, min(720, w + 40)))
 
+    def _app_values(self) -> dict:
+        app = self.app
+        return {"mode": app.mode, "fitted_on": app.fitted_on, "dimmer": app.dimmer, "split": app.split,
+                "exposure": app.exposure}
+
     def refresh(self, keys=None) -> None:
         """Show the app's output settings (those named in ``keys``, default all) in their widgets."""
-        app = self.app
-        for key, value in (("mode", app.mode), ("fitted_on", app.fitted_on), ("dimmer", app.dimmer),
-                           ("split", app.split), ("exposure", app.exposure)):
+        for key, value in self._app_values().items():
             if key in self.widgets and (keys is None or key in keys):
                 self._set(self.widgets[key], value)
 
@@ -275,6 +290,7 @@ class Gui:
         if name not in app.states or key not in f or self.selected.value != name:
             return
         v = f[key].value
+        shown = None  # the value the widget shows once applied, when it is not the client's (clamped)
         try:
             if key == "enabled":
                 changes = {"enabled": bool(v)}
@@ -284,7 +300,7 @@ class Gui:
                 field, bounds = self._ranges[key]
                 x = clamp(v, bounds, field.replace("_", " "))
                 if x != float(v):
-                    self._set(f[key], x)  # the client sent a value beyond the slider: show the one applied
+                    shown = x  # the client sent a value beyond the slider: the widget shows the one applied
                 changes = {field: x}
             elif key == "position":
                 changes = {"position": checked_vector(v, "a position")}
@@ -297,23 +313,24 @@ class Gui:
             else:
                 return
             app.set_light(name, sync_gui=False, **changes)
+            if shown is not None:
+                self._restore(f[key], v, shown)
         except (UsdRelightError, TypeError, ValueError, OverflowError) as exc:
-            self._refused(exc)
-            try:
-                self._show_light(name)
+            try:  # the widget shows the light again before the status line tells the client why
+                self._show_light(name, key, v)
             except RuntimeError:  # the editor was rebuilt meanwhile (its widgets removed)
                 pass
+            self._refused(exc)
 
-    def _show_light(self, name: str) -> None:
-        """Put the editor's widgets back to the values of light ``name`` (after a refused edit)."""
+    def _show_light(self, name: str, key: str, sent) -> None:
+        """Put editor widget ``key`` back to the value of light ``name`` after its client value ``sent`` was
+        refused (only that widget: the others may hold client values whose callbacks have yet to read them)."""
         s = self.app.states.get(name)
-        if s is None or self.selected.value != name:
+        if s is None or self.selected.value != name or key not in self._fields:
             return
-        f = self._fields
         values = {"enabled": s.enabled, "colour": picker_from_color(s.color),
                   "position": tuple(round(v, 4) for v in s.position),
                   "direction": tuple(round(float(v), 4) for v in s.direction), "hdri": s.hdri or COLOUR_ONLY}
-        values.update({key: round(float(getattr(s, field)), 4) for key, (field, _) in self._ranges.items()})
-        for key, value in values.items():
-            if key in f:
-                self._set(f[key], value)
+        values.update({k: round(float(getattr(s, field)), 4) for k, (field, _) in self._ranges.items()})
+        if key in values:
+            self._restore(self._fields[key], sent, values[key])
