@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import shutil
 import socket
 import threading
 import time
@@ -28,7 +27,7 @@ from websockets.datastructures import Headers  # noqa: E402
 from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
 from websockets.http11 import Request  # noqa: E402
 
-from test_serve import CHROMIUM, SIDE, _hdri, _stage  # noqa: E402
+from test_serve import CHROMIUM, SIDE, _hdri, base_stage, stage  # noqa: E402,F401 (fixtures)
 from usdrelight.errors import UsdRelightError  # noqa: E402
 from usdrelight.serve.app import ServeApp  # noqa: E402
 from usdrelight.serve.files import read_user_states, store_upload, write_user_layer  # noqa: E402
@@ -40,18 +39,6 @@ from usdrelight.stage.read import read_scene  # noqa: E402
 from usdrelight.stage.validate import open_stage  # noqa: E402
 
 MiB = 1 << 20
-
-
-@pytest.fixture(scope="module")
-def base_stage(tmp_path_factory):
-    return _stage(tmp_path_factory.mktemp("serve_security") / "scene")
-
-
-@pytest.fixture
-def stage(base_stage, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(base_stage.parent, dst)
-    return dst / "scene.usda"
 
 
 def _rss(key: str = "VmHWM") -> int:
