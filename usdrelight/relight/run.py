@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -59,7 +61,13 @@ class RelightResult:
     """contact_sheet.png (photo, D~, every mode) when asked for."""
 
 
+WRITE_QUEUE = 2
+"""Frames rendered but not yet written, at most (the writer thread overlaps the next frame's render)."""
+
+
 def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame) -> FrameFiles:
+    """Write one frame (relit EXR + PNG, D~ EXR); its ``seconds`` add ``write`` (on the writer thread) to the
+    frame's compute times, and ``total`` is compute + write."""
     t = time.perf_counter()
     exr, png = write_relit(out_dir, f"relit{suffix}", frame.image)
     diffuse = write_image(out_dir / f"render_diffuse{suffix}.exr", frame.diffuse, "float")
@@ -111,11 +119,16 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     written = []
     sheet = None
     # every file of this run appears at once (atomic.result_group): a reader never mixes two runs' files
-    with session, result_group(out_dir) as folder:
+    # frames are written on one background thread while the next renders (at most WRITE_QUEUE waiting)
+    with session, result_group(out_dir) as folder, ThreadPoolExecutor(1, "usdrelight-write") as writer:
+        pending: deque = deque()
         for i, extra in enumerate(per_frame):
             frame = session.render(common + extra)
             first = frame if i == 0 else first
-            written.append(_write_frame(folder, f"_{i:04d}" if frames is not None else "", frame))
+            pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if frames is not None else "", frame))
+            while len(pending) > WRITE_QUEUE:
+                written.append(pending.popleft().result())
+        written += [f.result() for f in pending]  # a failed write raises here: the group publishes nothing
         if contact_sheet:
             sheet = out_dir / _contact_sheet(folder, common + per_frame[0], session, first).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
