@@ -20,7 +20,17 @@ from .path_traced import MitsubaRenderer
 
 log = logging.getLogger(__name__)
 RENDERERS = ("fast", "mitsuba")
-__all__ = ["Aovs", "EngineSettings", "FastRenderer", "MitsubaRenderer", "RENDERERS", "Renderer", "open_renderer"]
+__all__ = ["Aovs", "EngineSettings", "FastRenderer", "MitsubaRenderer", "RENDERERS", "Renderer",
+           "check_renderer_options", "open_renderer"]
+
+
+def check_renderer_options(renderer: str, spp: int, max_depth: int) -> None:
+    """One line (UsdRelightError) for an unknown renderer, ``spp`` outside [1, MAX_SPP] or ``max_depth`` < 2."""
+    if renderer not in RENDERERS:
+        raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
+    check_spp(spp)
+    if max_depth < 2:
+        raise UsdRelightError("max_depth must be >= 2")
 
 
 def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | None = 512, spp: int = 32,
@@ -29,11 +39,7 @@ def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | N
     """A renderer of ``rec`` at ``max_side`` pixels (longer side): ``fast`` (``settings``, prepared data in
     ``cache``) or ``mitsuba`` (``spp`` samples per pixel). A scene the fast renderer cannot render (mesh
     lights, non-Lambertian materials) gets Mitsuba, with one warning naming why."""
-    if renderer not in RENDERERS:
-        raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
-    check_spp(spp)
-    if max_depth < 2:
-        raise UsdRelightError("max_depth must be >= 2")
+    check_renderer_options(renderer, spp, max_depth)
     if renderer == "fast":
         try:
             return FastRenderer(rec, replace(settings or EngineSettings(), max_side=max_side, max_depth=max_depth),

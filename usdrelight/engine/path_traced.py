@@ -26,6 +26,7 @@ class MitsubaRenderer:
         self.scene = rec.with_lights(()).with_camera(rec.camera.limited(max_side))
         self.spp, self.max_depth, self.seed = spp, max_depth, seed
         self.seconds: dict = {"prepare": 0.0}
+        self._coverage = None  # light-independent: traced with the first render, then kept
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -35,9 +36,12 @@ class MitsubaRenderer:
     def render(self, lights) -> Aovs:
         """Path-trace under ``lights`` (``spp`` samples per pixel, paths of ``max_depth``)."""
         t = time.perf_counter()
-        out = render_record(self.scene.with_lights(tuple(lights)), {"beauty", "albedo", "valid", "coverage"},
-                            spp=self.spp, max_depth=self.max_depth, seed=self.seed, hide_emitters=True)
-        return Aovs(nonnegative(out["beauty"]), out["albedo"], out["valid"][..., 0] > 0.5, out["coverage"][..., 0],
+        wanted = {"beauty", "albedo", "valid"} | ({"coverage"} if self._coverage is None else set())
+        out = render_record(self.scene.with_lights(tuple(lights)), wanted, spp=self.spp, max_depth=self.max_depth,
+                            seed=self.seed, hide_emitters=True)
+        if self._coverage is None:
+            self._coverage = out["coverage"][..., 0]
+        return Aovs(nonnegative(out["beauty"]), out["albedo"], out["valid"][..., 0] > 0.5, self._coverage,
                     {"render": time.perf_counter() - t})
 
     def close(self) -> None:

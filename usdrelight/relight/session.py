@@ -23,10 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine import RENDERERS, EngineSettings, open_renderer
+from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
-from ..mitsuba.render import check_spp
 from ..neural.model import RelightModel, build_input
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
@@ -98,11 +97,7 @@ class RelightSession:
                  stage_lights: bool = True, model_path=None, spp: int = 32, max_depth: int = 3,
                  settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
                  cache: TransportCache | None = None):
-        if renderer not in RENDERERS:
-            raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
-        check_spp(spp)
-        if max_depth < 2:
-            raise UsdRelightError("max_depth must be >= 2")
+        check_renderer_options(renderer, spp, max_depth)  # before the stage is read
         if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
             raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
         t0 = time.perf_counter()

@@ -222,8 +222,9 @@ class TransportCache:
     def evict(self, keep=frozenset()) -> list[Path]:
         """Delete entries older than ``max_age_s``, then the least recently used until at most ``max_bytes``
         remain, skipping ``keep`` and every entry a lease holds. Returns the deleted paths."""
-        entries = [(p, st) for p, st in self.entries() if p not in keep]
-        total = sum(st.st_size for _, st in self.entries())
+        listed = self.entries()
+        total = sum(st.st_size for _, st in listed)
+        entries = [(p, st) for p, st in listed if p not in keep]
         now = time.time()
         deleted = []
         for p, st in entries:
