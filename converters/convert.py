@@ -12,6 +12,7 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
+from usdrelight.stage.timing import parse_frames
 from usdrelight.stage.validate import check_finite, open_stage
 
 from . import USD_SUFFIXES, check_options, converter_for
@@ -39,11 +40,21 @@ class ConvertReport:
         return asdict(self)
 
 
-def convert(src, dst, **options) -> ConvertReport:
+def frame_path(dst: Path, index: int) -> Path:
+    """The file of the ``index``-th frame of ``convert --frames``: ``scene.xml`` -> ``scene_0000.xml`` ..."""
+    return dst.with_name(f"{dst.stem}_{index:04d}{dst.suffix}")
+
+
+def convert(src, dst, frames=None, **options) -> ConvertReport:
     """Convert ``src`` to ``dst``, each format chosen by its suffix; ``options`` go to DST's writer (``spp``,
-    ``max_depth``; each writer's defaults otherwise). UsdRelightError (one line) for a missing or unknown file
-    kind, or an option the writer does not know, before anything is read."""
+    ``max_depth``, ``time``: the USD time code lights are read at; each writer's defaults otherwise).
+    ``frames`` (``"START:END[:STEP]"``, ``""`` for the stage's own range), for writers of formats without
+    animation (Mitsuba XML, mesh files): one file per time code, ``DST_STEM_NNNN.SUFFIX`` (NNNN: the frame's
+    index). UsdRelightError (one line) for a missing or unknown file kind, or an option the writer does not know,
+    before anything is read."""
     src, dst = Path(src), Path(dst)
+    if frames is not None:
+        return _convert_frames(src, dst, frames, options)
     if not src.exists():
         raise UsdRelightError(f"file not found: {src}")
     if src.resolve() == dst.resolve():
@@ -74,3 +85,26 @@ def convert(src, dst, **options) -> ConvertReport:
     read = reader.read_from_file(src)
     out = writer.write_to_file(read.stage, dst, **options)
     return ConvertReport(list(out.files), dict(read.warnings), dict(out.warnings))
+
+
+def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> ConvertReport:
+    """``convert --frames``: a USD source written once per time code by a writer without animation."""
+    writer = None if _is_usd(dst) else converter_for(dst)
+    if not _is_usd(src) or writer is None or "time" not in writer.WRITE_OPTIONS or \
+            getattr(writer, "ANIMATED", False):
+        raise UsdRelightError("--frames writes one file per time code from a USD stage to Mitsuba XML or mesh "
+                              "files (USD and .blend carry the animation itself: convert without --frames)")
+    if "time" in options:
+        raise UsdRelightError("--frames and --time both choose the time: give one")
+    if not src.exists():
+        raise UsdRelightError(f"file not found: {src}")
+    times = parse_frames(frames) if frames else None
+    check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
+    stage = open_stage(src)
+    times = times if times is not None else parse_frames(None, stage)
+    files, warnings = [], {}
+    for i, t in enumerate(times):
+        out = writer.write_to_file(stage, frame_path(dst, i), **options, time=t)
+        files += [f for f in out.files if f not in files]
+        warnings = {**warnings, **{k: max(v, warnings.get(k, 0)) for k, v in out.warnings.items()}}
+    return ConvertReport(files, write_warnings=warnings)

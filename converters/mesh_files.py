@@ -27,6 +27,7 @@ from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import linear_to_srgb, read_map, read_photo, srgb_to_linear
 from usdrelight.stage.create import author_lambertian, author_uv_texture, create_stage, define_preview_material
 from usdrelight.stage.read import read_scene
+from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import MaterialRecord, TextureRecord
 from usdrelight.stage.validate import check_finite
 
@@ -37,7 +38,7 @@ SUFFIXES = (".glb", ".ply", ".obj")
 #: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
 READ_OPTIONS = {"usd_path": None}
 #: Writer options: none (the formats carry no render settings).
-WRITE_OPTIONS: dict = {}
+WRITE_OPTIONS: dict = {"time": None}
 ROOT = "/World"
 
 
@@ -78,10 +79,10 @@ def _pbr_material(trimesh, mat: MaterialRecord, warnings: Counter):
 
 def write_to_file(stage, path, **options) -> WriteReport:
     """Write the stage's meshes to ``path`` (.glb, .ply or .obj); the report names what the format cannot hold."""
-    check_options(f"{NAME} writer", options, WRITE_OPTIONS)
+    opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     trimesh = _trimesh()
     path = Path(path).absolute()
-    rec = read_scene(stage)
+    rec = read_scene(stage, frame_time(stage, opts["time"]))
     warnings = Counter(rec.warnings)
     if not rec.meshes:
         raise UsdRelightError("the stage has no mesh to export")

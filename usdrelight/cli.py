@@ -16,6 +16,7 @@ import numpy as np
 from . import __version__
 from .argtypes import non_negative_int as _non_negative_int, port as _port, positive_int as _positive_int
 from .batch.args import add_batch_parser
+from .relight.args import add_relight_parser
 from .errors import UsdRelightError, one_line
 from .native_io import command_context
 
@@ -116,7 +117,8 @@ def cmd_validate(args) -> int:
 def cmd_render(args) -> int:
     from .mitsuba.render import render_stage
 
-    res = render_stage(args.stage, args.output, args.aov, spp=args.spp, max_depth=args.max_depth, seed=args.seed)
+    res = render_stage(args.stage, args.output, args.aov, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
+                       time=args.time)
     summary = {"stage": str(args.stage), "files": res.files, "seconds": {k: round(v, 4) for k, v in res.seconds.items()},
                "warnings": res.warnings}
     _emit(args, summary, "\n".join(f"wrote {p}" for p in res.files.values()) + f" ({res.seconds['total']:.2f} s)")
@@ -160,19 +162,22 @@ def cmd_relight(args) -> int:
 
     res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
                   max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode,
-                  fitted_scale=args.fitted_scale, contact_sheet=args.contact_sheet)
+                  fitted_scale=args.fitted_scale, contact_sheet=args.contact_sheet, time=args.time,
+                  frames=args.frames, video=args.video, save_lights=args.save_lights)
 
     def secs(d):
         return {k: round(v, 4) for k, v in d.items()}
     frames = [{"exr": str(f.exr), "png": str(f.png), "diffuse": str(f.diffuse), "lights": f.lights,
-               "seconds": secs(f.seconds)} for f in res.frames]
+               "time": f.time, "seconds": secs(f.seconds)} for f in res.frames]
     first = res.frames[0]
     cache = None if res.cache_hit is None else ("hit" if res.cache_hit else "built")
     summary = {"renderer": res.renderer, "mode": res.mode, "cache": cache,
                "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
                "contact_sheet": str(res.contact_sheet) if res.contact_sheet else None,
                "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,
-               "seconds": secs({**res.seconds, **(first.seconds if args.sequence is None else {}),
+               "video": str(res.video) if res.video else None,
+               "lights_layer": str(res.lights_layer) if res.lights_layer else None,
+               "seconds": secs({**res.seconds, **(first.seconds if len(res.frames) == 1 else {}),
                                 "total": res.seconds["total"]})}
     per_frame = np.median([f.seconds["total"] for f in res.frames])
     _emit(args, summary, f"wrote {len(res.frames)} relit frame(s) to {first.exr.parent} ({res.resolution[0]}x"
@@ -200,8 +205,9 @@ def cmd_batch(args) -> int:
 def cmd_convert(args) -> int:
     from .converters.convert import convert
 
-    options = {k: v for k, v in (("spp", args.spp), ("max_depth", args.max_depth)) if v is not None}
-    res = convert(args.src, args.dst, **options)  # only the options given: each writer keeps its defaults
+    options = {k: v for k, v in (("spp", args.spp), ("max_depth", args.max_depth), ("time", args.time))
+               if v is not None}
+    res = convert(args.src, args.dst, frames=args.frames, **options)  # only the options given: writer defaults
     for kind, n in res.read_warnings.items():  # what USD cannot hold of SRC: a line per kind, in the order met
         log.warning("%s: %d", kind, n)
     for kind, n in sorted(res.write_warnings.items()):  # what DST cannot represent: a line per kind
@@ -276,6 +282,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce)")
     r.add_argument("--aov", nargs="+", metavar="NAME", help="render only these declared products")
     r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--time", type=float, metavar="T", help="the USD time code lights are read at (default: the "
+                                                            "stage's startTimeCode, else the first time sample)")
     r.set_defaults(func=cmd_render)
 
     f = sub.add_parser("fit", parents=[common, reads], help="fit lights to the photo's diffuse image",
@@ -304,31 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--spp", type=_positive_int, default=64)
     n.set_defaults(func=cmd_neural)
 
-    rl = sub.add_parser("relight", parents=[common, reads], help="apply lights, render, run the network",
-                        description="Relight the photo: user lights (layer and --light), render AOVs, network.")
-    rl.add_argument("stage", type=Path)
-    rl.add_argument("--light", action="append", metavar="SPEC",
-                    help="point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
-                         "dome:R,G,B (repeatable; applies to every frame)")
-    rl.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
-                    help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "
-                         "render_diffuse_NNNN.exr")
-    rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
-                    help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
-    rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
-    rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
-                    help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
-    rl.add_argument("--mode", choices=["auto", "neural", "ratio", "add"], default="auto",
-                    help="auto (default): ratio when the fitted lighting is kept (--with-fitted / --fitted-scale), "
-                         "else neural; ratio: photo x new render / fitted render (needs `usdrelight fit`); "
-                         "neural: the network on the render; add: photo + render of the added lights")
-    rl.add_argument("--contact-sheet", action="store_true",
-                    help="also write contact_sheet.png: photo, diffuse render and every mode's result")
-    rl.add_argument("--model", type=Path)
-    rl.add_argument("-o", "--output", type=Path)
-    rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
-    rl.add_argument("--max-side", type=_positive_int, help="render at most this many pixels on the longer side")
-    rl.set_defaults(func=cmd_relight)
+    add_relight_parser(sub, [common, reads], cmd_relight)
 
     tr = sub.add_parser("train", parents=[common], help="train the neural renderer (needs torch)",
                         description="Self-supervised pairs from a folder of photos (+ optional estimator "
@@ -350,6 +334,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-depth", type=_positive_int, metavar="N",
                    help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce; Mitsuba XML, "
                         "Blender; default 3)")
+    when = c.add_mutually_exclusive_group()
+    when.add_argument("--time", type=float, metavar="T",
+                      help="the USD time code lights are read at (default: the stage's startTimeCode, else each "
+                           "attribute's first time sample)")
+    when.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
+                      help="Mitsuba XML, mesh files: one file per time code, DST_NNNN.SUFFIX (default range: the "
+                           "stage's startTimeCode:endTimeCode)")
     c.set_defaults(func=cmd_convert)
 
     sv = sub.add_parser("serve", parents=[common, reads], help="interactive relighting web app (the serve extra)",

@@ -27,6 +27,7 @@ from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import Matrix, _rgb, _texture, safe_name, scene_dict
 from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.read import read_scene
+from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
 from ..report import WriteReport, check_options
@@ -35,7 +36,7 @@ from .common import TAG_OF, VECTOR_KEYS, rel_path
 #: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
 #: integrator's path length as in Mitsuba (2 = direct light only, 3 = one indirect bounce). A sampler or
 #: integrator the XML reader kept in the stage's RenderSettings is written back instead.
-WRITE_OPTIONS = {"spp": 64, "max_depth": 3}
+WRITE_OPTIONS = {"spp": 64, "max_depth": 3, "time": None}
 
 
 def _fmt(x: float) -> str:
@@ -140,7 +141,7 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     ``files``. Options: :data:`WRITE_OPTIONS`."""
     opts = check_options("Mitsuba XML writer", options, WRITE_OPTIONS)
     base = Path(base_dir).absolute()
-    rec = read_scene(stage)
+    rec = read_scene(stage, frame_time(stage, opts["time"]))  # lights' time samples at ``time``
     integrator = None
     settings_extra = _custom_mitsuba(stage, rec)
     if settings_extra.get("integrator"):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import time
+import time as time_module
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +29,7 @@ from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
 from ..stage.read import read_scene
 from ..stage.records import RenderVarRecord, SceneRecord
+from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from .runtime import load_mitsuba
 from .scene_dict import scene_dict, to_mitsuba
@@ -202,15 +203,16 @@ def stale_aov_files(stage, rec, paths: dict) -> list[str]:
 
 
 def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: int = 3, seed: int = 0,
-                 progress=None) -> RenderResult:
+                 progress=None, time=None) -> RenderResult:
     """Render the RenderProducts the stage's UsdRender settings declare (optionally only those named in ``aovs``)
     with Mitsuba's path tracer (``spp`` samples per pixel, paths of ``max_depth``, deterministic for ``seed``)
     into ``out_dir`` (default: the stage's folder), at the settings' resolution. Beauty AOVs are linear
     radiance in the stage's units of light; albedo, valid, depth (metres along the view axis) and normal
-    (world space) come from one ray per pixel centre."""
-    t0 = time.perf_counter()
+    (world space) come from one ray per pixel centre. ``time``: the USD time code lights are read at (default:
+    :func:`usdrelight.stage.timing.frame_time`)."""
+    t0 = time_module.perf_counter()
     stage = open_stage(stage_path)
-    rec = read_scene(stage)
+    rec = read_scene(stage, frame_time(stage, time))
     if not rec.products:
         raise UsdRelightError(f"{stage_path} declares no RenderProducts (UsdRender settings)")
     if rec.camera is None:
@@ -228,9 +230,9 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
     stamp = stage_stamp(stage, rec.resolution)
-    t1 = time.perf_counter()
+    t1 = time_module.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed)
-    t2 = time.perf_counter()
+    t2 = time_module.perf_counter()
     files = {}
     # every AOV of this render appears at once (atomic.result_group); AOVs not rendered now stay as they were
     with result_group(base, keep_previous=True) as folder:
@@ -249,5 +251,5 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
                 progress(p.name)
     for kind, n in rec.warnings.items():
         log.warning("%s: %d", kind, n)
-    return RenderResult(files, {"read": t1 - t0, "render": t2 - t1, "write": time.perf_counter() - t2,
-                                "total": time.perf_counter() - t0}, dict(rec.warnings))
+    return RenderResult(files, {"read": t1 - t0, "render": t2 - t1, "write": time_module.perf_counter() - t2,
+                                "total": time_module.perf_counter() - t0}, dict(rec.warnings))

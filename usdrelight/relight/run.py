@@ -6,20 +6,27 @@ from __future__ import annotations
 
 import json
 import logging
-import time
+import time as time_module
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
+
+from rich.console import Console
+from rich.progress import track
 
 from ..atomic import result_group
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..neural.model import write_relit
+from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
+from ..stage.timing import check_time, parse_frames, stage_fps
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
 from .session import DEFAULT_MODE, RelightSession, RelitFrame
+from .video import Mp4Writer, check_video_path
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +45,8 @@ class FrameFiles:
     """Lights rendered."""
     seconds: dict
     """render, hole_fill, network, write, total."""
+    time: float | None = None
+    """The USD time code the stage's lights were read at (None: the default time)."""
 
 
 @dataclass(frozen=True)
@@ -59,21 +68,27 @@ class RelightResult:
     """read, prepare (includes read), total."""
     contact_sheet: Path | None = None
     """contact_sheet.png (photo, D~, every mode) when asked for."""
+    video: Path | None = None
+    """The H.264 MP4 of the frames when asked for."""
+    lights_layer: Path | None = None
+    """The time-sampled lights layer the sequence was saved as, when asked for."""
 
 
 WRITE_QUEUE = 2
 """Frames rendered but not yet written, at most (the writer thread overlaps the next frame's render)."""
 
 
-def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame) -> FrameFiles:
-    """Write one frame (relit EXR + PNG, D~ EXR); its ``seconds`` add ``write`` (on the writer thread) to the
-    frame's compute times, and ``total`` is compute + write."""
-    t = time.perf_counter()
+def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame, mp4: Mp4Writer | None = None) -> FrameFiles:
+    """Write one frame (relit EXR + PNG, D~ EXR; appended to ``mp4``); its ``seconds`` add ``write`` (on the
+    writer thread) to the frame's compute times, and ``total`` is compute + write."""
+    t = time_module.perf_counter()
     exr, png = write_relit(out_dir, f"relit{suffix}", frame.image)
     diffuse = write_image(out_dir / f"render_diffuse{suffix}.exr", frame.diffuse, "float")
-    sec = {**frame.seconds, "write": time.perf_counter() - t}
+    if mp4 is not None:
+        mp4.add(frame.image)
+    sec = {**frame.seconds, "write": time_module.perf_counter() - t}
     sec["total"] = frame.seconds["total"] + sec["write"]
-    return FrameFiles(exr, png, diffuse, frame.lights, sec)
+    return FrameFiles(exr, png, diffuse, frame.lights, sec, frame.time)
 
 
 MAX_FRAMES = 10_000
@@ -102,40 +117,80 @@ def read_sequence(path) -> list[list[str]]:
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
             max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
-            mode: str = DEFAULT_MODE, fitted_scale: float = 1.0, contact_sheet: bool = False) -> RelightResult:
-    """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or with ``sequence`` (a LIGHTS.json
-    path) relit_NNNN.* and render_diffuse_NNNN.exr for each frame; ``lights`` apply to every frame.
+            mode: str = DEFAULT_MODE, fitted_scale: float = 1.0, contact_sheet: bool = False, time=None,
+            frames=None, video=None, save_lights=None) -> RelightResult:
+    """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or for several frames relit_NNNN.* and
+    render_diffuse_NNNN.exr (NNNN: the frame's index in the run), one frame per entry of ``sequence`` (a
+    LIGHTS.json path) or per USD time code of ``frames`` (``"START:END[:STEP]"``; ``""``: the stage's own
+    range), the stage's lights read at each time code (a light that did not change is not rendered again);
+    ``time``: the time code of a single frame or of a sequence. ``lights`` apply to every frame.
     ``fitted_scale`` scales the fitted lights (and implies ``with_fitted``); ``contact_sheet`` also writes
-    contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights."""
-    t0 = time.perf_counter()
-    frames = read_sequence(sequence) if sequence is not None else None
+    contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights; ``video`` also
+    encodes the frames as an H.264 MP4 at the stage's framesPerSecond; ``save_lights`` (with ``sequence``)
+    also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`)."""
+    t0 = time_module.perf_counter()
+    if sequence is not None and frames is not None:
+        raise UsdRelightError("--sequence and --frames both choose the frames: give one")
+    if save_lights is not None and sequence is None:
+        raise UsdRelightError("--save-lights writes a --sequence as a time-sampled layer: give --sequence")
+    if frames is not None and time is not None:
+        raise UsdRelightError("--frames and --time both choose the time: give one")
+    time = check_time(time) if time is not None else None
+    video = check_video_path(video) if video is not None else None
+    seq = read_sequence(sequence) if sequence is not None else None
+    times = parse_frames(frames) if frames else None  # a bad range fails before the stage is read
     # parsed once, before any work: a bad spec fails fast, and each frame reuses the records
     common = parse_lights(lights)
-    per_frame = [parse_lights(f, len(common)) for f in frames] if frames is not None else [[]]
+    per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
     with_fitted = with_fitted or fitted_scale != 1.0
     session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
-                             model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale)
+                             model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale,
+                             time=time)
+    with session:
+        if frames is not None and times is None:
+            times = parse_frames(None, session.usd_stage)
+        plan = [(extra, None) for extra in per_frame] if per_frame is not None else \
+            [([], t) for t in times] if times is not None else [([], None)]
+        fps = stage_fps(session.usd_stage)
+        layer = write_sequence_layer(save_lights, per_frame, fps=fps) if save_lights is not None else None
+        try:
+            return _run(session, stage_path, out, common, plan, len(plan) > 1 or seq is not None or
+                        times is not None, contact_sheet, video, fps, layer, t0)
+        except BaseException:
+            if layer is not None:
+                layer.unlink(missing_ok=True)  # nothing of a failed run stays
+            raise
+
+
+def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool, contact_sheet: bool, video,
+         fps: float, layer, t0: float) -> RelightResult:
     out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
     written = []
     sheet = None
     # every file of this run appears at once (atomic.result_group): a reader never mixes two runs' files
     # frames are written on one background thread while the next renders (at most WRITE_QUEUE waiting)
-    with session, result_group(out_dir) as folder, ThreadPoolExecutor(1, "usdrelight-write") as writer:
+    with ExitStack() as stack:
+        folder = stack.enter_context(result_group(out_dir))
+        writer = stack.enter_context(ThreadPoolExecutor(1, "usdrelight-write"))
+        mp4 = stack.enter_context(Mp4Writer(video, fps)) if video is not None else None
         pending: deque = deque()
-        for i, extra in enumerate(per_frame):
-            frame = session.render(common + extra)
+        console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
+        steps = track(plan, description="relight", console=console, transient=True,
+                      disable=len(plan) < 2 or not console.is_terminal)
+        for i, (extra, t) in enumerate(steps):
+            frame = session.render(common + extra, time_code=t)
             first = frame if i == 0 else first
-            pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if frames is not None else "", frame))
+            pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4))
             while len(pending) > WRITE_QUEUE:
                 written.append(pending.popleft().result())
         written += [f.result() for f in pending]  # a failed write raises here: the group publishes nothing
         if contact_sheet:
-            sheet = out_dir / _contact_sheet(folder, common + per_frame[0], session, first).name
+            sheet = out_dir / _contact_sheet(folder, common + plan[0][0], session, first).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
                for f in written]
     h, w = frame.image.shape[:2]
     return RelightResult(tuple(written), (w, h), session.renderer, session.mode, session.cache_hit,
-                         {**session.seconds, "total": time.perf_counter() - t0}, sheet)
+                         {**session.seconds, "total": time_module.perf_counter() - t0}, sheet, video, layer)
 
 
 def _contact_sheet(out_dir: Path, lights, session: RelightSession, used: RelitFrame) -> Path:

@@ -17,7 +17,7 @@ rays in either.
 from __future__ import annotations
 
 import logging
-import time
+from time import perf_counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -30,7 +30,8 @@ from ..neural.model import RelightModel, build_input
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
-from ..stage.read import read_scene
+from ..stage.read import read_lights, read_scene
+from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
 from .composite import MODES, add_composite, ratio_apply, ratio_reference
@@ -77,6 +78,8 @@ class RelitFrame:
     """Lights rendered (user, fitted when asked, and the frame's own)."""
     seconds: dict = field(default_factory=dict)
     """Wall time: render, then hole_fill + network (neural) or composite (ratio, add), total."""
+    time: float | None = None
+    """The USD time code the stage's lights were read at (None: the default time)."""
 
 
 class RelightSession:
@@ -89,33 +92,30 @@ class RelightSession:
     the ``ratio`` reference); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
     ``max_depth`` (Mitsuba's samples per pixel and path length; the fast renderer's bounce depth);
     ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto``, ``neural``, ``ratio``,
-    ``add``); ``cache`` (the transport cache; default ``STAGE_DIR/cache``).
+    ``add``); ``cache`` (the transport cache; default ``STAGE_DIR/cache``); ``time`` (the USD time code the
+    stage's lights are read at: see :func:`usdrelight.stage.timing.frame_time`; :meth:`render` may move it).
 
     Use it as a context manager, or call :meth:`close`, to release its hold on the cache entry."""
 
     def __init__(self, stage_path, *, max_side: int | None = 512, renderer: str = "fast", with_fitted: bool = False,
                  stage_lights: bool = True, model_path=None, spp: int = 32, max_depth: int = 3,
                  settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
-                 cache: TransportCache | None = None):
+                 cache: TransportCache | None = None, time: float | None = None):
         check_renderer_options(renderer, spp, max_depth)  # before the stage is read
         if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
             raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
-        t0 = time.perf_counter()
+        t0 = perf_counter()
         self.stage_path = Path(stage_path)
         stage = open_stage(stage_path)
-        rec = read_scene(stage)
+        t = frame_time(stage, time)
+        rec = read_scene(stage, t)
         if rec.camera is None:
             raise UsdRelightError(f"{stage_path} has no camera")
-        fitted = tuple(l for l in rec.lights if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
-        self.fitted_lights = fitted
-        """The fitted lights (the photo's own lighting), unscaled."""
-        self.user_lights = tuple(l for l in rec.lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
-        """The stage's other lights (the user's layer and any others)."""
-        # the photo's own lighting, dimmed (day to night) or brightened by ``fitted_scale``
-        scaled = tuple(replace(l, radiance=l.radiance * fitted_scale) for l in fitted) if fitted_scale != 1 else fitted
-        self.base_lights = (self.user_lights + (scaled if with_fitted else ())) if stage_lights else ()
-        """What every frame renders besides the lights passed to :meth:`render`."""
+        self._stage, self._with_fitted, self._fitted_scale = stage, with_fitted, fitted_scale
         self._stage_lights = stage_lights
+        self._set_lights(rec.lights, t)
+        fitted = self.fitted_lights
+        self._photo_lights = fitted  # the photo's own lighting: the ratio reference, whatever time frames read
         self.scene = rec.with_camera(rec.camera.limited(max_side))
         self._source_photo = source_photo_path(stage)
         self._stage_folder = stage_folder(stage)
@@ -125,12 +125,33 @@ class RelightSession:
         self.model = self.photo = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
         self._prepare_mode(mode)
-        self.seconds = {"read": time.perf_counter() - t0}
+        self.seconds = {"read": perf_counter() - t0}
         cache = cache if cache is not None else TransportCache.for_stage(self.stage_path)
         self.engine = open_renderer(rec, renderer, max_side=max_side, spp=spp, max_depth=max_depth,
                                     settings=settings, cache=cache)
         """The renderer (:class:`usdrelight.engine.Renderer`)."""
-        self.seconds["prepare"] = time.perf_counter() - t0
+        self.seconds["prepare"] = perf_counter() - t0
+
+    def _set_lights(self, lights, t) -> None:
+        self.time = None if t.IsDefault() or t.IsEarliestTime() else t.GetValue()
+        """The time code the stage's lights were read at (None: the default time)."""
+        self.fitted_lights = tuple(l for l in lights if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        """The fitted lights (the photo's own lighting), unscaled."""
+        self.user_lights = tuple(l for l in lights if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))
+        """The stage's other lights (the user's layer and any others)."""
+        # the photo's own lighting, dimmed (day to night) or brightened by ``fitted_scale``
+        k = self._fitted_scale
+        scaled = tuple(replace(l, radiance=l.radiance * k) for l in self.fitted_lights) if k != 1 else \
+            self.fitted_lights
+        self.base_lights = (self.user_lights + (scaled if self._with_fitted else ())) if self._stage_lights else ()
+        """What every frame renders besides the lights passed to :meth:`render`."""
+
+    def set_time(self, time: float | None) -> None:
+        """Read the stage's lights (user and fitted; time samples interpolated) at the time code ``time`` (None:
+        see :func:`usdrelight.stage.timing.frame_time`). Only the lights are re-read; a light whose values did not
+        change costs the renderer nothing (its terms are kept by content)."""
+        t = frame_time(self._stage, time)
+        self._set_lights(read_lights(self._stage, t), t)
 
     def __enter__(self) -> RelightSession:
         return self
@@ -141,6 +162,11 @@ class RelightSession:
     def close(self) -> None:
         """Release the renderer's hold on its transport cache entry."""
         self.engine.close()
+
+    @property
+    def usd_stage(self):
+        """The ``Usd.Stage`` the session read (its lights are re-read from it for each time code)."""
+        return self._stage
 
     @property
     def renderer(self) -> str:
@@ -180,11 +206,14 @@ class RelightSession:
         k = self.scene.camera.intrinsics
         return resize_image(read_photo(path), k.width, k.height)
 
-    def render(self, lights=(), mode: str | None = None) -> RelitFrame:
+    def render(self, lights=(), mode: str | None = None, time_code: float | None = None) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
-        in the session's mode or in ``mode`` (neural, ratio or add; what it needs is loaded on first use).
+        in the session's mode or in ``mode`` (neural, ratio or add; what it needs is loaded on first use);
+        ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
         In ``add`` mode the fitted lights are not rendered: the photo already holds their light."""
-        t0 = time.perf_counter()
+        t0 = perf_counter()
+        if time_code is not None:
+            self.set_time(time_code)
         mode = mode or self.mode
         self._prepare_mode(mode)
         added = parse_lights(lights)
@@ -196,22 +225,22 @@ class RelightSession:
                                   "or pass --with-fitted")
         aovs = self.engine.render(all_lights)
         beauty, albedo, valid = aovs.beauty, aovs.albedo, aovs.valid
-        sec = {"render": time.perf_counter() - t0}
-        t = time.perf_counter()
+        sec = {"render": perf_counter() - t0}
+        t = perf_counter()
         if mode == "neural":
             x = build_input(beauty, albedo, valid)
-            sec["hole_fill"] = time.perf_counter() - t
-            t = time.perf_counter()
+            sec["hole_fill"] = perf_counter() - t
+            t = perf_counter()
             image = self.model(x)
-            sec["network"] = time.perf_counter() - t
+            sec["network"] = perf_counter() - t
         elif mode == "ratio":
             if self._ratio_reference is None:
-                fitted = self.engine.render(list(self.fitted_lights)).beauty
+                fitted = self.engine.render(list(self._photo_lights)).beauty
                 self._ratio_reference = ratio_reference(self.photo, fitted, valid)
             image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
-            sec["composite"] = time.perf_counter() - t
+            sec["composite"] = perf_counter() - t
         else:
             image = add_composite(self.photo, beauty)
-            sec["composite"] = time.perf_counter() - t
-        sec["total"] = time.perf_counter() - t0
-        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec)
+            sec["composite"] = perf_counter() - t
+        sec["total"] = perf_counter() - t0
+        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec, self.time)

@@ -39,20 +39,22 @@ def gf_to_np(m) -> np.ndarray:
     return np.array(m, dtype=np.float64).T
 
 # ---- lights -----------------------------------------------------------------------------------
-def light_radiance(prim) -> np.ndarray:
-    """UsdLux: L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled)."""
-    from pxr import UsdLux
+def light_radiance(prim, t=None) -> np.ndarray:
+    """UsdLux: L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled), at time code ``t``
+    (a ``Usd.TimeCode``; None: the default time)."""
+    from pxr import Usd, UsdLux
 
+    t = Usd.TimeCode.Default() if t is None else t
     api = UsdLux.LightAPI(prim)
-    intensity = float(api.GetIntensityAttr().Get())
-    exposure = float(api.GetExposureAttr().Get())
-    color = np.asarray(api.GetColorAttr().Get(), dtype=np.float64)
+    intensity = float(api.GetIntensityAttr().Get(t))
+    exposure = float(api.GetExposureAttr().Get(t))
+    color = np.asarray(api.GetColorAttr().Get(t), dtype=np.float64)
     try:
         L = intensity * 2.0 ** exposure * color
     except OverflowError:  # 2^exposure beyond a double
         L = np.full(3, np.inf)
-    if api.GetEnableColorTemperatureAttr().Get():
-        L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get())), np.float64)
+    if api.GetEnableColorTemperatureAttr().Get(t):
+        L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get(t))), np.float64)
     if not np.all(np.isfinite(L)):
         raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
     if np.any(L < 0):
@@ -82,10 +84,14 @@ def stage_meters_per_unit(stage) -> float:
     return mpu
 
 
-def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0) -> LightRecord | None:
-    """The light record of a UsdLux prim (None for kinds not converted); non-finite or negative sizes and
-    radiance are errors. ``area``: the world-space area of a mesh light's mesh."""
-    rec = _light_record(prim, xf, warnings, area)
+def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0, t=None) -> LightRecord | None:
+    """The light record of a UsdLux prim at time code ``t`` (a ``Usd.TimeCode``; None: the default time; None
+    returned for kinds not converted); non-finite or negative sizes and radiance are errors. ``area``: the
+    world-space area of a mesh light's mesh. Every animatable attribute (intensity, exposure, colour, colour
+    temperature, radius, size, angle, cone) is read at ``t``; ``xf`` is the light's world matrix at ``t``."""
+    from pxr import Usd
+
+    rec = _light_record(prim, xf, warnings, area, Usd.TimeCode.Default() if t is None else t)
     if rec is not None:
         sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg, rec.area)
                  if v is not None]
@@ -94,60 +100,60 @@ def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0) -> LightRecord
     return rec
 
 
-def _light_record(prim, xf: np.ndarray, warnings, area: float) -> LightRecord | None:
+def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord | None:
     from pxr import UsdGeom, UsdLux
 
-    L = light_radiance(prim)
+    L = light_radiance(prim, t)
     common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
-              "normalize": bool(UsdLux.LightAPI(prim).GetNormalizeAttr().Get())}
+              "normalize": bool(UsdLux.LightAPI(prim).GetNormalizeAttr().Get(t))}
     path = common["path"]
     if prim.HasAPI(UsdLux.ShapingAPI):
         sh = UsdLux.ShapingAPI(prim)
-        angle = float(sh.GetShapingConeAngleAttr().Get())
+        angle = float(sh.GetShapingConeAngleAttr().Get(t))
         if angle < 180.0:
             common["cone_angle_deg"] = angle
-            common["cone_softness"] = float(sh.GetShapingConeSoftnessAttr().Get())
-        if float(sh.GetShapingFocusAttr().Get() or 0.0) != 0.0:
+            common["cone_softness"] = float(sh.GetShapingConeSoftnessAttr().Get(t))
+        if float(sh.GetShapingFocusAttr().Get(t) or 0.0) != 0.0:
             warnings["ShapingAPI focus (ignored)"] += 1
-        if sh.GetShapingIesFileAttr().Get() and sh.GetShapingIesFileAttr().Get().path:
+        if sh.GetShapingIesFileAttr().Get(t) and sh.GetShapingIesFileAttr().Get(t).path:
             warnings["ShapingAPI IES profile (ignored)"] += 1
     _ignored_lux(prim, warnings)
-    t = prim.GetTypeName()
+    typ = prim.GetTypeName()
     if prim.IsA(UsdGeom.Mesh):
         return LightRecord(kind="mesh", area=area, **common)
-    if t == "SphereLight":
+    if typ == "SphereLight":
         s = UsdLux.SphereLight(prim)
-        r = float(s.GetRadiusAttr().Get())
-        return LightRecord(kind="sphere", radius=r, treat_as_point=bool(s.GetTreatAsPointAttr().Get()) or r == 0.0,
+        r = float(s.GetRadiusAttr().Get(t))
+        return LightRecord(kind="sphere", radius=r, treat_as_point=bool(s.GetTreatAsPointAttr().Get(t)) or r == 0.0,
                            **common)
-    if t == "DiskLight":
-        return LightRecord(kind="disk", radius=float(UsdLux.DiskLight(prim).GetRadiusAttr().Get()), **common)
-    if t == "RectLight":
+    if typ == "DiskLight":
+        return LightRecord(kind="disk", radius=float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(t)), **common)
+    if typ == "RectLight":
         r = UsdLux.RectLight(prim)
-        if r.GetTextureFileAttr().Get() and r.GetTextureFileAttr().Get().path:
+        if r.GetTextureFileAttr().Get(t) and r.GetTextureFileAttr().Get(t).path:
             warnings["RectLight texture (ignored; uniform radiance used)"] += 1
-        return LightRecord(kind="rect", width=float(r.GetWidthAttr().Get()), height=float(r.GetHeightAttr().Get()),
+        return LightRecord(kind="rect", width=float(r.GetWidthAttr().Get(t)), height=float(r.GetHeightAttr().Get(t)),
                            **common)
-    if t == "DistantLight":
-        return LightRecord(kind="distant", angle_deg=float(UsdLux.DistantLight(prim).GetAngleAttr().Get()), **common)
-    if t in ("DomeLight", "DomeLight_1"):
-        d = UsdLux.DomeLight(prim) if t == "DomeLight" else UsdLux.DomeLight_1(prim)
+    if typ == "DistantLight":
+        return LightRecord(kind="distant", angle_deg=float(UsdLux.DistantLight(prim).GetAngleAttr().Get(t)), **common)
+    if typ in ("DomeLight", "DomeLight_1"):
+        d = UsdLux.DomeLight(prim) if typ == "DomeLight" else UsdLux.DomeLight_1(prim)
         tex = None
-        asset = d.GetTextureFileAttr().Get()
+        asset = d.GetTextureFileAttr().Get(t)
         if asset is not None and asset.path:
             if not asset.resolvedPath:
                 raise UsdRelightError(f"DomeLight texture not found: {asset.path} ({path})")
-            fmt = d.GetTextureFormatAttr().Get()
+            fmt = d.GetTextureFormatAttr().Get(t)
             if fmt not in ("automatic", "latlong"):
                 warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
             check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
             if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
                 check_image_size(asset.resolvedPath)
             tex = TextureRecord(asset.resolvedPath, "auto")
-        if t == "DomeLight_1" and d.GetPoleAxisAttr().Get() == "Z":
+        if typ == "DomeLight_1" and d.GetPoleAxisAttr().Get(t) == "Z":
             common["to_world"] = xf @ _rot_x(90.0)
         return LightRecord(kind="dome", texture=tex, **common)
-    warnings[f"light type {t} (not converted)"] += 1
+    warnings[f"light type {typ} (not converted)"] += 1
     return None
 
 
@@ -257,6 +263,35 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
     return None
 
 
+def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
+    """Only the lights of ``stage`` (a ``Usd.Stage``) at ``time`` (a time code: a number or ``Usd.TimeCode``;
+    None: the default time), in metres, as :func:`read_scene` reads them: what a frame of an animation needs
+    once the scene itself is read. Invisible lights (``visibility`` at ``time``) are left out."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    mpu = stage_meters_per_unit(stage)
+    warnings: Counter = Counter()
+    xcache = UsdGeom.XformCache(t)
+    lights = []
+    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
+                prim.IsA(UsdLux.NonboundableLightBase)):
+            continue
+        img = UsdGeom.Imageable(prim)
+        if img and (img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or
+                    img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
+            continue
+        xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
+        area = 0.0
+        if prim.IsA(UsdGeom.Mesh):
+            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings), warnings)))
+        light = read_light(prim, xf, warnings, area, t=t)
+        if light is not None:
+            lights.append(light)
+    return tuple(lights)
+
+
 def read_scene(stage, time=None) -> SceneRecord:
     """Collect everything a renderer needs from ``stage`` (a ``Usd.Stage``, or the path of one: opened with
     :func:`usdrelight.stage.validate.open_stage`) into a :class:`SceneRecord`, in metres (the stage's
@@ -265,7 +300,7 @@ def read_scene(stage, time=None) -> SceneRecord:
 
     if isinstance(stage, (str, Path)):
         stage = open_stage(stage)
-    t = Usd.TimeCode.Default() if time is None else time
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter()
     meshes, shapes, lights = [], [], []
@@ -279,7 +314,7 @@ def read_scene(stage, time=None) -> SceneRecord:
         is_light = prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or \
             prim.IsA(UsdLux.NonboundableLightBase)
         if is_light and not prim.IsA(UsdGeom.Mesh):  # a mesh light (MeshLightAPI) is read as a mesh too, below
-            light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu), warnings)
+            light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu), warnings, t=t)
             if light is not None:
                 lights.append(light)
             continue
@@ -293,7 +328,7 @@ def read_scene(stage, time=None) -> SceneRecord:
             records = read_mesh(prim, xf, mat, warnings)
             meshes.extend(records)
             if is_light:
-                light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)))
+                light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t)
                 lights.append(light)
             continue
         with np.errstate(all="ignore"):  # an Inf size: refused just below

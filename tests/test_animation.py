@@ -1,0 +1,199 @@
+"""Moving lights the USD way: time-sampled UsdLux in the user's layer -> relit frames, an MP4, per-frame Mitsuba
+XML; a --sequence saved as a time-sampled layer gives the same frames."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from usdrelight.imageio import read_raw
+from usdrelight.stage.layout import USER_LIGHTS
+from usdrelight.stage.records import FitProvenance, PointLightValue
+from usdrelight.stage.lights_layer import write_fitted_lights
+
+from conftest import build_procedural
+
+av = pytest.importorskip("av", reason="PyAV (the video extra) is installed by scripts/setup.sh")
+
+FRAMES = 12
+#: the moving light's path: left to right over the floor (y = -1) of the procedural room, metres
+XS = np.linspace(-1.2, 1.2, FRAMES)
+
+
+def _path(i: int) -> tuple[float, float, float]:
+    return float(XS[i]), -0.6, -2.4
+
+
+@pytest.fixture(scope="module")
+def animated_stage(tmp_path_factory) -> Path:
+    """The procedural room, fitted, with a point light moving along 12 time samples (time codes 1..12) authored
+    in lights_user.usda the way a DCC writes them (translate samples on the light's xformOp)."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    out = tmp_path_factory.mktemp("anim") / "st"
+    scene = build_procedural(out)
+    write_fitted_lights(out, [PointLightValue(np.array([-0.5, 1.0, -2.0]), np.array([4.0, 4.0, 4.0]))], None,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 1))
+    layer = Sdf.Layer.FindOrOpen(str(out / USER_LIGHTS))
+    stage = Usd.Stage.Open(layer)
+    stage.OverridePrim("/Scene")
+    UsdGeom.Scope.Define(stage, "/Scene/Lights")
+    UsdGeom.Scope.Define(stage, "/Scene/Lights/User")
+    light = UsdLux.SphereLight.Define(stage, "/Scene/Lights/User/Mover")
+    light.CreateTreatAsPointAttr(True)
+    light.CreateRadiusAttr(0.0)
+    light.CreateNormalizeAttr(False)
+    light.CreateIntensityAttr(2.5)
+    op = UsdGeom.Xformable(light).AddTranslateOp()
+    for i in range(FRAMES):
+        op.Set(Gf.Vec3d(*_path(i)), Usd.TimeCode(1 + i))
+    layer.GetPrimAtPath("/Scene").specifier = Sdf.SpecifierOver
+    layer.Save()
+    return scene
+
+
+def _centroid_x(img: np.ndarray) -> float:
+    """x of the centroid of the brightest 2% of pixels (luminance)."""
+    lum = img[..., :3].astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    ys, xs = np.nonzero(lum >= np.percentile(lum, 98))
+    return float(xs.mean())
+
+
+def test_frames_video_and_single_time(animated_stage, tmp_path, cli):
+    video = tmp_path / "out.mp4"
+    res = cli.json("relight", animated_stage, "--frames", "1:12", "--video", video, "--mode", "add",
+                   "-o", tmp_path / "frames")
+    assert [f["time"] for f in res["frames"]] == list(range(1, 13))
+    assert res["video"] == str(video)
+    with av.open(str(video)) as c:
+        s = c.streams.video[0]
+        assert (s.width, s.height) == (256, 192)
+        assert float(s.average_rate) == pytest.approx(24.0)
+        assert s.codec_context.name == "h264"
+        decoded = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    assert len(decoded) == FRAMES
+    # the pool of the moving light travels left to right, frame after frame, in the video and in the EXRs
+    cx_video = [_centroid_x(f) for f in decoded]
+    exrs = [read_raw(f["exr"])[0] for f in res["frames"]]
+    cx_exr = [_centroid_x(e) for e in exrs]
+    assert np.all(np.diff(cx_video) > 0), cx_video
+    assert np.all(np.diff(cx_exr) > 0), cx_exr
+    assert cx_exr[-1] - cx_exr[0] > 100  # pixels: it crosses most of the 256-pixel frame
+    # a frame equals the single-frame relight at its time: exactly for the EXR, within H.264 error for the MP4
+    single = cli.json("relight", animated_stage, "--time", "5", "--mode", "add", "-o", tmp_path / "single")
+    assert single["frames"][0]["time"] == 5
+    one = read_raw(single["exr"])[0]
+    np.testing.assert_array_equal(one, exrs[4])
+    from usdrelight.relight.video import video_frame
+
+    exposure = max(1.0, float(np.percentile(exrs[0], 99.5)))
+    err = np.abs(decoded[4].astype(np.float64) - video_frame(one, exposure)).mean()
+    assert err < 2.5, err  # mean absolute error in 8-bit levels
+    # between samples the light is interpolated: time 5.5 lies between frames 5 and 6
+    half = cli.json("relight", animated_stage, "--time", "5.5", "--mode", "add", "-o", tmp_path / "half")
+    assert cx_exr[4] < _centroid_x(read_raw(half["exr"])[0]) < cx_exr[5]
+
+
+def test_unchanged_lights_are_not_rendered_again(animated_stage):
+    from usdrelight.relight.session import RelightSession
+
+    with RelightSession(animated_stage, max_side=64, with_fitted=True, mode="ratio") as s:
+        s.render(time_code=1)
+        kept = s.engine.terms_kept
+        assert kept == 2  # the fitted point light and the mover at time 1
+        s.render(time_code=2)
+        assert s.engine.terms_kept == 3  # only the mover's new position was rendered; the fitted light reused
+        a = s.render(time_code=1).diffuse
+        assert s.engine.terms_kept == 3
+        np.testing.assert_array_equal(a, s.render(time_code=1).diffuse)
+
+
+def test_default_time_is_first_sample(animated_stage):
+    """No --time: a stage with no authored range reads each attribute's first sample (not the fallback)."""
+    from usdrelight.stage.read import read_lights
+    from usdrelight.stage.timing import frame_time
+    from usdrelight.stage.validate import open_stage
+
+    stage = open_stage(animated_stage)
+    mover = [l for l in read_lights(stage, frame_time(stage)) if l.path.endswith("Mover")][0]
+    np.testing.assert_allclose(mover.to_world[:3, 3], _path(0))
+    mover = [l for l in read_lights(stage, frame_time(stage, 12)) if l.path.endswith("Mover")][0]
+    np.testing.assert_allclose(mover.to_world[:3, 3], _path(11))
+
+
+def test_sequence_saved_as_layer_gives_the_same_frames(animated_stage, tmp_path, cli):
+    """--sequence LIGHTS.json --save-lights LAYER: that layer, sublayered, renders the same frames via --frames."""
+    from pxr import Sdf
+
+    specs = [[f"spot:{x:.3f},-0.4,-3.0:0,-1,-0.2:{2 + i},{1 + i},1:35:0.3", "point:-0.5,0.5,-2.5:1,1,1"]
+             for i, x in enumerate(np.linspace(-1, 1, 4))]
+    specs[2] = specs[2][:1]  # the second light is absent from frame 2: invisible there
+    seq = tmp_path / "lights.json"
+    seq.write_text(json.dumps(specs))
+    # the user's own stage: a copy of the folder without the mover, whose lights_user.usda will sublayer the layer
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(animated_stage.parent, copy, symlinks=True)
+    user = Sdf.Layer.FindOrOpen(str(copy / USER_LIGHTS))
+    edit = Sdf.BatchNamespaceEdit()
+    edit.Add("/Scene/Lights/User/Mover", Sdf.Path.emptyPath)
+    assert user.Apply(edit)
+    user.Save()
+    layer = copy / "anim_lights.usda"
+    a = cli.json("relight", copy / "scene.usda", "--sequence", seq, "--save-lights", layer, "--max-side", "96",
+                 "--mode", "add", "-o", tmp_path / "a")
+    assert a["lights_layer"] == str(layer) and layer.is_file()
+    # a second save never overwrites the layer
+    rc, _, err = cli("relight", copy / "scene.usda", "--sequence", seq, "--save-lights", layer, "-o", tmp_path / "c")
+    assert rc == 2 and "exists" in err and err.count("\n") == 1
+    user.subLayerPaths.append("./anim_lights.usda")
+    user.Save()
+    b = cli.json("relight", copy / "scene.usda", "--frames", "1:4", "--max-side", "96", "--mode", "add",
+                 "-o", tmp_path / "b")
+    assert len(b["frames"]) == len(a["frames"]) == 4
+    assert [f["lights"] for f in b["frames"]] == [2, 2, 1, 2]
+    for fa, fb in zip(a["frames"], b["frames"]):
+        # float32 colour in the layer: equal to rounding
+        np.testing.assert_allclose(read_raw(fb["diffuse"])[0], read_raw(fa["diffuse"])[0], rtol=1e-5, atol=1e-7)
+
+
+def test_convert_frames_writes_one_mitsuba_xml_per_time(animated_stage, tmp_path, cli):
+    res = cli.json("convert", animated_stage, tmp_path / "scene.xml", "--frames", "1:12:5")
+    xmls = sorted(tmp_path.glob("scene_*.xml"))
+    assert [p.name for p in xmls] == ["scene_0000.xml", "scene_0001.xml", "scene_0002.xml"]
+    assert str(xmls[0]) in res["files"]
+    for path, i in zip(xmls, (0, 5, 10)):
+        assert _point_positions(path).get("Scene_Lights_User_Mover") == pytest.approx(_path(i))
+    one = cli.json("convert", animated_stage, tmp_path / "t7.xml", "--time", "7")
+    assert _point_positions(one["files"][0])["Scene_Lights_User_Mover"] == pytest.approx(_path(6))
+
+
+def _point_positions(path) -> dict:
+    """Mitsuba XML: point emitter id -> its position."""
+    import xml.etree.ElementTree as ET
+
+    out = {}
+    for e in ET.parse(path).getroot().iter("emitter"):
+        pos = e.find("point[@name='position']")
+        if e.get("type") == "point" and pos is not None:
+            out[e.get("id")] = tuple(float(v) for v in pos.get("value").split(","))
+    return out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "5:1"], "END must not be before START"),
+    (["--frames", "1:5:0"], "STEP must be > 0"),
+    (["--frames", "1:1000000"], "at most"),
+    (["--frames"], "no time range"),
+    (["--video", "out.avi"], ".mp4"),
+    (["--frames", "1:3", "--time", "2"], "give one"),
+    (["--time", "nan"], "finite"),
+])
+def test_bad_time_input_is_one_line(animated_stage, tmp_path, cli, args, message):
+    out = tmp_path / "o"
+    rc, stdout, err = cli("relight", animated_stage, "--with-fitted", "-o", out, *args)
+    assert rc == 2 and message in err and err.count("\n") == 1, err
+    assert not out.exists()

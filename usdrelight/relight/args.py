@@ -1,0 +1,55 @@
+"""The ``usdrelight relight`` command-line arguments (argparse only, so building the command line stays light)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..argtypes import positive_int as _positive_int
+
+DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
+               "time code of --frames) and --light, rendered, then composited (ratio, add) or through the network "
+               "(neural). Writes relit.exr/.png (linear EXR, sRGB PNG) and render_diffuse.exr, or for several "
+               "frames relit_NNNN.* (NNNN: the frame's index in the run), optionally an H.264 MP4.")
+
+
+def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
+    """Add the ``relight`` subcommand to the subparsers ``sub``; ``func(args)`` runs it."""
+    rl = sub.add_parser("relight", parents=parents, help="apply lights, render, composite or run the network",
+                        description=DESCRIPTION)
+    rl.add_argument("stage", type=Path)
+    rl.add_argument("--light", action="append", metavar="SPEC",
+                    help="point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
+                         "dome:R,G,B (repeatable; applies to every frame)")
+    frames = rl.add_mutually_exclusive_group()
+    frames.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
+                        help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "
+                             "render_diffuse_NNNN.exr")
+    frames.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
+                        help="render every USD time code from START to END (inclusive; STEP default 1); without a "
+                             "value: the stage's startTimeCode:endTimeCode. Lights whose time samples do not "
+                             "change between frames are not rendered again")
+    rl.add_argument("--time", type=float, metavar="T",
+                    help="the USD time code the stage's lights are read at (default: the stage's startTimeCode, "
+                         "else each attribute's first time sample)")
+    rl.add_argument("--video", type=Path, metavar="OUT.mp4",
+                    help="also encode the frames as an H.264 MP4 at the stage's framesPerSecond (PyAV)")
+    rl.add_argument("--save-lights", type=Path, metavar="LAYER.usda",
+                    help="with --sequence: also write the sequence as a new time-sampled UsdLux layer (frame i at "
+                         "time code 1 + i), to sublayer into lights_user.usda")
+    rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
+                    help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
+    rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
+    rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
+                    help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
+    rl.add_argument("--mode", choices=["auto", "neural", "ratio", "add"], default="auto",
+                    help="auto (default): ratio when the fitted lighting is kept (--with-fitted / --fitted-scale), "
+                         "else neural; ratio: photo x new render / fitted render (needs `usdrelight fit`); "
+                         "neural: the network on the render; add: photo + render of the added lights")
+    rl.add_argument("--contact-sheet", action="store_true",
+                    help="also write contact_sheet.png: photo, diffuse render and every mode's result")
+    rl.add_argument("--model", type=Path)
+    rl.add_argument("-o", "--output", type=Path)
+    rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
+    rl.add_argument("--max-side", type=_positive_int, help="render at most this many pixels on the longer side")
+    rl.set_defaults(func=func)
+    return rl

@@ -1,0 +1,112 @@
+"""A light sequence (frames of ``--light`` records) as a time-sampled UsdLux layer.
+
+``relight --sequence LIGHTS.json --save-lights FILE.usda`` writes the sequence the USD way, so that the JSON and a
+stage animated in usdview, Blender or Houdini lead to the same file: the n-th light of every frame is one prim
+``/Scene/Lights/Relight/Light<n>`` whose attributes carry one time sample per frame (frame ``i`` at time code
+``start + i``):
+
+* ``xformOp:translate`` (double3, metres) and ``xformOp:orient`` (quatf, interpolated by slerp between samples),
+  so a light moves and turns smoothly when a renderer asks for a time between two frames;
+* ``inputs:intensity`` and ``inputs:color`` (intensity * color = the light's RGB, as
+  :func:`usdrelight.stage.lux.set_light_rgb` splits it), ``inputs:shaping:cone:angle`` / ``softness`` for spots,
+  ``inputs:angle`` for suns;
+* ``visibility``: ``invisible`` at the frames where the light is absent (a frame with fewer lights).
+
+The n-th light must keep its kind (point, spot, sun, dome) through the sequence. The layer's start/end time
+codes and framesPerSecond are authored, so the stage that sublayers it knows the clip's range. The layer is a
+new file: an existing file is never overwritten.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_path
+from ..errors import UsdRelightError
+from .layout import LIGHTS, RELIGHT_LIGHTS_SCOPE, ROOT
+from .lux import split_rgb
+from .records import LightRecord
+
+
+def _kind(light: LightRecord) -> str:
+    if light.kind == "sphere" and light.treat_as_point:
+        return "spot" if light.cone_angle_deg is not None else "point"
+    if light.kind in ("distant", "dome") and light.texture is None:
+        return "sun" if light.kind == "distant" else "dome"
+    raise UsdRelightError(f"a light sequence holds point, spot, sun and untextured dome lights, not {light.kind}")
+
+
+def _rotation_quat(m: np.ndarray):
+    """The rotation of a 4x4 (column vectors; unit-length axes) as a Gf.Quatf."""
+    from pxr import Gf
+
+    rot = Gf.Matrix4d(*np.asarray(m, np.float64).T.reshape(-1).tolist()).ExtractRotationQuat()
+    return Gf.Quatf(rot.GetReal(), Gf.Vec3f(rot.GetImaginary()))
+
+
+def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1.0, fps: float = 24.0) -> Path:
+    """Write ``frames`` (frame i: its light records, metres) as a new time-sampled lights layer at ``path``
+    (frame i at time code ``start + i``); see the module docstring. Returns ``path``."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    path = Path(path)
+    if path.suffix.lower() not in (".usda", ".usd", ".usdc"):
+        raise UsdRelightError(f"the lights layer must be a .usda, .usd or .usdc file, got {path.name}")
+    if path.exists() or path.is_symlink():
+        raise UsdRelightError(f"{path} exists: a lights layer is written as a new file, never over another")
+    if not frames:
+        raise UsdRelightError("an empty light sequence has no layer to write")
+    count = max(len(f) for f in frames)
+    kinds = {}
+    for f in frames:
+        for n, light in enumerate(f):
+            if kinds.setdefault(n, _kind(light)) != _kind(light):
+                raise UsdRelightError(f"light {n} of the sequence changes kind ({kinds[n]} -> {_kind(light)}): "
+                                      f"a prim keeps one kind over time")
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.documentation = "Animated lights written by usdrelight relight --save-lights (one sample per frame)."
+    stage = Usd.Stage.Open(layer)
+    stage.SetStartTimeCode(start)
+    stage.SetEndTimeCode(start + len(frames) - 1)
+    stage.SetFramesPerSecond(fps)
+    stage.SetTimeCodesPerSecond(fps)
+    stage.OverridePrim(ROOT)
+    UsdGeom.Scope.Define(stage, LIGHTS)
+    UsdGeom.Scope.Define(stage, RELIGHT_LIGHTS_SCOPE)
+    for n in range(count):
+        kind = kinds[n]
+        prim_path = f"{RELIGHT_LIGHTS_SCOPE}/Light{n}"
+        if kind in ("point", "spot"):
+            light = UsdLux.SphereLight.Define(stage, prim_path)
+            light.CreateTreatAsPointAttr(True)
+            light.CreateRadiusAttr(0.0)
+            light.CreateNormalizeAttr(False)
+        else:
+            light = (UsdLux.DistantLight if kind == "sun" else UsdLux.DomeLight).Define(stage, prim_path)
+        xf = UsdGeom.Xformable(light)
+        translate, orient = xf.AddTranslateOp(), xf.AddOrientOp()
+        shaping = UsdLux.ShapingAPI.Apply(light.GetPrim()) if kind == "spot" else None
+        vis = UsdGeom.Imageable(light).CreateVisibilityAttr()
+        intensity, colour = light.CreateIntensityAttr(), light.CreateColorAttr()
+        for i, f in enumerate(frames):
+            t = Usd.TimeCode(start + i)
+            rec = f[n] if n < len(f) else None
+            vis.Set(UsdGeom.Tokens.inherited if rec is not None else UsdGeom.Tokens.invisible, t)
+            if rec is None:
+                continue
+            translate.Set(Gf.Vec3d(*map(float, rec.to_world[:3, 3])), t)
+            orient.Set(_rotation_quat(rec.to_world), t)
+            k, rgb = split_rgb(rec.radiance)
+            intensity.Set(float(k), t)
+            colour.Set(Gf.Vec3f(*rgb), t)
+            if shaping is not None:
+                shaping.CreateShapingConeAngleAttr().Set(float(rec.cone_angle_deg), t)
+                shaping.CreateShapingConeSoftnessAttr().Set(float(rec.cone_softness), t)
+            if kind == "sun":
+                light.CreateAngleAttr().Set(float(rec.angle_deg), t)
+    layer.GetPrimAtPath(ROOT).specifier = Sdf.SpecifierOver  # /Scene is defined by the stage's scene.usda
+    text = layer.ExportToString()
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path

@@ -1,0 +1,119 @@
+"""Time in a stage: which time code a single frame reads, and the time codes of an animation.
+
+USD conventions (what usdview's timeline and Blender's, Houdini's USD exporters use):
+
+* A light is animated by *time samples* on its attributes (``xformOp:*``, ``inputs:intensity``,
+  ``inputs:exposure``, ``inputs:color``, ``inputs:colorTemperature``, ``inputs:radius``, ``inputs:angle``,
+  ``inputs:shaping:cone:angle`` ...) and on ``visibility``; values between samples are interpolated (the stage's
+  interpolation type, linear by default).
+* The stage's ``startTimeCode`` / ``endTimeCode`` give the animation's range (time codes, inclusive) and
+  ``framesPerSecond`` its playback rate; ``timeCodesPerSecond`` maps time codes to seconds.
+* A frame with no ``--time`` reads the stage's ``startTimeCode`` when the stage authors a time range (what
+  usdview shows when it opens a stage), else ``Usd.TimeCode.EarliestTime()``: each attribute's first time sample
+  when it has any, its default value otherwise. A stage without time samples reads exactly as before.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..errors import UsdRelightError
+
+MAX_FRAMES = 10_000
+"""Most time codes one ``--frames`` range may hold (checked before anything renders)."""
+
+
+@dataclass(frozen=True)
+class TimeRange:
+    """A stage's animation range."""
+
+    start: float
+    """startTimeCode (time codes)."""
+    end: float
+    """endTimeCode (time codes), >= start."""
+    fps: float
+    """framesPerSecond: the playback rate, one rendered time code per video frame."""
+
+
+def stage_time_range(stage) -> TimeRange | None:
+    """The stage's authored start/end time codes and framesPerSecond, or None when it authors no range."""
+    if not stage.HasAuthoredTimeCodeRange():
+        return None
+    return TimeRange(float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()), stage_fps(stage))
+
+
+def stage_fps(stage) -> float:
+    """framesPerSecond of the stage (USD's fallback 24); not finite and positive: an error."""
+    fps = float(stage.GetFramesPerSecond())
+    if not (math.isfinite(fps) and fps > 0):
+        raise UsdRelightError(f"the stage's framesPerSecond must be finite and positive (got {fps:g})")
+    return fps
+
+
+def frame_time(stage, time: float | None = None):
+    """The ``Usd.TimeCode`` a single frame reads: ``time`` when given, else the stage's startTimeCode when it
+    authors a range, else EarliestTime (see the module docstring)."""
+    from pxr import Usd
+
+    if time is not None:
+        return Usd.TimeCode(check_time(time))
+    rng = stage_time_range(stage)
+    return Usd.TimeCode(rng.start) if rng is not None else Usd.TimeCode.EarliestTime()
+
+
+def check_time(time) -> float:
+    """A time code given by a user: a finite number."""
+    try:
+        t = float(time)
+    except (TypeError, ValueError):
+        raise UsdRelightError(f"a time code must be a number, got {time!r}") from None
+    if not math.isfinite(t) or abs(t) > 1e12:
+        raise UsdRelightError(f"a time code must be a finite number of magnitude <= 1e12, got {time!r}")
+    return t
+
+
+def parse_frames(text: str | None, stage=None) -> list[float]:
+    """The time codes of ``--frames START:END[:STEP]`` (inclusive, STEP > 0, default 1); ``text`` None or
+    empty: the stage's own range (an error when it authors none). At most :data:`MAX_FRAMES`."""
+    if not text:
+        rng = stage_time_range(stage) if stage is not None else None
+        if rng is None:
+            raise UsdRelightError("the stage authors no time range (startTimeCode/endTimeCode): give "
+                                  "--frames START:END[:STEP]")
+        start, end, step = rng.start, rng.end, 1.0
+    else:
+        parts = str(text).split(":")
+        if len(parts) not in (2, 3):
+            raise UsdRelightError(f"bad --frames {text!r}: use START:END[:STEP], e.g. 1:48 or 1:48:2")
+        start, end = check_time(parts[0]), check_time(parts[1])
+        step = check_time(parts[2]) if len(parts) == 3 else 1.0
+        if step <= 0:
+            raise UsdRelightError(f"bad --frames {text!r}: STEP must be > 0")
+        if end < start:
+            raise UsdRelightError(f"bad --frames {text!r}: END must not be before START")
+    count = math.floor((end - start) / step + 1e-9) + 1
+    if count > MAX_FRAMES:
+        raise UsdRelightError(f"--frames {start:g}:{end:g}:{step:g} holds {count} time codes: at most "
+                              f"{MAX_FRAMES} in one run (split it into several runs)")
+    return [start + i * step for i in range(count)]
+
+
+def light_time_codes(stage) -> list[float]:
+    """Every time code at which any light attribute or transform of ``stage`` has a sample, sorted (for
+    tools that key what a stage authors, e.g. the Blender converter)."""
+    from pxr import UsdGeom, UsdLux
+
+    codes: set[float] = set()
+    for prim in stage.Traverse():
+        if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
+                prim.IsA(UsdLux.NonboundableLightBase)):
+            continue
+        chain = [prim]
+        parent = prim.GetParent()
+        while parent and parent.IsA(UsdGeom.Xformable):
+            chain.append(parent)
+            parent = parent.GetParent()
+        for p in chain:
+            for attr in p.GetAttributes():
+                codes.update(attr.GetTimeSamples())
+    return sorted(codes)
