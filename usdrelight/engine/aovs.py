@@ -14,7 +14,8 @@ class Aovs:
     beauty: np.ndarray
     """(H, W, 3) float32 radiance under the lights, emitters hidden from camera rays (0 where no geometry)."""
     albedo: np.ndarray
-    """(H, W, 3) float32 diffuse albedo at the surface seen through the pixel centre (0 where none)."""
+    """(H, W, 3) float32 diffuse albedo at the surface seen through the pixel centre; for a partly covered pixel
+    whose centre misses, the albedo of its covered part (fast renderer); 0 where the pixel sees no geometry."""
     valid: np.ndarray
     """(H, W) bool: the ray through the pixel centre hits geometry."""
     coverage: np.ndarray

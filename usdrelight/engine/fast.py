@@ -159,8 +159,15 @@ class FastRenderer:
         # over its area, as a box pixel filter does
         light_out = e + prep.smooth @ (self.transport.P @ (a * e)) if depth >= 3 else e
         radiance = nonnegative(prep.pixel_albedo * light_out)
+        beauty, albedo = surf.image(radiance), surf.image(a)
+        cov = np.zeros(surf.height * surf.width, np.float32)
+        cov[surf.flat_index()] = prep.coverage
+        fr = prep.fringe  # partly covered pixels whose centre misses: shaded from their nearest hit, box-filtered
+        if fr.pixels.size:
+            beauty.reshape(-1, 3)[fr.pixels] = nonnegative(fr.albedo * light_out[fr.source])
+            albedo.reshape(-1, 3)[fr.pixels] = fr.albedo / fr.coverage[:, None]
+            cov[fr.pixels] = fr.coverage
         sec["bounce"] = time.perf_counter() - t
         valid = np.zeros((surf.height, surf.width), bool)
         valid[surf.idx[:, 0], surf.idx[:, 1]] = True
-        coverage = surf.image(prep.coverage[:, None])[..., 0]
-        return Aovs(surf.image(radiance), surf.image(a), valid, coverage, sec)
+        return Aovs(beauty, albedo, valid, cov.reshape(surf.height, surf.width), sec)

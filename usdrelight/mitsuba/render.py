@@ -27,6 +27,7 @@ from ..atomic import result_group
 from ..errors import UsdRelightError
 from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
+from ..stage.backplate import hides_emitters
 from ..stage.read import read_scene
 from ..stage.records import RenderVarRecord, SceneRecord
 from ..stage.timing import frame_time
@@ -85,11 +86,13 @@ def trace_pixel_centres(mi, scene, width: int, height: int):
     return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy))
 
 
-def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """(albedo (H * W, 3), coverage (H * W,)) of every pixel from k x k stratified camera rays: the diffuse
-    albedo averaged over the pixel's area with misses counting as 0, and the fraction of the area that sees
-    geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel)."""
+def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(albedo (H * W, 3), coverage (H * W,), hit point (H * W, 3)) of every pixel from k x k stratified camera
+    rays: the diffuse albedo averaged over the pixel's area with misses counting as 0, the fraction of the area
+    that sees geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel), and the mean
+    world-space position of the rays that hit (0 where none)."""
     acc = np.zeros((width * height, 3))
+    pos = np.zeros((width * height, 3))
     cov = np.zeros(width * height)
     dx, dy = PRIMARY_RAY_NUDGE_PX
     for i in range(k):
@@ -97,9 +100,12 @@ def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.
             _, si = trace_pixels(mi, scene, width, height, ((j + 0.5) / k + dx, (i + 0.5) / k + dy))
             hit = np.array(si.is_valid(), bool)
             alb = np.array(si.bsdf().eval_diffuse_reflectance(si), np.float64).T
+            p = np.array(si.p, np.float64).T
             acc += np.where(hit[:, None] & np.isfinite(alb), alb, 0.0)
+            pos += np.where(hit[:, None] & np.isfinite(p), p, 0.0)
             cov += hit
-    return np.clip(acc / (k * k), 0.0, 1.0), cov / (k * k)
+    hits = np.maximum(cov, 1.0)[:, None]
+    return np.clip(acc / (k * k), 0.0, 1.0), cov / (k * k), pos / hits
 
 
 def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, wanted: set) -> dict:
@@ -231,7 +237,7 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
     stamp = stage_stamp(stage, rec.resolution)
     t1 = time_module.perf_counter()
-    images = render_record(rec, wanted, spp, max_depth, seed)
+    images = render_record(rec, wanted, spp, max_depth, seed, hide_emitters=hides_emitters(stage))
     t2 = time_module.perf_counter()
     files = {}
     # every AOV of this render appears at once (atomic.result_group); AOVs not rendered now stay as they were

@@ -34,7 +34,7 @@ from ..mitsuba.render import pixel_footprint
 from ..mitsuba.runtime import load_mitsuba
 from ..stage.records import SceneRecord, TextureRecord
 from .basis import LightTransport, bounce_filter, build_transport
-from .surface import R_MIN_REL, VisibleSurface, geometry_scene, trace_surface
+from .surface import R_MIN_REL, PixelFringe, VisibleSurface, geometry_scene, pixel_fringe, trace_surface
 
 try:  # POSIX; elsewhere entries in use are not protected from another process's eviction
     import fcntl
@@ -43,7 +43,7 @@ except ImportError:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-TRANSPORT_VERSION = 3
+TRANSPORT_VERSION = 4
 """Bumped whenever the cached arrays or their meaning change (part of every key)."""
 CACHE_DIR = "cache"
 """The stage-folder sub-folder of :meth:`TransportCache.for_stage`."""
@@ -79,6 +79,8 @@ class PreparedTransport:
     """(N, 3) albedo averaged over each valid pixel's area, misses counting as 0."""
     coverage: np.ndarray
     """(N,) fraction of each valid pixel's area that sees geometry, in [0, 1]."""
+    fringe: PixelFringe
+    """The partly covered pixels whose centre ray misses (depth cuts, the image border)."""
     smooth: sp.csr_matrix
     """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface."""
     key: str
@@ -251,6 +253,8 @@ def _arrays(prep: PreparedTransport, settings: TransportSettings) -> dict:
     tr, s = prep.transport, prep.surface
     return dict(width=s.width, height=s.height, idx=s.idx.astype(np.int32), p=s.p, n=s.n, ng=s.ng, albedo=s.albedo,
                 center=s.center, extent=s.extent, pixel_albedo=prep.pixel_albedo, coverage=prep.coverage,
+                fringe_pixels=prep.fringe.pixels, fringe_albedo=prep.fringe.albedo,
+                fringe_coverage=prep.fringe.coverage, fringe_source=prep.fringe.source,
                 H=tr.H.astype(np.float16),
                 P_counts=np.round(tr.P.data * settings.indirect_samples).astype(np.uint16),
                 P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
@@ -269,7 +273,11 @@ def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tupl
     P = sp.csr_matrix((d["P_counts"] / settings.indirect_samples, d["P_indices"], d["P_indptr"]), shape=(n, n))
     tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), d["H"].astype(np.float32), P,
                         R_MIN_REL * surf.extent, surf.eps)
-    return tr, d["pixel_albedo"], d["coverage"]
+    fringe = PixelFringe(d["fringe_pixels"].astype(np.int64), d["fringe_albedo"], d["fringe_coverage"],
+                         d["fringe_source"].astype(np.int64))
+    if fringe.source.size and fringe.source.max() >= n:
+        raise ValueError("fringe sources out of range")
+    return tr, d["pixel_albedo"], d["coverage"], fringe
 
 
 def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportSettings(),
@@ -283,7 +291,7 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
     if found is not None:
         arrays, lease = found
         try:
-            tr, pixel_albedo, coverage = _from_arrays(arrays, rec, settings)
+            tr, pixel_albedo, coverage, fringe = _from_arrays(arrays, rec, settings)
             smooth = bounce_filter(tr.surface)
         except (ValueError, KeyError) as exc:
             log.warning("transport cache entry %s does not fit (%s): rebuilding", cache.path(key), exc)
@@ -298,9 +306,11 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         smooth = bounce_filter(surf)
         H = (smooth @ raw.H).astype(np.float16).astype(np.float32)
         tr = LightTransport(surf, raw.env_shape, H, raw.P, raw.r_min, raw.eps)
-        albedo, coverage = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height, settings.footprint)
+        albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
+                                                       settings.footprint)
+        fringe = pixel_fringe(surf, albedo, coverage, hit_points)
         pixel_albedo, coverage = albedo[surf.flat_index()], coverage[surf.flat_index()]
-    prep = PreparedTransport(tr, pixel_albedo, coverage, smooth, key, found is not None,
+    prep = PreparedTransport(tr, pixel_albedo, coverage, fringe, smooth, key, found is not None,
                              time.perf_counter() - t)
     if found is None and cache is not None:
         lease = cache.store(key, _arrays(prep, settings))

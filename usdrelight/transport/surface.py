@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from ..errors import UsdRelightError
 from ..mitsuba.render import trace_pixel_centres
@@ -127,3 +128,57 @@ def trace_surface(rec: SceneRecord, max_side: int | None, mi_scene=None, keep=No
         extent = float(np.linalg.norm(P.mean(0))) or 1.0
     return VisibleSurface(rec, W, H, np.stack([rows, cols], 1), P, n[ok], ng[ok], np.clip(alb[ok], 0.0, 1.0),
                           (lo + hi) / 2, extent, scene)
+
+
+@dataclass(frozen=True)
+class PixelFringe:
+    """Pixels that see geometry over part of their area although their centre ray misses: the outline at every
+    depth cut and the half-covered last row and column of a pixel mesh. A box pixel filter (Mitsuba's) shows
+    them at ``coverage`` of the covered surface's radiance; the fast renderer shades them from the nearest pixel
+    whose centre ray hits (``source``), times their own area-averaged albedo."""
+
+    pixels: np.ndarray
+    """(M,) row-major flat pixel indices."""
+    albedo: np.ndarray
+    """(M, 3) albedo averaged over the pixel's area, misses counting as 0 (so it carries the coverage)."""
+    coverage: np.ndarray
+    """(M,) fraction of the pixel's area that sees geometry, in (0, 1]."""
+    source: np.ndarray
+    """(M,) index into the surface's valid pixels of the nearest one (Euclidean, in pixels)."""
+
+
+FRINGE_RADIUS = 2
+"""Pixels searched around a fringe pixel for the hit that shades it (a (2r + 1)^2 window)."""
+
+
+def pixel_fringe(surf: VisibleSurface, albedo: np.ndarray, coverage: np.ndarray, hit_points: np.ndarray
+                 ) -> PixelFringe:
+    """The fringe of ``surf`` from every pixel's area-averaged ``albedo`` (H * W, 3), ``coverage`` (H * W,) and
+    mean hit point (H * W, 3): each fringe pixel is shaded from the centre hit, within
+    :data:`FRINGE_RADIUS` pixels, nearest in space to where its own rays hit (the surface that covers it, not the
+    other side of a depth cut); with none in the window, from the nearest centre hit in the image."""
+    hit = np.zeros((surf.height, surf.width), bool)
+    hit[surf.idx[:, 0], surf.idx[:, 1]] = True
+    fringe = np.flatnonzero((coverage.reshape(surf.height, surf.width) > 0) & ~hit)
+    if not fringe.size or not surf.n_pixels:
+        empty = np.zeros(0, np.int64)
+        return PixelFringe(empty, np.zeros((0, 3)), np.zeros(0), empty)
+    order = np.full(surf.height * surf.width, -1, np.int64)
+    order[surf.flat_index()] = np.arange(surf.n_pixels)
+    _, (rows, cols) = distance_transform_edt(~hit, return_indices=True)
+    source = order[rows.reshape(-1)[fringe] * surf.width + cols.reshape(-1)[fringe]]
+    best = np.full(fringe.size, np.inf)
+    r0, c0 = np.divmod(fringe, surf.width)
+    target = hit_points[fringe]
+    for dr in range(-FRINGE_RADIUS, FRINGE_RADIUS + 1):
+        for dc in range(-FRINGE_RADIUS, FRINGE_RADIUS + 1):
+            r, c = r0 + dr, c0 + dc
+            inside = (r >= 0) & (r < surf.height) & (c >= 0) & (c < surf.width)
+            cand = np.where(inside, order[np.clip(r, 0, surf.height - 1) * surf.width + np.clip(c, 0, surf.width - 1)],
+                            -1)
+            ok = cand >= 0
+            dist = np.full(fringe.size, np.inf)
+            dist[ok] = np.linalg.norm(surf.p[cand[ok]] - target[ok], axis=1)
+            better = dist < best
+            best[better], source[better] = dist[better], cand[better]
+    return PixelFringe(fringe, albedo[fringe], coverage[fringe], source)
