@@ -19,7 +19,7 @@ SOURCES = {ROOT / "usdrelight": "usdrelight", ROOT / "converters": "usdrelight.c
 LAYERS = [
     ("leaf", ["usdrelight", "usdrelight._llvm", "usdrelight.argtypes", "usdrelight.errors", "usdrelight.atomic",
               "usdrelight.imageio", "usdrelight.intrinsics", "usdrelight.mesh", "usdrelight.onnx_runtime", "usdrelight.safe_paths",
-              "usdrelight.native_io",
+              "usdrelight.native_io", "usdrelight.device",
               "usdrelight.schemas"]),
     ("estimate", ["usdrelight.estimate"]),
     ("stage", ["usdrelight.stage"]),

@@ -247,6 +247,11 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--json", action="store_true", help="print a machine-readable JSON summary on stdout")
     common.add_argument("-v", "--verbose", action="count", default=0, help="more logging on stderr (-vv for debug)")
     common.add_argument("--debug", action="store_true", help="show tracebacks of unexpected errors")
+    device = argparse.ArgumentParser(add_help=False)  # commands that render or run the network
+    device.add_argument("--device", choices=["cpu", "cuda", "auto"], default="cpu",
+                        help="where Mitsuba/drjit and the network run (default cpu; auto: CUDA when drjit finds a "
+                             "GPU; cuda: a GPU or one clear error)")
+    device.set_defaults(uses_render_device=True)
 
     p = argparse.ArgumentParser(prog="usdrelight", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"usdrelight {__version__}")
@@ -273,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cut triangles whose normal is more than this many degrees from the view ray")
     b.set_defaults(func=cmd_build)
 
-    r = sub.add_parser("render", parents=[common, reads], help="render the AOVs the stage's RenderSettings declare",
+    r = sub.add_parser("render", parents=[common, reads, device], help="render the AOVs the stage's RenderSettings declare",
                        description="Render the stage's RenderProducts with Mitsuba (llvm_ad_rgb) to linear EXR.")
     r.add_argument("stage", type=Path)
     r.add_argument("-o", "--output", type=Path, help="output folder (default: the stage's folder)")
@@ -286,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                             "stage's startTimeCode, else the first time sample)")
     r.set_defaults(func=cmd_render)
 
-    f = sub.add_parser("fit", parents=[common, reads], help="fit lights to the photo's diffuse image",
+    f = sub.add_parser("fit", parents=[common, reads, device], help="fit lights to the photo's diffuse image",
                        description="Fit an environment map and point lights so the render reproduces D; write "
                                    "them into the fitted-lights layer.")
     f.add_argument("stage", type=Path)
@@ -302,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="samples per pixel of the Mitsuba verification render (0: skip it)")
     f.set_defaults(func=cmd_fit)
 
-    n = sub.add_parser("neural", parents=[common, reads], help="run the neural renderer on the stage's AOVs",
+    n = sub.add_parser("neural", parents=[common, reads, device], help="run the neural renderer on the stage's AOVs",
                        description="Read D~, albedo and valid mask through the stage's RenderProducts, fill "
                                    "holes, run the ONNX network; write linear EXR and sRGB PNG.")
     n.add_argument("stage", type=Path)
@@ -312,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--spp", type=_positive_int, default=64)
     n.set_defaults(func=cmd_neural)
 
-    add_relight_parser(sub, [common, reads], cmd_relight)
+    add_relight_parser(sub, [common, reads, device], cmd_relight)
 
     tr = sub.add_parser("train", parents=[common], help="train the neural renderer (needs torch)",
                         description="Self-supervised pairs from a folder of photos (+ optional estimator "
@@ -343,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "stage's startTimeCode:endTimeCode)")
     c.set_defaults(func=cmd_convert)
 
-    sv = sub.add_parser("serve", parents=[common, reads], help="interactive relighting web app (the serve extra)",
+    sv = sub.add_parser("serve", parents=[common, reads, device], help="interactive relighting web app (the serve extra)",
                         description="A local web app: the photo mesh, camera and lights in 3D, light editing, "
                                     "the relit photo live; saves lights_user.usda. Ctrl-C stops it.")
     sv.add_argument("stage", type=Path)
@@ -368,6 +373,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     try:
+        if getattr(args, "uses_render_device", False):
+            from .device import select_device
+            select_device(args.device)
         with command_context(getattr(args, "allow_path", [])):  # native logs off stdout, --allow-path
             return int(args.func(args) or 0)
     except UsdRelightError as exc:

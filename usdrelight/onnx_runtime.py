@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .device import onnx_providers
 from .errors import UsdRelightError
 
 
@@ -17,7 +18,8 @@ def first_line(exc: BaseException) -> str:
 
 
 def open_session(path: str | Path):
-    """An ``onnxruntime.InferenceSession`` on the CPU for ``path``; UsdRelightError when it cannot load."""
+    """An ``onnxruntime.InferenceSession`` for ``path`` on the selected device (:mod:`usdrelight.device`);
+    UsdRelightError when it cannot load."""
     try:
         import onnxruntime as ort
     except ImportError:
@@ -28,6 +30,7 @@ def open_session(path: str | Path):
     try:
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
-        return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), sess_options=opts,
+                                    providers=onnx_providers(ort.get_available_providers()))
     except Exception as exc:  # onnxruntime raises its own exception types
         raise UsdRelightError(f"cannot load ONNX model {path}: {first_line(exc)}") from None

@@ -1,14 +1,17 @@
 """Import Mitsuba with the variant usdrelight uses, failing with a clear message when it cannot."""
 from __future__ import annotations
 
+from ..device import CPU_VARIANT, mitsuba_variant
 from ..errors import UsdRelightError
 
-DEFAULT_VARIANT = "llvm_ad_rgb"
+DEFAULT_VARIANT = CPU_VARIANT
 
 
-def load_mitsuba(variant: str = DEFAULT_VARIANT):
-    """Return the ``mitsuba`` module with ``variant`` set (drjit's libLLVM was configured when the
-    ``usdrelight`` package was imported)."""
+def load_mitsuba(variant: str | None = None):
+    """Return the ``mitsuba`` module with ``variant`` set (default: the selected device's,
+    :func:`usdrelight.device.mitsuba_variant`; drjit's libLLVM was configured when the ``usdrelight`` package was
+    imported)."""
+    variant = variant or mitsuba_variant()
     try:
         import mitsuba as mi
     except ImportError:
