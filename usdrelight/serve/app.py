@@ -12,8 +12,8 @@ sends is checked on the server (:mod:`.gui`); uploads are bounded before they ar
 no widget takes a file path: HDRIs are copies of those named on the command line (``--hdri``) or uploads, both
 stored under fixed names in the stage's folder (:mod:`.files`; so the saved layer stays readable under the
 scene-folder confinement of :mod:`usdrelight.safe_paths`); saving writes only ``lights_user.usda`` (saves
-from several tabs wait for each other), exporting only ``STAGE_DIR/serve/export/relit.{exr,png}``; viser's
-public share links are refused.
+from several tabs wait for each other), exporting only ``STAGE_DIR/serve/export/relit.{exr,png,mp4}``; viser's
+public share links are refused. The timeline (keys, play, video) is :mod:`.timeline`.
 """
 from __future__ import annotations
 
@@ -38,6 +38,7 @@ from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
 from .live import FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
 from .scene_view import SceneView, scene_size
 from .state import KINDS, LightState, checked_vector, quat_pointing_along, unique_name
+from .timeline import Timeline, TimelineGui, render_video
 from .uploads import MAX_UPLOAD_BYTES, UploadGate
 
 log = logging.getLogger(__name__)
@@ -100,10 +101,13 @@ class ServeApp:
         stage = open_stage(self.stage_path)
         check_servable(stage, self.stage_path)
         names = {str(p): n for n, p in self.hdris.items()}
-        states, others = read_user_states(stage, names)
+        keys = {}
+        states, others = read_user_states(stage, names, keys)
         for path, label in names.items():
             if label not in self.hdris:
                 self.hdris[label] = Path(path)
+        self.timeline = Timeline(stage, self.stage_dir, self.hdris, keys)
+        states = self.timeline.states_at(states, self.timeline.frame)
         self.live = LiveRelight(self.stage_path, max_side, mode, self.hdris)
         self.live.keep_other(others)
         self.reserved = {p.rsplit("/", 1)[-1] for p in others}  # names a new light must not take (saving would
@@ -142,6 +146,7 @@ class ServeApp:
         for s in self.states.values():
             self.view.set_light(s)
         self.gui = Gui(self)
+        self.timeline_gui = TimelineGui(self)
         self.loop = FrameLoop(self.live, self._show)
         self.update()
         self.seconds = {"start": time.perf_counter() - t0, **self.live.seconds}
@@ -177,7 +182,7 @@ class ServeApp:
     # ---- the light set ---------------------------------------------------------------------------
     def light_set(self) -> LightSet:
         with self._lock:
-            return LightSet(tuple(self.states.values()), self.fitted_on, self.dimmer, self.mode)
+            return LightSet(tuple(self.states.values()), self.fitted_on, self.dimmer, self.mode, self.timeline.frame)
 
     def update(self) -> int:
         """Ask for a new frame of the current lights; returns the request number."""
@@ -222,6 +227,7 @@ class ServeApp:
             if self.states.pop(name, None) is None:
                 return
             self.managed.add(name)
+            self.timeline.forget(name)
         self.view.remove_light(name)
         self.update()
         self.gui.select(next(iter(self.states), ""))
@@ -260,6 +266,18 @@ class ServeApp:
             return
         self.update()
         self.gui.light_moved(s)
+
+    def show_time(self, t: float) -> list[str]:
+        """Go to time code ``t``: keyed lights take their values there (:mod:`.timeline`); asks for a frame.
+        Returns the names of the lights that changed."""
+        with self._lock:
+            self.timeline.frame = t
+            moved = [s for s in self.timeline.states_at(self.states.values(), t) if s != self.states[s.name]]
+            self.states.update((s.name, s) for s in moved)
+        for s in moved:
+            self.view.set_light(s)
+        self.update()
+        return [s.name for s in moved]
 
     def set_fitted(self, on: bool | None = None, dimmer: float | None = None) -> None:
         """Fitted lights on/off and their dimmer (clamped to [0, 1]; NaN/Inf refused)."""
@@ -300,7 +318,8 @@ class ServeApp:
         with self._save_lock:
             with self._lock:
                 states, managed = list(self.states.values()), set(self.managed)
-            path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT)
+            path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT,
+                                    keys=self.timeline.snapshot(), timing=self.timeline.timing())
             with self._lock:
                 self.managed = managed | {s.name for s in states}
             return path
@@ -310,6 +329,12 @@ class ServeApp:
         with self._busy:
             image = self._ctx.copy().run(self.live.export, self.light_set())
             return export_relit(self.stage_dir, image)
+
+    def export_video(self, progress=None) -> Path:
+        """Every frame of the timeline at full resolution -> STAGE_DIR/serve/export/relit.mp4 (one export at a
+        time; ``progress(done, total)`` after each frame)."""
+        with self._busy:
+            return self._ctx.copy().run(render_video, self, progress)
 
     def upload_hdri(self, client_name: str, content: bytes) -> str:
         """Store an uploaded HDRI under its fixed name (one at a time; bounds: :mod:`.uploads`); returns the

@@ -5,11 +5,17 @@ sends is ever used as (part of) a path. Uploads are stored under ``STAGE_DIR/ser
 from their content hash (the client's file name only chooses between the accepted suffixes ``.exr`` and
 ``.hdr`` and gives a display label), and only within the bounds of :mod:`.uploads` (size, then the image size
 its header declares, then OpenImageIO's reading of that header, before any pixel is decoded); exports go to
-``STAGE_DIR/serve/export/relit.{exr,png}``.
+``STAGE_DIR/serve/export/relit.{exr,png,mp4}``.
 
 The user-lights layer (``lights_user.usda``) is rewritten atomically (:mod:`usdrelight.atomic`): the app
 replaces the lights it manages under /Scene/Lights/User and keeps every other opinion of that layer (lights it
 cannot edit, documentation, anything else a user authored). No other layer is touched.
+
+Keyed (animated) lights: each key is a :class:`LightState` at a time code. A keyed light's prim gets the first
+key's values as defaults and, on every attribute whose value differs between keys, one time sample per key
+(when none differs, ``xformOp:translate`` carries them, so the key times survive a save); USD interpolates
+between them (linear; slerp for the orient quaternion; visibility and the HDRI held). Reading the stage back
+gives the keys again: one per time code at which any of the light's attributes has a sample.
 """
 from __future__ import annotations
 
@@ -35,6 +41,11 @@ log = logging.getLogger(__name__)
 SERVE_DIR = "serve"
 UPLOADS = "serve/uploads"
 EXPORTS = "serve/export"
+VIDEO = "relit.mp4"
+#: the attributes the app authors on a light: time samples on any other make the light read-only in the app
+KEYABLE = frozenset({"xformOp:translate", "xformOp:orient", "inputs:intensity", "inputs:exposure", "inputs:color",
+                     "inputs:shaping:cone:angle", "inputs:shaping:cone:softness", "inputs:angle", "visibility",
+                     "inputs:texture:file"})
 
 
 def hdri_label(text: str) -> str:
@@ -73,58 +84,67 @@ def export_relit(stage_dir, image: np.ndarray) -> tuple[Path, Path]:
     return write_relit(Path(stage_dir).resolve() / EXPORTS, "relit", image)
 
 
+def video_path(stage_dir) -> Path:
+    """Where "Export video" writes: ``STAGE_DIR/serve/export/relit.mp4`` (fixed; its folder is made)."""
+    folder = Path(stage_dir).resolve() / EXPORTS
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / VIDEO
+
+
 # ---- reading the user's lights ----------------------------------------------------------------
-def _transform(prim) -> tuple[tuple, tuple]:
-    """(position, rotation wxyz) of a light: its translate + orient ops when that is all it has, else the
+def _transform(prim, t) -> tuple[tuple, tuple]:
+    """(position, rotation wxyz) of a light at ``t``: its translate + orient ops when that is all it has, else the
     decomposed local-to-world matrix."""
-    from pxr import Usd, UsdGeom
+    from pxr import UsdGeom
 
     xf = UsdGeom.Xformable(prim)
     ops = xf.GetOrderedXformOps()
     kinds = [op.GetOpType() for op in ops]
     if kinds == [UsdGeom.XformOp.TypeTranslate, UsdGeom.XformOp.TypeOrient] and not xf.GetResetXformStack():
-        parent = gf_to_np(UsdGeom.Xformable(prim.GetParent()).ComputeLocalToWorldTransform(Usd.TimeCode.Default())) \
+        parent = gf_to_np(UsdGeom.Xformable(prim.GetParent()).ComputeLocalToWorldTransform(t)) \
             if prim.GetParent().IsA(UsdGeom.Xformable) else np.eye(4)
         if np.allclose(parent, np.eye(4), atol=0):
-            t, q = ops[0].Get(), ops[1].Get()
-            return tuple(float(v) for v in t), (float(q.GetReal()), *(float(v) for v in q.GetImaginary()))
-    m = gf_to_np(xf.ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+            p, q = ops[0].Get(t), ops[1].Get(t)
+            return tuple(float(v) for v in p), (float(q.GetReal()), *(float(v) for v in q.GetImaginary()))
+    m = gf_to_np(xf.ComputeLocalToWorldTransform(t))
     return tuple(m[:3, 3]), matrix_to_quat(m[:3, :3])
 
 
-def read_state(prim, hdri_names: dict) -> LightState | None:
-    """The editable state of a UsdLux prim, or None when the app cannot edit it without changing it (area
-    lights, colour temperature, IES/focus shaping, an unreadable HDRI). ``hdri_names`` ({resolved path: label})
-    gains the HDRIs the layer already uses."""
-    from pxr import UsdGeom, UsdLux
+def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState | None:
+    """The editable state of a UsdLux prim at time code ``time`` (None: the default time; time samples
+    interpolated), or None when the app cannot edit it without changing it (area lights, colour temperature,
+    IES/focus shaping, an unreadable HDRI). ``hdri_names`` ({resolved path: label}) gains the HDRIs the layer
+    already uses."""
+    from pxr import Usd, UsdGeom, UsdLux
 
-    t = prim.GetTypeName()
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    typ = prim.GetTypeName()
     api = UsdLux.LightAPI(prim)
-    if not api or api.GetEnableColorTemperatureAttr().Get():
+    if not api or api.GetEnableColorTemperatureAttr().Get(t):
         return None
-    common = {"name": prim.GetName(), "color": tuple(api.GetColorAttr().Get()),
-              "intensity": float(api.GetIntensityAttr().Get()), "exposure": float(api.GetExposureAttr().Get()),
-              "enabled": UsdGeom.Imageable(prim).GetVisibilityAttr().Get() != UsdGeom.Tokens.invisible}
-    common["position"], common["rotation"] = _transform(prim)
+    common = {"name": prim.GetName(), "color": tuple(api.GetColorAttr().Get(t)),
+              "intensity": float(api.GetIntensityAttr().Get(t)), "exposure": float(api.GetExposureAttr().Get(t)),
+              "enabled": UsdGeom.Imageable(prim).GetVisibilityAttr().Get(t) != UsdGeom.Tokens.invisible}
+    common["position"], common["rotation"] = _transform(prim, t)
     try:
-        if t == "SphereLight":
+        if typ == "SphereLight":
             s = UsdLux.SphereLight(prim)
-            if not (s.GetTreatAsPointAttr().Get() or float(s.GetRadiusAttr().Get()) == 0.0):
+            if not (s.GetTreatAsPointAttr().Get(t) or float(s.GetRadiusAttr().Get(t)) == 0.0):
                 return None
             if prim.HasAPI(UsdLux.ShapingAPI):
                 sh = UsdLux.ShapingAPI(prim)
-                ies = sh.GetShapingIesFileAttr().Get()
-                if float(sh.GetShapingFocusAttr().Get() or 0.0) != 0.0 or (ies is not None and ies.path):
+                ies = sh.GetShapingIesFileAttr().Get(t)
+                if float(sh.GetShapingFocusAttr().Get(t) or 0.0) != 0.0 or (ies is not None and ies.path):
                     return None
-                angle = float(sh.GetShapingConeAngleAttr().Get())
+                angle = float(sh.GetShapingConeAngleAttr().Get(t))
                 if angle < 180.0:
                     return LightState(kind="spot", cone_angle=angle,
-                                      softness=float(sh.GetShapingConeSoftnessAttr().Get()), **common)
+                                      softness=float(sh.GetShapingConeSoftnessAttr().Get(t)), **common)
             return LightState(kind="point", **common)
-        if t == "DistantLight":
-            return LightState(kind="sun", angle=float(UsdLux.DistantLight(prim).GetAngleAttr().Get()), **common)
-        if t == "DomeLight":
-            asset = UsdLux.DomeLight(prim).GetTextureFileAttr().Get()
+        if typ == "DistantLight":
+            return LightState(kind="sun", angle=float(UsdLux.DistantLight(prim).GetAngleAttr().Get(t)), **common)
+        if typ == "DomeLight":
+            asset = UsdLux.DomeLight(prim).GetTextureFileAttr().Get(t)
             if asset is None or not asset.path:
                 return LightState(kind="dome", **common)
             if not asset.resolvedPath:
@@ -136,8 +156,28 @@ def read_state(prim, hdri_names: dict) -> LightState | None:
     return None
 
 
-def read_user_states(stage, hdri_names: dict) -> tuple[list[LightState], list[str]]:
-    """(editable states, paths of the other lights under /Scene/Lights/User) in the composed ``stage``."""
+def _read_keys(prim, hdri_names: dict) -> dict | None:
+    """{time code: state} of a light with time samples ({} when it has none); None when the app cannot key
+    it (samples on an attribute it does not author, or a time at which it is not editable)."""
+    times = set()
+    for attr in prim.GetAttributes():
+        samples = attr.GetTimeSamples()
+        if samples and attr.GetName() not in KEYABLE:
+            return None
+        times.update(samples)
+    try:
+        keys = {float(t): read_state(prim, hdri_names, t) for t in sorted(times)}
+    except (UsdRelightError, TypeError, ValueError) as exc:  # e.g. an op with samples and no value at some time
+        log.warning("light %s kept as it is (its animation is not editable here): %s", prim.GetPath(), exc)
+        return None
+    return None if any(s is None for s in keys.values()) else keys
+
+
+def read_user_states(stage, hdri_names: dict, keys: dict | None = None) -> tuple[list[LightState], list[str]]:
+    """(editable states, paths of the other lights under /Scene/Lights/User) in the composed ``stage``.
+
+    ``keys`` (a dict) gains ``{name: {time code: state}}`` for each editable light with time samples (its state
+    in the list is then its first key); a light whose animation the app cannot key is one of the others."""
     from pxr import Usd, UsdLux
 
     scope = stage.GetPrimAtPath(USER_LIGHTS_SCOPE)
@@ -148,20 +188,28 @@ def read_user_states(stage, hdri_names: dict) -> tuple[list[LightState], list[st
         if prim == scope or not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase)
                                   or prim.IsA(UsdLux.NonboundableLightBase)):
             continue
-        state = read_state(prim, hdri_names) if prim.GetParent() == scope else None
+        state, animation = None, _read_keys(prim, hdri_names) if prim.GetParent() == scope else None
+        if animation:
+            state = animation[min(animation)]
+            if keys is not None:
+                keys[state.name] = animation
+        elif animation is not None:
+            state = read_state(prim, hdri_names)
         (states.append(state) if state is not None else others.append(str(prim.GetPath())))
     return states, others
 
 
 # ---- writing the user's lights ----------------------------------------------------------------
-def _asset(path: Path, stage_dir: Path) -> str:
+def _asset(path: Path, stage_dir: Path | None) -> str:
+    if stage_dir is None:
+        return str(Path(path).resolve())
     try:
         return "./" + Path(path).resolve().relative_to(stage_dir).as_posix()
     except ValueError:
         return str(Path(path).resolve())
 
 
-def _author(stage, s: LightState, stage_dir: Path, hdri_paths: dict) -> None:
+def _author(stage, s: LightState, stage_dir: Path | None, hdri_paths: dict) -> None:
     from pxr import Gf, Sdf, UsdGeom, UsdLux
 
     if s.kind in ("point", "spot"):
@@ -195,9 +243,36 @@ def _author(stage, s: LightState, stage_dir: Path, hdri_paths: dict) -> None:
         UsdGeom.Imageable(light.GetPrim()).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
 
 
-def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = None) -> str:
+def author_light(stage, s: LightState, stage_dir: Path | None, hdri_paths: dict, keys: dict | None = None) -> None:
+    """Define light ``s`` in ``stage`` (a HDRI's asset path relative to ``stage_dir``; None: absolute); with
+    ``keys`` ({time code: state of that light}) it is animated (module docstring), its defaults the first key's."""
+    from pxr import Usd
+
+    if not keys:
+        return _author(stage, s, stage_dir, hdri_paths)
+    times = sorted(keys)
+    _author(stage, keys[times[0]], stage_dir, hdri_paths)
+    values: dict = {}
+    for t in times:  # each key authored alone, then its attribute values compared
+        scratch = Usd.Stage.CreateInMemory()
+        _author(scratch, keys[t], stage_dir, hdri_paths)
+        for attr in scratch.GetPrimAtPath(s.path).GetAttributes():
+            values.setdefault(attr.GetName(), []).append(attr.Get())
+    prim = stage.GetPrimAtPath(s.path)
+    animated = [n for n, v in values.items() if len(v) == len(times) and all(x is not None for x in v) and
+                any(x != v[0] for x in v)] or ["xformOp:translate"]
+    for name in animated:
+        attr = prim.GetAttribute(name)
+        for t, value in zip(times, values[name]):
+            attr.Set(value, Usd.TimeCode(t))
+
+
+def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = None, keys: dict | None = None,
+                    timing: dict | None = None) -> str:
     """The new text of ``STAGE_DIR/lights_user.usda``: the current layer with the prims named in ``managed``
-    and ``states`` under /Scene/Lights/User replaced by ``states``."""
+    and ``states`` under /Scene/Lights/User replaced by ``states`` (animated by ``keys``: {name: {time code:
+    state}}). ``timing`` ({"start", "end", "fps", "tcps"}) sets the layer's startTimeCode/endTimeCode,
+    framesPerSecond and timeCodesPerSecond (the stage's, so USD does not rescale the layer's time samples)."""
     from pxr import Sdf, Usd, UsdGeom
 
     stage_dir = Path(stage_dir).resolve()
@@ -222,7 +297,10 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
         UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
     for s in states:
-        _author(stage, s, stage_dir, hdri_paths or {})
+        author_light(stage, s, stage_dir, hdri_paths or {}, (keys or {}).get(s.name))
+    if timing:
+        layer.startTimeCode, layer.endTimeCode = timing["start"], timing["end"]
+        layer.timeCodesPerSecond, layer.framesPerSecond = timing["tcps"], timing["fps"]
     root = layer.GetPrimAtPath(ROOT)
     if not had_root_def:
         root.specifier = Sdf.SpecifierOver  # /Scene is defined by scene.usda; this layer only adds to it
@@ -252,7 +330,8 @@ def _locked(folder: Path, wait: float):
         yield
 
 
-def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None, wait: float = 0.0) -> Path:
+def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None, wait: float = 0.0,
+                     keys: dict | None = None, timing: dict | None = None) -> Path:
     """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file. The
     stage lock is taken first (every stage writer holds it), waiting up to ``wait`` seconds for another
     writer ("stage ... is being written by PID N" after that)."""
@@ -260,7 +339,7 @@ def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = No
     from pxr import Sdf
 
     with _locked(target.parent, wait):  # read, edit and replace under the lock: no other writer's change is lost
-        write_text_atomic(target, user_layer_text(stage_dir, states, managed, hdri_paths))
+        write_text_atomic(target, user_layer_text(stage_dir, states, managed, hdri_paths, keys, timing))
         cached = Sdf.Layer.Find(str(target))
         if cached is not None:  # a stage open in this process sees the new file
             cached.Reload(force=True)

@@ -5,7 +5,8 @@ mode is first used; each loads the stage's transport cache) and owns the light l
 editable lights, the stage's other non-fitted lights, and the fitted lights scaled by a dimmer (the photo's own
 lighting, 1 = as fitted, 0 = off: day to night). Mode ``ratio`` divides by the render under the full fitted
 lighting, so dimming it darkens the photo itself; mode ``add`` keeps the photo's light, so the fitted lights
-are never added again there (the dimmer does not apply).
+are never added again there (the dimmer does not apply). When the stage animates lights (time samples), the
+other lights are read at the light set's time code (the app's timeline frame).
 
 :class:`FrameLoop` is the update path: a GUI thread calls :meth:`FrameLoop.request` with the newest light set
 (e.g. on every gizmo move) and one worker thread renders the newest request only, so a drag never queues a
@@ -28,7 +29,9 @@ from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb
 from ..relight.composite import MODES
 from ..relight.session import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession
-from ..stage.layout import USER_LIGHTS_SCOPE
+from ..stage.layout import FITTED_LIGHTS_SCOPE, USER_LIGHTS_SCOPE
+from ..stage.read import read_lights
+from ..stage.timing import light_time_codes
 from .state import to_record
 
 log = logging.getLogger(__name__)
@@ -66,6 +69,8 @@ class LightSet:
     """Scale of the fitted lights' radiance, >= 0."""
     mode: str = DEFAULT_MODE
     """neural | ratio | add."""
+    time: float | None = None
+    """USD time code the stage's other lights are read at (None: as read at start)."""
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,9 @@ class LiveRelight:
         self._outside = tuple(l for l in first.user_lights if not l.path.startswith(USER_LIGHTS_SCOPE + "/"))
         self._user_records = {l.path: l for l in first.user_lights if l.path.startswith(USER_LIGHTS_SCOPE + "/")}
         self.others = self._outside
+        self._kept = set()  # paths under /Scene/Lights/User rendered as they are (keep_other)
+        self._animated = bool(light_time_codes(first.usd_stage))
+        self._others_at: tuple = (None, self.others)  # (time code, the other lights read at it)
         self.seconds = dict(first.seconds)
         self._first = first
 
@@ -146,6 +154,21 @@ class LiveRelight:
     def keep_other(self, paths) -> None:
         """Render these user-layer lights as they are (the ones the app cannot edit)."""
         self.others = self._outside + tuple(self._user_records[p] for p in paths if p in self._user_records)
+        self._kept = set(paths)
+        self._others_at = (None, self.others)
+
+    def others_at(self, time: float | None) -> tuple:
+        """The other lights (see :meth:`keep_other`) at time code ``time``: read again from the stage only when
+        it animates lights (the last time's are kept)."""
+        if time is None or not self._animated:
+            return self.others
+        with self._lock:
+            if self._others_at[0] != time:
+                read = read_lights(self._first.usd_stage, time)
+                self._others_at = (time, tuple(
+                    l for l in read if not l.path.startswith(FITTED_LIGHTS_SCOPE + "/") and
+                    (not l.path.startswith(USER_LIGHTS_SCOPE + "/") or l.path in self._kept)))
+            return self._others_at[1]
 
     def session(self, mode: str) -> RelightSession:
         """The session for ``mode`` (made on first use)."""
@@ -172,7 +195,7 @@ class LiveRelight:
 
     def lights(self, ls: LightSet) -> list:
         """The light records of ``ls`` in render order: other lights, fitted (dimmed), the user's."""
-        records = list(self.others)
+        records = list(self.others_at(ls.time))
         if ls.fitted_on and ls.dimmer > 0 and ls.mode != "add":
             records += [replace(l, radiance=l.radiance * float(ls.dimmer)) for l in self.fitted]
         for s in ls.states:
