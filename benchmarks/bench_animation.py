@@ -43,12 +43,12 @@ def animate(stage_dir: Path, frames: int) -> None:
     light.CreateTreatAsPointAttr(True)
     light.CreateRadiusAttr(0.0)
     light.CreateNormalizeAttr(False)
-    light.CreateIntensityAttr(1.5)
+    light.CreateIntensityAttr(12.0)
     light.CreateColorAttr(Gf.Vec3f(1.0, 0.7, 0.4))
     op = UsdGeom.Xformable(light).AddTranslateOp()
     for i in range(frames):
         a = 2 * np.pi * i / frames
-        op.Set(Gf.Vec3d(0.9 * np.cos(a), 0.3, -1.6 + 0.5 * np.sin(a)), Usd.TimeCode(1 + i))
+        op.Set(Gf.Vec3d(1.1 * np.cos(a), 0.15, -1.9 + 0.6 * np.sin(a)), Usd.TimeCode(1 + i))
     layer.GetPrimAtPath("/Scene").specifier = Sdf.SpecifierOver
     layer.Save()
 
