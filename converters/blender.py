@@ -10,16 +10,13 @@ that script as the report's ``text``. Writer options (:data:`WRITE_OPTIONS`): ``
 pixel; 64) and ``max_depth`` (path length as in Mitsuba: Cycles bounces = max_depth - 2; 3).
 ``read_from_file("X.blend", usd_path=None) -> ReadReport`` brings the .blend's lights back as UsdLux (for the
 user-lights layer), so the relight loop closes (no ``read_from_string``: a .blend is binary).
-Units and frames: :mod:`usdrelight.converters.blender_units`.
+Units and frames: :mod:`usdrelight.converters.blender_units`. A photo stage (``usdrelight:hideEmitters``): the
+lights hidden from the camera, the photo as backplate and the relit photo on F12 (:mod:`.blender_photo`).
 """
 from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import subprocess
-import sys
 import tempfile
 from collections import Counter
 from pathlib import Path
@@ -34,47 +31,25 @@ from usdrelight.stage.lux import emitted_radiance, set_light_rgb
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
+from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
+from .blender_photo import photo_stage_payload, script_text
+from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
+from .blender_animation import author_keys, light_keys
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
                             light_to_blender, spot_blend, stage_units)
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "Blender"
 SUFFIXES = (".blend", ".py")
-TEMPLATE = Path(__file__).with_name("blender_script.py.txt")
 #: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
 READ_OPTIONS = {"usd_path": None}
 #: Writer options -> defaults: ``spp``, Cycles samples per pixel; ``max_depth``, path length as in Mitsuba.
-WRITE_OPTIONS = {"spp": 64, "max_depth": 3}
-
-
-# ---- finding Blender -------------------------------------------------------------------------
-def blender_command() -> list[str]:
-    """The command that runs a Python file with bpy available: [python] or [blender, -b, --python-exit-code...]."""
-    env = os.environ.get("USDRELIGHT_BLENDER_PYTHON")
-    if env:
-        return [env]
-    here = Path(sys.prefix)
-    for cand in (here.parent / ".venv-blender" / "bin" / "python", Path.cwd() / ".venv-blender" / "bin" / "python"):
-        if cand.is_file():
-            return [str(cand)]
-    exe = shutil.which("blender")
-    if exe:
-        return [exe, "--background", "--factory-startup", "--python-exit-code", "1", "--python"]
-    raise UsdRelightError("Blender is not available: run scripts/setup.sh (creates .venv-blender with bpy==5.0.1), "
-                          "set USDRELIGHT_BLENDER_PYTHON, or put `blender` on PATH")
-
-
-def run_blender(script: Path, *args: str, timeout: float = 1800) -> subprocess.CompletedProcess:
-    cmd = blender_command()
-    full = cmd + [str(script)] + (["--"] if len(cmd) > 1 else []) + list(args)
-    r = subprocess.run(full, capture_output=True, text=True, timeout=timeout)
-    if r.returncode != 0:
-        tail = [l for l in (r.stderr or r.stdout).strip().splitlines() if l.strip()]
-        raise UsdRelightError(f"Blender failed: {tail[-1] if tail else 'exit ' + str(r.returncode)}")
-    return r
+WRITE_OPTIONS = {"spp": 64, "max_depth": 3, "time": None}
+ANIMATED = True
+"""A .blend carries the lights' animation itself (keyframes): ``convert --frames`` does not apply."""
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
@@ -126,9 +101,11 @@ def _lux_warnings(light, warnings) -> None:
                  "0.67 at 80 deg): more light than UsdLux's fade, up to 1.6x at softness 1"] += 1
 
 
-def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3) -> tuple[dict, dict]:
-    """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``."""
-    rec = read_scene(stage)
+def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time=None) -> tuple[dict, dict]:
+    """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``. ``time``: a
+    still at that USD time code; None: the stage's default frame with its lights' time samples as keyframes
+    (:mod:`.blender_animation`)."""
+    rec = read_scene(stage, frame_time(stage, time))
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
     mats, meshes = {}, []
@@ -169,6 +146,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3) -> t
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
+    animation = light_keys(stage, lights, rec.up_axis, rec.warnings) if time is None else None
     if set(mesh_lights) - emitting:
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for l in rec.lights:
@@ -178,15 +156,18 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3) -> t
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
-               "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis}}
+               "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis,
+                         "timeCodesPerSecond": float(stage.GetTimeCodesPerSecond())},
+               "animation": animation,
+               "photo_stage": photo_stage_payload(stage, rec, data_dir)}
     return payload, dict(rec.warnings)
 
 
-def write_script(stage, path, spp: int = 64, max_depth: int = 3) -> WriteReport:
+def write_script(stage, path, spp: int = 64, max_depth: int = 3, time=None) -> WriteReport:
     path = Path(path).absolute()
     data_dir = path.with_name(path.stem + "_data")
-    payload, warnings = scene_payload(stage, data_dir, spp, max_depth)
-    write_text_atomic(path, TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload)))
+    payload, warnings = scene_payload(stage, data_dir, spp, max_depth, time)
+    write_text_atomic(path, script_text(payload))
     return WriteReport([str(path), str(data_dir)], warnings)
 
 
@@ -195,12 +176,12 @@ def write_to_file(stage, path, **options) -> WriteReport:
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     path = Path(path).absolute()
     if path.suffix.lower() == ".py":
-        return write_script(stage, path, opts["spp"], opts["max_depth"])
+        return write_script(stage, path, opts["spp"], opts["max_depth"], opts["time"])
     # the .blend is saved beside its final name (so paths made relative by Blender stay valid), then renamed
     with atomic_path(path) as tmp_blend, tempfile.TemporaryDirectory() as td:
         tmp_blend.unlink()  # Blender writes a new file (an existing one would get a .blend1 backup)
         script = Path(td) / "build_scene.py"
-        res = write_script(stage, script, opts["spp"], opts["max_depth"])
+        res = write_script(stage, script, opts["spp"], opts["max_depth"], opts["time"])
         run_blender(script, str(tmp_blend))
         if not tmp_blend.is_file():
             raise UsdRelightError(f"Blender wrote no file for {path}")
@@ -212,64 +193,12 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     the report's ``files``). Options: :data:`WRITE_OPTIONS`."""
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     data_dir = Path(base_dir).absolute() / "scene_data"
-    payload, warnings = scene_payload(stage, data_dir, opts["spp"], opts["max_depth"])
-    return WriteReport([str(data_dir)], warnings, TEMPLATE.read_text().replace("__SCENE_JSON__", json.dumps(payload)))
+    payload, warnings = scene_payload(stage, data_dir, opts["spp"], opts["max_depth"], opts["time"])
+    return WriteReport([str(data_dir)], warnings, script_text(payload))
 
 
 # ---- Blender -> USD (lights) -------------------------------------------------------------------
-_DUMP = r'''
-import bpy, json, sys
-args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
-bpy.ops.wm.open_mainfile(filepath=args[0])
-out = []
-shown = set()  # collections that render: not excluded from the view layer, not hidden from render, nor a parent
-
-
-def walk(lc, hidden):
-    hidden = hidden or lc.exclude or lc.collection.hide_render
-    if not hidden:
-        shown.add(lc.collection.name)
-    for child in lc.children:
-        walk(child, hidden)
-
-
-walk(bpy.context.view_layer.layer_collection, False)
-meta = bpy.context.scene.get("usdrelight_stage")  # the source stage's units, recorded by usdrelight's writer
-for obj in bpy.context.scene.objects:
-    if obj.type != "LIGHT":
-        continue
-    if obj.hide_render or not any(c.name in shown for c in obj.users_collection):
-        out.append({"name": obj.name, "hidden": True})
-        continue
-    l = obj.data
-    d = {"name": obj.name, "usd_path": obj.get("usd_path", ""), "type": l.type,
-         "matrix": [list(r) for r in obj.matrix_world], "color": list(l.color),
-         "normalize": bool(getattr(l, "normalize", True)), "exposure": float(getattr(l, "exposure", 0.0))}
-    if getattr(l, "use_temperature", False):  # Cycles multiplies the colour by the blackbody colour
-        d["color"] = [a * b for a, b in zip(l.color, l.temperature_color)]
-        d["temperature"] = l.temperature
-    d.update(diffuse=float(getattr(l, "diffuse_factor", 1.0)), specular=float(getattr(l, "specular_factor", 1.0)))
-    d["unread"] = [k for k in ("transmission_factor", "volume_factor") if abs(getattr(l, k, 1.0) - 1.0) > 1e-6]
-    if getattr(l, "use_nodes", False) and l.node_tree is not None:
-        d["unread"].append("node_tree")
-    if l.type in ("POINT", "SPOT") and l.shadow_soft_size > 0 and getattr(l, "use_soft_falloff", False):
-        d["unread"].append("use_soft_falloff")
-    if l.type == "SPOT" and getattr(l, "use_square", False):
-        d["unread"].append("use_square")
-    if l.type == "AREA" and getattr(l, "spread", 3.14159) < 3.1415:
-        d["unread"].append("spread")
-    if l.type in ("POINT", "SPOT"):
-        d.update(power=l.energy, radius=l.shadow_soft_size)
-        if l.type == "SPOT":
-            d.update(spot_size=l.spot_size, spot_blend=l.spot_blend)
-    elif l.type == "AREA":
-        d.update(power=l.energy, shape=l.shape, size=l.size, size_y=l.size_y)
-    elif l.type == "SUN":
-        d.update(strength=l.energy, angle=l.angle)
-    out.append(d)
-with open(args[1], "w") as f:
-    json.dump({"lights": out, "stage": json.loads(meta) if isinstance(meta, str) else None}, f)
-'''
+_DUMP = (Path(__file__).resolve().parent / "blender_dump.py.txt").read_text()
 
 
 def blender_lights(path) -> BlenderLights:
@@ -288,7 +217,33 @@ def blender_lights(path) -> BlenderLights:
         dump = json.loads(out.read_text())
     lights = BlenderLights(dump["lights"])
     lights.stage = dump["stage"]
+    lights.animation = dump.get("animation")
     return lights
+
+
+def _usd_record(b: dict, up: str, mpu: float) -> dict:
+    """:func:`blender_light_to_usd` of one dumped Blender light, checked (one clear error for bad values)."""
+    try:
+        with np.errstate(all="ignore"):  # a zero size gives Inf: refused by check_light below
+            u = blender_light_to_usd(b, up, mpu)
+    except ValueError as exc:
+        raise UsdRelightError(str(exc)) from None
+    except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
+        raise UsdRelightError(f"Blender light {b.get('name', '?')!r}: unusable values "
+                              f"({type(exc).__name__})") from None
+    check_light(u, b.get("name", "?"))
+    return u
+
+
+def _author_time_range(stage, anim: dict | None, meta: dict | None) -> None:
+    """The .blend's frame range and frames per second on the layer; the source stage's timeCodesPerSecond (so
+    that sublayered into it no sample is rescaled)."""
+    if anim:
+        stage.SetStartTimeCode(float(anim["frame_start"]))
+        stage.SetEndTimeCode(float(anim["frame_end"]))
+        stage.SetFramesPerSecond(float(anim["fps"]))
+    if meta and meta.get("timeCodesPerSecond"):
+        stage.SetTimeCodesPerSecond(float(meta["timeCodesPerSecond"]))
 
 
 def read_from_file(path, **options) -> ReadReport:
@@ -314,18 +269,13 @@ def read_from_file(path, **options) -> ReadReport:
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
     used = set()
     for b in lights:
+        keys = b.get("keys") or []
+        if b.get("hidden"):  # a keyframed light hidden now but shown at a key: read from its first shown key
+            b = next((k for _, k in keys if not k.get("hidden")), b)
         if b.get("hidden"):
             warnings["Blender light hidden from render (not read)"] += 1
             continue
-        try:
-            with np.errstate(all="ignore"):  # a zero size gives Inf: refused by check_light below
-                u = blender_light_to_usd(b, up, mpu)
-        except ValueError as exc:
-            raise UsdRelightError(str(exc)) from None
-        except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
-            raise UsdRelightError(f"Blender light {b.get('name', '?')!r}: unusable values "
-                                  f"({type(exc).__name__})") from None
-        check_light(u, b.get("name", "?"))
+        u = _usd_record(b, up, mpu)
         name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
         if name[0].isdigit():
             name = "_" + name
@@ -358,31 +308,14 @@ def read_from_file(path, **options) -> ReadReport:
         elif u["kind"] == "DistantLight":
             light.CreateAngleAttr(float(u["angle"]))
         UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
+        if keys:  # keyframes -> time samples at the same time codes (blender_animation)
+            author_keys(light, [(f, _usd_record(k, up, mpu)) for f, k in keys if not k.get("hidden")])
+            if any(k.get("hidden") for _, k in keys):
+                vis = UsdGeom.Imageable(light).CreateVisibilityAttr()
+                for f, k in keys:
+                    vis.Set(UsdGeom.Tokens.invisible if k.get("hidden") else UsdGeom.Tokens.inherited, f)
+    if any(b.get("keys") for b in lights):
+        _author_time_range(stage, getattr(lights, "animation", None), getattr(lights, "stage", None))
     stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: read alone or sublayered over /Scene's Xform
     check_finite(stage, str(path))
     return ReadReport(stage, dict(warnings))
-
-
-RENDER_SCRIPT = r'''
-import bpy, sys
-args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
-bpy.ops.wm.open_mainfile(filepath=args[0])
-scene = bpy.context.scene
-if len(args) > 2:
-    scene.cycles.samples = int(args[2])
-scene.render.image_settings.file_format = "OPEN_EXR"
-scene.render.image_settings.color_depth = "32"
-scene.render.filepath = args[1]
-bpy.ops.render.render(write_still=True)
-'''
-
-
-def render_blend(path, out_exr, spp: int | None = None) -> Path:
-    """Render a .blend with Cycles (its own settings; ``spp``: samples per pixel instead of the .blend's) to a
-    linear EXR; returns the EXR path."""
-    with tempfile.TemporaryDirectory() as td:
-        script = Path(td) / "render.py"
-        script.write_text(RENDER_SCRIPT)
-        args = [str(Path(path).absolute()), str(Path(out_exr).absolute())] + ([str(spp)] if spp else [])
-        run_blender(script, *args)
-    return Path(out_exr)

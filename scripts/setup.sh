@@ -5,7 +5,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
-EXTRAS=${USDRELIGHT_EXTRAS:-test}
+EXTRAS=${USDRELIGHT_EXTRAS:-test,estimate}
+# torch for the estimate extra, installed before it: this pinned CPU build (found as a local wheel on the
+# project's machines) keeps pip from resolving the extra's plain `torch` to the multi-GB CUDA build
+TORCH_PIN=${USDRELIGHT_TORCH:-torch==2.13.0}
 
 log() { printf 'setup: %s\n' "$*" >&2; }
 
@@ -52,6 +55,13 @@ want="$(cat pyproject.toml | sha256sum | cut -d' ' -f1)-$EXTRAS"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! .venv/bin/python -c 'import usdrelight' 2>/dev/null; then
   log "installing usdrelight[$EXTRAS] into .venv"
   .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  case ",$EXTRAS," in
+    *,estimate,*|*,train,*)
+      if ! .venv/bin/python -c 'import torch' 2>/dev/null; then
+        log "installing $TORCH_PIN (the estimate extra's torch, before the extra)"
+        .venv/bin/python -m pip install -q "$TORCH_PIN"
+      fi ;;
+  esac
   .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
   echo "$want" > "$stamp"
 fi

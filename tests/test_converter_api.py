@@ -84,9 +84,9 @@ def test_every_registered_converter_has_the_one_signature_and_returns_the_report
             assert got == params, (name, fname, got)
             assert typing.get_type_hints(fn)["return"] is record, (name, fname)
         assert mod.READ_OPTIONS == {"usd_path": None}, name  # where to create the USD layer; None: in memory
-    assert mods["mitsuba_xml"].WRITE_OPTIONS == {"spp": 64, "max_depth": 3}
-    assert mods["blender"].WRITE_OPTIONS == {"spp": 64, "max_depth": 3}
-    assert mods["mesh_files"].WRITE_OPTIONS == {}
+    assert mods["mitsuba_xml"].WRITE_OPTIONS == {"spp": 64, "max_depth": 3, "time": None}
+    assert mods["blender"].WRITE_OPTIONS == {"spp": 64, "max_depth": 3, "time": None}
+    assert mods["mesh_files"].WRITE_OPTIONS == {"time": None}
     for record in (ReadReport, WriteReport, ConvertReport):
         assert record.__dataclass_params__.frozen
     rep = WriteReport(["a"], {"x": 2})
@@ -138,17 +138,17 @@ def test_unknown_or_bad_options_are_one_line_errors_naming_the_known_ones(cli, u
     stage = open_stage(usd_scene)
     for mod, where in ((mitsuba_xml, "Mitsuba XML writer"), (blender, "Blender writer")):
         with pytest.raises(UsdRelightError, match=rf"^{where}: unknown option samples \(known options: max_depth, "
-                                                  rf"spp\)$"):
+                                                  rf"spp, time\)$"):
             mod.write_to_file(stage, tmp_path / f"o{mod.SUFFIXES[0]}", samples=7)
         for bad in (0, -3, 2.5, True, "7"):
             with pytest.raises(UsdRelightError, match=rf"^{where}: option spp must be an integer >= 1, got "):
                 mod.write_to_string(stage, tmp_path / "o", spp=bad)
-    with pytest.raises(UsdRelightError, match=r"^mesh files writer: unknown option spp \(known options: none\)$"):
+    with pytest.raises(UsdRelightError, match=r"^mesh files writer: unknown option spp \(known options: time\)$"):
         mesh_files.write_to_file(stage, tmp_path / "o.glb", spp=4)
     (tmp_path / "x.xml").write_text(XML)
     with pytest.raises(UsdRelightError, match=r"^Mitsuba XML reader: unknown option spp \(known options: usd_path\)"):
         mitsuba_xml.read_from_file(tmp_path / "x.xml", spp=4)
-    with pytest.raises(UsdRelightError, match=r"unknown options depth, samples \(known options: max_depth, spp\)"):
+    with pytest.raises(UsdRelightError, match=r"unknown options depth, samples \(known options: max_depth, spp, time\)"):
         convert(usd_scene, tmp_path / "c.xml", samples=4, depth=2)
     assert not (tmp_path / "c.xml").exists() and not (tmp_path / "o.xml").exists()
     # the CLI: writing USD takes no option; one error line, exit 2, nothing written

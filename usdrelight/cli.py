@@ -18,6 +18,7 @@ from .argtypes import non_negative_int as _non_negative_int, port as _port, posi
 from .batch.args import add_batch_parser
 from .relight.args import add_relight_parser
 from .errors import UsdRelightError, one_line
+from .estimate.names import add_estimator_arguments
 from .native_io import command_context
 
 log = logging.getLogger("usdrelight")
@@ -88,7 +89,8 @@ def cmd_build(args) -> int:
     opts = BuildOptions(depth=args.depth, points=args.points, intrinsics=args.intrinsics, fov_x=args.fov_x,
                         albedo=args.albedo, shading=args.shading, mask=args.mask,
                         geometry_model=args.geometry_model, albedo_model=args.albedo_model,
-                        stride=args.decimate, max_grazing_deg=args.max_grazing_deg)
+                        geometry=args.geometry, albedo_from=args.albedo_from, model_paths=tuple(args.model_path),
+                        device=args.device, stride=args.decimate, max_grazing_deg=args.max_grazing_deg)
     with _Steps(["read", "geometry", "albedo", "mesh", "write"], "build") as steps:
         res = build(args.photo, args.output, opts, progress=steps)
     summary = {
@@ -96,6 +98,7 @@ def cmd_build(args) -> int:
         "faces": res.n_faces, "vertex_fraction": round(res.vertex_fraction, 6), "triangles_cut": res.triangles_cut,
         "geometry": res.geometry_source, "albedo": res.albedo_source, "intrinsics_opencv": res.intrinsics,
         "seconds": {k: round(v, 4) for k, v in res.seconds.items()}, "bytes": res.files,
+        "estimators": res.estimators,
     }
     _emit(args, summary, f"wrote {res.stage} ({res.width}x{res.height}, {res.n_vertices} vertices, "
                          f"{res.n_faces} triangles, {res.seconds['total']:.2f} s)")
@@ -271,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--albedo", type=Path, help="albedo map (linear), e.g. CID hr_alb")
     b.add_argument("--shading", type=Path, help="diffuse shading map (linear), e.g. CID dif_shd; needs --albedo")
     b.add_argument("--albedo-model", type=Path, help="ONNX albedo model (see README, model contracts)")
+    add_estimator_arguments(b, g)
     b.add_argument("--mask", type=Path, help="valid-pixel mask (non-zero = keep)")
     b.add_argument("--decimate", type=_positive_int, default=1, metavar="N",
                    help="keep every N-th pixel row and column as vertices (projective UVs are kept)")

@@ -121,6 +121,27 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     return pixels, is_float
 
 
+def read_focal_35mm(path: str | os.PathLike) -> float | None:
+    """The photo's EXIF ``FocalLengthIn35mmFilm`` in millimetres (None when absent, zero or unreadable)."""
+    oiio = _oiio()
+    try:
+        inp = oiio.ImageInput.open(str(path))
+    except Exception:  # OpenImageIO raises several types for unreadable files; the photo read reports them
+        inp = None
+    if not inp:
+        oiio.geterror()  # clear it: the photo's own read reports what is wrong
+        return None
+    try:
+        value = inp.spec().getattribute("Exif:FocalLengthIn35mmFilm")
+    finally:
+        inp.close()
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if 0 < f < 1e4 else None
+
+
 def read_photo(path: str | os.PathLike) -> np.ndarray:
     """Read a photograph as linear RGB float32 (H, W, 3); alpha dropped, grey replicated."""
     pixels, is_float = read_raw(path)

@@ -26,6 +26,7 @@ from usdrelight.imageio import read_photo, write_image
 from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import Matrix, _rgb, _texture, safe_name, scene_dict
 from usdrelight.mitsuba.textures import baked_texels
+from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
@@ -149,6 +150,8 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     d = scene_dict(rec, spp=opts["spp"], max_depth=opts["max_depth"], mesh_dir=base / "meshes",
                    integrator=integrator)
     _restore_sampling(settings_extra, d)
+    if hides_emitters(stage) and isinstance(d.get("integrator"), dict):  # a photo stage (usdrelight.stage.backplate)
+        d["integrator"]["hide_emitters"] = True
     _restore_extras(stage, d)
     _restore_material_extras(stage, rec, d)
     files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]

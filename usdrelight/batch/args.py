@@ -5,6 +5,9 @@ import argparse
 from pathlib import Path
 
 from ..argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
+from ..errors import UsdRelightError
+from ..estimate import names
+from ..estimate.hub import prepare as prepare_models
 from .records import BatchOptions
 
 DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth.exr, NAME.intrinsics.json, "
@@ -40,12 +43,21 @@ def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.Arg
                     help="redo photos recorded failed on an input error even when their inputs are unchanged")
     bt.add_argument("--no-dashboard", action="store_true",
                     help="no Dask dashboard for the LocalCluster (by default one on 127.0.0.1, a free port)")
+    names.add_estimator_arguments(bt, batch=True)
     bt.set_defaults(func=func)
     return bt
 
 
 def options_from_args(args) -> BatchOptions:
+    """The batch's options; the learned estimators' weights are found here, in the client, before any work (a
+    missing extra or model is one line and exit 2), and handed to the workers as folders."""
+    geometry, albedo_from = getattr(args, "geometry", None), getattr(args, "albedo_from", None)
+    model_paths = tuple(getattr(args, "model_path", ()) or ())
+    if model_paths and not (names.is_learned(geometry) or names.is_learned(albedo_from)):
+        raise UsdRelightError("--model-path goes with --geometry or --albedo-from naming a hub model")
+    model_paths = tuple(str(Path(p).absolute()) for p in prepare_models((geometry, albedo_from), model_paths))
     return BatchOptions(max_side=args.max_side, lights=args.lights, iterations=args.iterations,
                         verify_spp=args.verify_spp, pairs=args.pairs, spp=args.spp, workers=args.workers,
                         scheduler=args.scheduler, retries=args.retries, retry_failed=args.retry_failed,
-                        dashboard=not args.no_dashboard)
+                        dashboard=not args.no_dashboard, geometry=geometry, albedo_from=albedo_from,
+                        model_paths=model_paths, device=getattr(args, "device", None))

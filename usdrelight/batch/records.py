@@ -39,11 +39,29 @@ class BatchOptions:
     """Redo photos recorded failed on an input error even when their inputs are unchanged; not hashed."""
     dashboard: bool = True
     """Start the LocalCluster's dashboard (a random free port on 127.0.0.1); not hashed."""
+    geometry: str | None = None
+    """``--geometry``: the geometry estimator of photos without a depth or point-map sidecar."""
+    albedo_from: str | None = None
+    """``--albedo-from``: the decomposition of photos without an albedo sidecar."""
+    model_paths: tuple = ()
+    """Local model snapshots (``--model-path``, plus the cache folders the client found): hashed."""
+    device: str | None = None
+    """Torch device of the learned estimators (auto when None); not hashed."""
 
     def hashed(self) -> dict:
-        """The options that change a photo's outputs (the rest only schedule the work)."""
-        return {"max_side": self.max_side, "lights": self.lights, "iterations": self.iterations,
-                "verify_spp": self.verify_spp, "pairs": self.pairs, "spp": self.spp if self.pairs else None}
+        """The options that change a photo's outputs (the rest only schedule the work). The estimator options
+        are hashed only when given, so the hashes of batches made without them stay as they were."""
+        out = {"max_side": self.max_side, "lights": self.lights, "iterations": self.iterations,
+               "verify_spp": self.verify_spp, "pairs": self.pairs, "spp": self.spp if self.pairs else None}
+        if self.geometry or self.albedo_from:
+            out.update(geometry=self.geometry, albedo_from=self.albedo_from,
+                       model_paths=[str(p) for p in self.model_paths])
+        return out
+
+    def estimators(self) -> dict:
+        """The build options of the learned estimators (:func:`usdrelight.neural.pairs.build_options`)."""
+        return {"geometry": self.geometry, "albedo_from": self.albedo_from, "model_paths": tuple(self.model_paths),
+                "device": self.device}
 
 
 @dataclass(frozen=True)

@@ -81,7 +81,7 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
     try:
         work = make_pair_files(job.photo, tmp, max_side=o.max_side, fit_iterations=o.iterations, spp=o.spp,
                                lights=o.lights, verify_spp=o.verify_spp, render=o.pairs,
-                               after_build=lambda: _after_build(job))
+                               after_build=lambda: _after_build(job), estimators=o.estimators())
         fit = work.fit
         rec.status = "done"
         rec.fit_mse, rec.fit_psnr_db, rec.fit_mse_rel = fit.mse, fit.psnr_db, work.fit_mse_rel

@@ -1,6 +1,9 @@
 """Intrinsic decomposition of the photo: I = A * S + R (albedo, diffuse shading, residual).
 
 Sources, in order of preference:
+0. A learned decomposition (``--albedo-from marigold-iid-lighting`` / ``marigold-iid-appearance``,
+   :mod:`.hf_decomposition`; the ``estimate`` extra), or ``--albedo-from onnx:FILE`` (= ``--albedo-model``).
+   ``--albedo-from retinex`` names the fallback (3.) explicitly.
 1. Precomputed maps (CID-style ``hr_alb`` / ``dif_shd``, linear): with albedo and shading,
    D = A * S and R = I - D. With albedo alone, S = I / A (so D = I and R = 0).
 2. An ONNX model following the albedo contract in :mod:`usdrelight.onnx_models`.
@@ -21,6 +24,8 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import read_map
+from .hf_decomposition import marigold
+from .names import ALBEDO, onnx_file
 from .onnx_models import run_albedo_model
 from .records import Decomposition, Photo
 
@@ -82,10 +87,29 @@ def retinex(rgb: np.ndarray) -> Decomposition:
     return _finish(rgb, albedo / scale, np.repeat(shading * scale, 3, axis=2), "retinex")
 
 
-def estimate_decomposition(photo: Photo, *, albedo_file=None, shading_file=None, model=None) -> Decomposition:
-    """Pick the decomposition source by what was given: maps, ONNX model, or Retinex."""
+def estimate_decomposition(photo: Photo, *, albedo_file=None, shading_file=None, model=None,
+                           estimator: str | None = None, model_paths=(), device: str | None = None) -> Decomposition:
+    """Pick the decomposition source by what was given: learned estimator, maps, ONNX model, or Retinex.
+    ``estimator``: a name of :data:`.names.ALBEDO` or ``onnx:FILE`` (``--albedo-from``)."""
+    if onnx_file(estimator) is not None:
+        if model is not None:
+            raise UsdRelightError("give either --albedo-from onnx:FILE or --albedo-model, not both")
+        model, estimator = onnx_file(estimator), None
+    if estimator is not None and (albedo_file is not None or model is not None):
+        raise UsdRelightError("give only one albedo source: --albedo-from, --albedo or --albedo-model")
     if model is not None and albedo_file is not None:
         raise UsdRelightError("give either --albedo or --albedo-model, not both")
+    if estimator is not None and estimator not in ALBEDO:
+        raise UsdRelightError(f"--albedo-from {estimator!r}: choose from {', '.join(ALBEDO)} or onnx:FILE")
+    if estimator is not None and shading_file is not None:
+        raise UsdRelightError("--shading goes with --albedo, not with --albedo-from")
+    if estimator == "retinex":
+        return retinex(photo.rgb)
+    if estimator is not None:
+        albedo, shading, run = marigold(estimator, photo, model_paths, device)
+        dec = from_maps(photo.rgb, albedo, shading, estimator)
+        dec.run = run
+        return dec
     if shading_file is not None and albedo_file is None:
         raise UsdRelightError("--shading needs --albedo (the diffuse image is D = albedo * shading)")
     rgb = photo.rgb

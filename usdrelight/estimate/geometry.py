@@ -1,5 +1,7 @@
 """Monocular geometry: per-pixel 3D points in the OpenCV camera frame, three ways.
 
+0. A learned estimator (``--geometry depth-pro`` / ``depth-anything-v2``, :mod:`.hf_geometry`; the
+   ``estimate`` extra) or ``--geometry onnx:FILE`` (same as ``--geometry-model FILE``).
 1. Precomputed maps: a z-depth map (``.npy``/``.exr``/``.pfm``; metres; 0, negative, NaN or Inf
    = invalid) or a point map (H, W, 3) in the OpenCV camera frame with +Inf/NaN for invalid
    pixels, as MoGe's ``infer()`` returns it.
@@ -7,6 +9,9 @@
 3. A built-in prior that needs no weights (:func:`box_room_prior`). It is a *rough guess*: a
    camera 1.6 m above a flat floor facing a wall 6 m away. It lets ``build`` run with only a
    photo, but the geometry has nothing to do with the photo's content.
+
+Intrinsics, when a source needs them and none is given (``--intrinsics``/``--fov-x``) nor predicted: the EXIF
+35 mm equivalent focal length (:func:`exif_intrinsics`), else a 60 degree horizontal field of view.
 
 Whatever the source, the result satisfies the pipeline's invariant: every valid point
 reprojects onto the centre of its own pixel with the returned intrinsics. Point maps are made
@@ -20,8 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import read_map
+from ..imageio import read_focal_35mm, read_map
 from ..intrinsics import DEFAULT_FOV_X_DEG, Intrinsics
+from .hf_geometry import hf_geometry
+from .names import GEOMETRY, onnx_file
 from .onnx_models import run_geometry_model
 from .records import GeometryEstimate, Photo
 
@@ -29,6 +36,9 @@ log = logging.getLogger(__name__)
 
 PRIOR_CAMERA_HEIGHT_M = 1.6
 PRIOR_WALL_DISTANCE_M = 6.0
+FILM_DIAGONAL_MM = (36.0 ** 2 + 24.0 ** 2) ** 0.5
+"""The 35 mm frame's diagonal: an equivalent focal length maps to pixels over the photo's diagonal (as the
+35 mm equivalent is defined by the field of view across the diagonal; ml-depth-pro reads EXIF the same way)."""
 
 
 def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
@@ -87,18 +97,54 @@ def resolve_intrinsics(photo: Photo, intrinsics_file=None, fov_x: float | None =
     return None
 
 
+def exif_intrinsics(photo: Photo) -> Intrinsics | None:
+    """Square pixels, centred principal point, ``fx = f35 * diagonal_px / 43.27 mm`` from the photo's EXIF
+    ``FocalLengthIn35mmFilm``; None when the photo has none."""
+    f35 = read_focal_35mm(photo.path)
+    if f35 is None:
+        return None
+    f = f35 * float(np.hypot(photo.width, photo.height)) / FILM_DIAGONAL_MM
+    return Intrinsics(f, f, photo.width / 2.0, photo.height / 2.0, photo.width, photo.height)
+
+
+def fallback_intrinsics(photo: Photo, warn: bool = True) -> tuple[Intrinsics, str]:
+    """(intrinsics, how chosen) when none are given or predicted: EXIF focal length, else 60 degrees."""
+    exif = exif_intrinsics(photo)
+    if exif is not None:
+        return exif, f"EXIF 35 mm focal length ({exif.fov_x_deg:.1f} degree field of view)"
+    if warn:
+        log.warning("no intrinsics given; assuming a %.0f degree horizontal field of view", DEFAULT_FOV_X_DEG)
+    return Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height), \
+        f"default {DEFAULT_FOV_X_DEG:.0f} degree field of view"
+
+
 def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrinsics: Intrinsics | None = None,
-                      mask: np.ndarray | None = None, model=None) -> GeometryEstimate:
-    """Pick the geometry source by what was given: depth map, point map, ONNX model, or prior."""
-    given = [x for x in (depth_file, points_file, model) if x is not None]
+                      mask: np.ndarray | None = None, model=None, estimator: str | None = None, model_paths=(),
+                      device: str | None = None) -> GeometryEstimate:
+    """Pick the geometry source by what was given: learned estimator, depth map, point map, ONNX model, or prior.
+    ``estimator``: a name of :data:`.names.GEOMETRY` or ``onnx:FILE`` (``--geometry``)."""
+    if onnx_file(estimator) is not None:
+        if model is not None:
+            raise UsdRelightError("give either --geometry onnx:FILE or --geometry-model, not both")
+        model, estimator = onnx_file(estimator), None
+    given = [x for x in (depth_file, points_file, model, estimator) if x is not None]
     if len(given) > 1:
-        raise UsdRelightError("give only one geometry source: --depth, --points or --geometry-model")
-    if depth_file is not None:
+        raise UsdRelightError("give only one geometry source: --geometry, --depth, --points or --geometry-model")
+    if estimator is not None:
+        if estimator not in GEOMETRY:
+            raise UsdRelightError(f"--geometry {estimator!r}: choose from {', '.join(GEOMETRY)} or onnx:FILE")
+        fallback = fallback_intrinsics(photo, warn=False) if intrinsics is None else None
+        depth, intr, metric, run = hf_geometry(estimator, photo, intrinsics, fallback, model_paths, device)
+        if run.notes.get("intrinsics", "").startswith("default"):
+            log.warning("%s: no intrinsics given or predicted; assuming a %.0f degree horizontal field of view",
+                        estimator, DEFAULT_FOV_X_DEG)
+        geo = from_depth(depth, intr, mask, source=estimator)
+        geo.metric, geo.run = metric, run
+    elif depth_file is not None:
         depth = read_map(depth_file, 1)[..., 0]
         _check_size(depth, photo, "depth map", depth_file)
         if intrinsics is None:
-            log.warning("no intrinsics given; assuming a %.0f degree horizontal field of view", DEFAULT_FOV_X_DEG)
-            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+            intrinsics = fallback_intrinsics(photo)[0]
         geo = from_depth(depth, intrinsics, mask, source=f"depth:{Path(depth_file).name}")
     elif points_file is not None:
         pts = read_map(points_file, 3)
@@ -115,13 +161,14 @@ def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrin
         if intrinsics is None and np.any(pts[ok][:, :2] != 0):
             intrinsics = Intrinsics.fit_to_points(pts, ok)
         if intrinsics is None:
-            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+            intrinsics = fallback_intrinsics(photo, warn=False)[0]
         geo = from_depth(pts[..., 2], intrinsics, ok, source=f"onnx:{Path(model).name}")
     else:
         if intrinsics is None:
-            intrinsics = Intrinsics.from_fov_x(DEFAULT_FOV_X_DEG, photo.width, photo.height)
+            intrinsics = fallback_intrinsics(photo, warn=False)[0]
         log.warning("no depth, point map or geometry model given: using the rough box-room prior "
-                    "(flat floor and back wall); the mesh will not follow the photo's content")
+                    "(flat floor and back wall); the mesh will not follow the photo's content (for real geometry: "
+                    "--geometry depth-pro, with pip install 'usdrelight[estimate]')")
         geo = from_depth(box_room_prior(intrinsics), intrinsics, mask, source="prior:box-room")
         geo.metric = False
     if not geo.valid.any():

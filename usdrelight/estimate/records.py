@@ -30,6 +30,25 @@ class Photo:
 
 
 @dataclass
+class ModelRun:
+    """How a learned estimator ran (for the provenance and the per-stage timings)."""
+
+    name: str
+    """The estimator (``depth-pro``, ``marigold-iid-lighting`` ...)."""
+    model_id: str
+    """The hub id of the weights."""
+    revision: str
+    """The commit of the weights, or ``local`` when the folder does not record one."""
+    device: str
+    """The torch device that ran it (cuda, mps, cpu)."""
+    seconds: dict = field(default_factory=dict)
+    """Wall time of ``load`` (importing torch and the model library, the weights to the device) and ``infer``
+    (preprocessing, the network, post-processing)."""
+    notes: dict = field(default_factory=dict)
+    """What the conventions chose, e.g. the field of view's source or the shading scale."""
+
+
+@dataclass
 class GeometryEstimate:
     """Per-pixel 3D points that reproject exactly onto their pixels with ``intrinsics``."""
 
@@ -38,6 +57,7 @@ class GeometryEstimate:
     intrinsics: Intrinsics
     source: str  # e.g. "depth:file", "points:file", "onnx:<model>", "prior:box-room"
     metric: bool = True  # False when the scale is only relative
+    run: ModelRun | None = None  # set by the learned estimators (hf_geometry)
 
     @property
     def depth(self) -> np.ndarray:
@@ -52,6 +72,7 @@ class Decomposition:
     shading: np.ndarray  # (H, W, 3) >= 0, diffuse shading
     residual: np.ndarray  # (H, W, 3), I - A * S (non-diffuse effects)
     source: str
+    run: ModelRun | None = None  # set by the learned estimators (hf_decomposition)
 
     @property
     def diffuse(self) -> np.ndarray:

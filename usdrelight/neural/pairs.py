@@ -130,9 +130,11 @@ def _sidecar(photo: Path, kind: str, suffixes) -> Path | None:
     return None
 
 
-def build_options(photo: Path) -> BuildOptions:
+def build_options(photo: Path, estimators: dict | None = None) -> BuildOptions:
     """The ``usdrelight build`` options of one training photo: its sidecar estimates (a depth map wins
-    over a point map); what is missing falls back to build's priors."""
+    over a point map); what is missing falls back to ``estimators`` (BuildOptions fields ``geometry``,
+    ``albedo_from``, ``model_paths``, ``device``: a sidecar wins over the estimator of its kind), then to
+    build's priors."""
     opts = BuildOptions(depth=_sidecar(photo, "depth", (".exr", ".npy", ".pfm")),
                         points=_sidecar(photo, "points", (".npy", ".exr")),
                         intrinsics=_sidecar(photo, "intrinsics", (".json",)),
@@ -140,6 +142,13 @@ def build_options(photo: Path) -> BuildOptions:
                         shading=_sidecar(photo, "shading", (".exr", ".npy")))
     if opts.depth is not None and opts.points is not None:
         opts.points = None
+    est = dict(estimators or {})
+    if opts.depth is None and opts.points is None:
+        opts.geometry = est.get("geometry")
+    if opts.albedo is None:
+        opts.albedo_from = est.get("albedo_from")
+    if opts.geometry or opts.albedo_from:
+        opts.model_paths, opts.device = tuple(est.get("model_paths") or ()), est.get("device")
     return opts
 
 
@@ -174,12 +183,14 @@ class PairWork:
 
 
 def make_pair_files(photo: Path, out: Path, max_side: int = 256, fit_iterations: int = 30, spp: int = 64,
-                    lights: int = 8, verify_spp: int = 16, render: bool = True, after_build=None) -> PairWork:
+                    lights: int = 8, verify_spp: int = 16, render: bool = True, after_build=None,
+                    estimators: dict | None = None) -> PairWork:
     """Build the stage of ``photo`` into ``out``, fit its lights and (``render``) render D~, albedo and valid
-    into ``out/renders``; ``out/pair.json`` is written last. ``after_build()`` is called between build and fit."""
+    into ``out/renders``; ``out/pair.json`` is written last. ``after_build()`` is called between build and fit.
+    ``estimators``: the learned estimators of photos without sidecars (:func:`build_options`)."""
     photo, out = Path(photo), Path(out)
     t = time.perf_counter()
-    build(photo, out, build_options(photo))
+    build(photo, out, build_options(photo, estimators))
     t_build = time.perf_counter() - t
     if after_build is not None:
         after_build()

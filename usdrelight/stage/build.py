@@ -12,6 +12,8 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..estimate.decomposition import estimate_decomposition
 from ..estimate.geometry import estimate_geometry, resolve_intrinsics
+from ..estimate.hub import prepare as prepare_models
+from ..estimate.names import ALBEDO, GEOMETRY, is_learned
 from ..estimate.records import Photo, PhotoEstimates
 from ..imageio import read_map, read_photo
 from ..mesh import DEFAULT_MAX_GRAZING_DEG, triangulate
@@ -42,6 +44,15 @@ class BuildOptions:
     """ONNX geometry model (README: model contracts)."""
     albedo_model: Path | None = None
     """ONNX albedo model (README: model contracts)."""
+    geometry: str | None = None
+    """Geometry estimator: ``depth-pro``, ``depth-anything-v2`` (the ``estimate`` extra) or ``onnx:FILE``."""
+    albedo_from: str | None = None
+    """Decomposition: ``marigold-iid-lighting``, ``marigold-iid-appearance`` (the ``estimate`` extra),
+    ``onnx:FILE`` or ``retinex``."""
+    model_paths: tuple = ()
+    """Local model snapshots (``--model-path``, repeatable), matched to the estimators by their config."""
+    device: str | None = None
+    """Torch device of the learned estimators: auto (None), cpu, cuda or mps."""
     stride: int = 1
     """Keep every N-th pixel row and column as vertices (``--decimate``)."""
     max_grazing_deg: float = DEFAULT_MAX_GRAZING_DEG
@@ -73,7 +84,10 @@ class BuildResult:
     intrinsics: dict
     """fx, fy, cx, cy in the OpenCV convention (pixel centres at integers), width, height."""
     seconds: dict = field(default_factory=dict)
-    """Wall time per step (read, geometry, albedo, mesh, write, total)."""
+    """Wall time per step (read, geometry, albedo, mesh, write, total); a learned estimator's step also as
+    ``geometry:load`` / ``geometry:infer`` (``albedo:...``): imports and weights to the device, then inference."""
+    estimators: dict = field(default_factory=dict)
+    """``geometry`` / ``albedo`` -> {name, model, revision, device, notes} of the learned estimators that ran."""
     files: dict = field(default_factory=dict)
     """Relative file name -> bytes, for every file of the stage."""
 
@@ -97,6 +111,11 @@ def load_mask(path, photo: Photo) -> np.ndarray:
 def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
     """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
     opts = opts or BuildOptions()
+    if opts.model_paths and not (is_learned(opts.geometry) or is_learned(opts.albedo_from)):
+        raise UsdRelightError("--model-path goes with --geometry or --albedo-from naming a hub model ("
+                              f"{', '.join(n for n in GEOMETRY + ALBEDO if is_learned(n))})")
+    # every model's weights found before anything runs: a missing one fails at once, with nothing written
+    model_paths = prepare_models((opts.geometry, opts.albedo_from), opts.model_paths)
     sec: dict = {}
     t0 = time.perf_counter()
     with _timed(sec, "read", progress):
@@ -107,10 +126,18 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
         intr = resolve_intrinsics(photo, opts.intrinsics, opts.fov_x)
     with _timed(sec, "geometry", progress):
         geo = estimate_geometry(photo, depth_file=opts.depth, points_file=opts.points, intrinsics=intr,
-                                mask=mask, model=opts.geometry_model)
+                                mask=mask, model=opts.geometry_model, estimator=opts.geometry,
+                                model_paths=model_paths, device=opts.device)
     with _timed(sec, "albedo", progress):
         dec = estimate_decomposition(photo, albedo_file=opts.albedo, shading_file=opts.shading,
-                                     model=opts.albedo_model)
+                                     model=opts.albedo_model, estimator=opts.albedo_from,
+                                     model_paths=model_paths, device=opts.device)
+    runs = {}
+    for step, run in (("geometry", geo.run), ("albedo", dec.run)):
+        if run is not None:
+            sec.update({f"{step}:{k}": v for k, v in run.seconds.items()})
+            runs[step] = {"name": run.name, "model": run.model_id, "revision": run.revision, "device": run.device,
+                          "notes": run.notes}
     with _timed(sec, "mesh", progress):
         mesh = triangulate(geo.points, geo.valid, stride=opts.stride, max_grazing_deg=opts.max_grazing_deg)
     with _timed(sec, "write", progress):
@@ -120,4 +147,4 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
         stage=built.path, width=photo.width, height=photo.height, n_vertices=mesh.n_vertices,
         n_faces=mesh.n_faces, vertex_fraction=mesh.n_vertices / float(photo.width * photo.height),
         triangles_cut=mesh.triangles_cut, geometry_source=geo.source, albedo_source=dec.source,
-        intrinsics=geo.intrinsics.opencv(), seconds=sec, files=built.files)
+        intrinsics=geo.intrinsics.opencv(), seconds=sec, files=built.files, estimators=runs)

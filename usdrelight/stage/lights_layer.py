@@ -19,6 +19,7 @@ import numpy as np
 from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
+from .backplate import author_hide_emitters
 from .layout import FITTED_ENV_TEXTURE, FITTED_LIGHTS, FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, SCENE
 from .lux import set_light_rgb
 from .records import FitProvenance, PointLightValue
@@ -79,4 +80,5 @@ def _author_layer(layer, points: list[PointLightValue], env, fit: FitProvenance)
         light.CreateNormalizeAttr(False)
         UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*map(float, p.position)))
     root.SetSpecifier(Sdf.SpecifierOver)  # /Scene is defined by scene.usda; this layer only adds to it
+    author_hide_emitters(stage)  # also for stages built before build authored it (usdrelight.stage.backplate)
     layer.Save()

@@ -24,6 +24,7 @@ from ..estimate.records import PhotoEstimates
 from ..imageio import write_image
 from ..mesh import PixelMesh
 from .aovs import AOVS, BUILD_AOVS
+from .backplate import author_hide_emitters
 from .camera import author_usd_camera, opencv_to_usd
 from .create import author_lambertian, author_render_settings, author_uv_texture, create_stage, \
     define_preview_material
@@ -114,9 +115,14 @@ def _author_root(path: Path, est: PhotoEstimates, mesh: PixelMesh, aovs, prefix:
     root.GetAttribute("usdrelight:sourcePhoto").Set(Sdf.AssetPath("./" + prefix + source_photo_name(est.photo.path)))
     root.GetAttribute("usdrelight:geometryEstimator").Set(est.geometry.source)
     root.GetAttribute("usdrelight:albedoEstimator").Set(est.decomposition.source)
+    for step, run in (("geometry", est.geometry.run), ("albedo", est.decomposition.run)):
+        if run is not None:  # a learned estimator: its weights' hub id and commit
+            root.GetAttribute(f"usdrelight:{step}Model").Set(run.model_id)
+            root.GetAttribute(f"usdrelight:{step}ModelRevision").Set(run.revision)
     root.GetAttribute("usdrelight:diffuseTarget").Set(Sdf.AssetPath("./" + prefix + DIFFUSE_TARGET))
     author_render_settings(stage, CAMERA, intr.width, intr.height, [AOVS[name] for name in aovs],
                            pixel_aspect=params["pixelAspectRatio"])
+    author_hide_emitters(stage)  # a photo stage: camera rays see the photo, not the fitted environment
     # Sublayers last, so the prims above are authored as full definitions in this layer.
     layer.subLayerPaths = ["./" + USER_LIGHTS, "./" + prefix + FITTED_LIGHTS, "./" + prefix + GEOMETRY]
     layer.Save()

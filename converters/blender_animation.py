@@ -1,0 +1,87 @@
+"""Animated lights between USD and Blender: UsdLux time samples <-> keyframed Blender lights (fcurves).
+
+USD -> Blender (:func:`light_keys`): every time code at which a light attribute or a light's transform has a
+sample becomes a keyframe of the Blender light at the same frame number (Blender frame = USD time code, as
+Blender's own USD exporter maps them; fractional time codes are sub-frame keys): its object's location and
+rotation (quaternion), and its data's energy, colour, spot size / blend, size and angle, all with linear
+interpolation (USD's default); a light invisible at a time code is ``hide_render`` there. The scene gets the
+stage's start/end time codes (else the keys' span) and framesPerSecond. An animated DomeLight keeps its first
+sample (the World's strength is not keyed; one warning).
+
+Blender -> USD (:func:`author_keys`): a light whose object or data has keyframes is read at each keyframe's
+frame (Blender evaluates its fcurves) and written as time samples at that time code: the transform, intensity
+and colour, cone, radius / size / angle; the layer gets the scene's frame range and frames per second, and the
+source stage's timeCodesPerSecond when the .blend was made from one (a sublayer whose timeCodesPerSecond differs
+from its stage's would have its samples rescaled).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from usdrelight.stage.lux import split_rgb
+from usdrelight.stage.read import read_lights
+from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range
+
+from .blender_units import light_to_blender
+
+KEYED = ("matrix", "color", "power", "strength", "spot_size", "spot_blend", "radius", "size", "size_y", "angle")
+"""What a keyframe of a Blender light carries (the light_to_blender record's animatable entries)."""
+DOME_WARNING = "animated DomeLight in Blender (the World is not keyed: its first sample is used)"
+
+
+def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None:
+    """Add ``keys`` (a list of {frame, hidden, KEYED values}) to each light record of ``lights`` (the
+    light_to_blender records of the default frame, by ``usd_path``) whose values change over the stage's time
+    samples; returns the scene's animation settings {frame_start, frame_end, fps}, or None without samples."""
+    codes = light_time_codes(stage)
+    if len(codes) < 2:
+        return None
+    by_path = {d["usd_path"]: d for d in lights}
+    keys: dict[str, list] = {p: [] for p in by_path}
+    for t in codes:
+        now = {l.path: l for l in read_lights(stage, t) if l.kind != "mesh"}
+        for path in by_path:
+            rec = now.get(path)
+            key = {"frame": float(t), "hidden": rec is None}
+            if rec is not None:
+                d = light_to_blender(rec, up_axis)
+                key.update({k: d[k] for k in KEYED if k in d})
+                if d["type"] == "WORLD":
+                    key["rgb"] = d["rgb"]
+            keys[path].append(key)
+    for path, seq in keys.items():
+        values = [{k: v for k, v in key.items() if k != "frame"} for key in seq]
+        if any(v != values[0] for v in values[1:]):
+            if by_path[path]["type"] == "WORLD":
+                warnings[DOME_WARNING] += 1
+                continue
+            by_path[path]["keys"] = seq
+    rng = stage_time_range(stage)
+    start, end = (rng.start, rng.end) if rng is not None else (codes[0], codes[-1])
+    return {"frame_start": int(math.floor(start)), "frame_end": int(math.ceil(end)), "fps": stage_fps(stage),
+            "time_codes_per_second": float(stage.GetTimeCodesPerSecond())}
+
+
+def author_keys(light, keys: list[tuple[float, dict]]) -> None:
+    """Time samples on a UsdLux ``light`` (a schema object whose default values and transform op were authored)
+    from ``keys``: (time code, blender_light_to_usd record) pairs."""
+    from pxr import Gf, Usd, UsdGeom, UsdLux
+
+    op = UsdGeom.Xformable(light).GetOrderedXformOps()[0]
+    prim = light.GetPrim()
+    for t, u in keys:
+        tc = Usd.TimeCode(t)
+        op.Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()), tc)
+        k, rgb = split_rgb(float(u["intensity"]) * np.asarray(u["color"], np.float64))
+        light.GetIntensityAttr().Set(float(k), tc)
+        light.GetColorAttr().Set(Gf.Vec3f(*rgb), tc)
+        for key, attr in (("radius", "inputs:radius"), ("width", "inputs:width"), ("height", "inputs:height"),
+                          ("angle", "inputs:angle")):
+            if key in u and prim.GetAttribute(attr):
+                prim.GetAttribute(attr).Set(float(u[key]), tc)
+        if "coneAngle" in u and prim.HasAPI(UsdLux.ShapingAPI):
+            sh = UsdLux.ShapingAPI(prim)
+            sh.GetShapingConeAngleAttr().Set(float(u["coneAngle"]), tc)
+            sh.GetShapingConeSoftnessAttr().Set(float(u["coneSoftness"]), tc)

@@ -1,0 +1,127 @@
+"""Animated lights through Blender: UsdLux time samples -> keyframed Blender lights -> Cycles at those frames agrees
+with Mitsuba at those time codes; keyframes of a .blend -> USD time samples equal to them."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from usdrelight.converters.blender import blender_lights, read_from_file, render_blend, run_blender
+from usdrelight.converters.blender_units import blender_light_to_usd
+from usdrelight.converters.convert import convert
+from usdrelight.engine import open_renderer
+from usdrelight.imageio import read_map
+from usdrelight.stage.layout import USER_LIGHTS
+from usdrelight.stage.lights_layer import write_fitted_lights
+from usdrelight.stage.read import read_lights, read_scene
+from usdrelight.stage.records import FitProvenance, PointLightValue
+from usdrelight.stage.validate import open_stage
+
+from conftest import build_procedural
+
+FRAMES = 12
+SPP = 32
+
+
+def _path(i: int) -> tuple[float, float, float]:
+    return float(np.linspace(-1.2, 1.2, FRAMES)[i]), -0.6, -2.4
+
+
+@pytest.fixture(scope="module")
+def animated(tmp_path_factory):
+    """The procedural photo stage (stride 2), a fitted point light, and a user point light moving along 12 time
+    samples (24 fps) whose intensity also changes; converted to a .blend."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+
+    d = tmp_path_factory.mktemp("blender_anim")
+    scene = build_procedural(d / "st", stride=2)
+    write_fitted_lights(d / "st", [PointLightValue(np.array([-0.5, 1.0, -2.0]), np.array([3.0, 3.0, 3.0]))], None,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 1))
+    layer = Sdf.Layer.FindOrOpen(str(d / "st" / USER_LIGHTS))
+    stage = Usd.Stage.Open(layer)
+    stage.OverridePrim("/Scene")
+    UsdGeom.Scope.Define(stage, "/Scene/Lights/User")
+    light = UsdLux.SphereLight.Define(stage, "/Scene/Lights/User/Mover")
+    light.CreateTreatAsPointAttr(True)
+    light.CreateRadiusAttr(0.0)
+    light.CreateNormalizeAttr(False)
+    op = UsdGeom.Xformable(light).AddTranslateOp()
+    intensity = light.CreateIntensityAttr()
+    for i in range(FRAMES):
+        op.Set(Gf.Vec3d(*_path(i)), Usd.TimeCode(1 + i))
+        intensity.Set(2.0 + 0.25 * i, Usd.TimeCode(1 + i))
+    layer.GetPrimAtPath("/Scene").specifier = Sdf.SpecifierOver
+    layer.Save()
+    convert(scene, d / "scene.blend", spp=SPP)
+    return {"dir": d, "stage": scene, "blend": d / "scene.blend"}
+
+
+def test_time_samples_become_keyframes(animated):
+    lights = {b["name"]: b for b in blender_lights(animated["blend"])}
+    mover = next(b for b in lights.values() if b.get("usd_path") == "/Scene/Lights/User/Mover")
+    assert [f for f, _ in mover["keys"]] == [float(1 + i) for i in range(FRAMES)]
+    for i, (f, key) in enumerate(mover["keys"]):
+        u = blender_light_to_usd(key, "Y", 1.0)
+        np.testing.assert_allclose(np.asarray(u["matrix"])[:3, 3], _path(i), atol=1e-5)
+        assert u["intensity"] == pytest.approx(2.0 + 0.25 * i, rel=1e-5)
+    fitted = next(b for b in lights.values() if b.get("usd_path", "").startswith("/Scene/Lights/Fitted/"))
+    assert "keys" not in fitted  # a light without samples gets no keyframes
+    assert lights and blender_lights(animated["blend"]).animation == {"frame_start": 1, "frame_end": 12,
+                                                                         "fps": 24.0}
+
+
+def test_keyframes_come_back_as_time_samples(animated, tmp_path):
+    """.blend -> lights_user.usda: the animated light's samples at the keyframes' time codes, equal to them."""
+    read = read_from_file(animated["blend"], usd_path=str(tmp_path / "back.usda"))
+    stage = read.stage
+    lights = {l.path.rsplit("/", 1)[1]: l for l in read_lights(stage, 5)}
+    mover = next(n for n in lights if "Mover" in n)
+    prim = stage.GetPrimAtPath(f"/Scene/Lights/User/{mover}")
+    assert prim.GetAttribute("xformOp:transform").GetTimeSamples() == [float(1 + i) for i in range(FRAMES)]
+    for i in range(FRAMES):
+        rec = next(l for l in read_lights(stage, 1 + i) if mover in l.path)
+        np.testing.assert_allclose(rec.to_world[:3, 3], _path(i), atol=1e-5)
+        np.testing.assert_allclose(rec.radiance, 2.0 + 0.25 * i, rtol=1e-5)
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetFramesPerSecond()) == (1, 12, 24)
+
+
+def test_cycles_at_frames_agrees_with_mitsuba_at_time_codes(animated):
+    d = animated["dir"]
+    rec = read_scene(animated["stage"])
+    for frame in (1, FRAMES):
+        cyc = read_map(render_blend(animated["blend"], d / f"cycles_{frame}.exr", frame=frame), 4)[..., :3]
+        lights = read_lights(open_stage(animated["stage"]), frame)
+        mit = open_renderer(rec, "mitsuba", max_side=max(rec.resolution), spp=SPP, max_depth=3).render(lights)
+        assert cyc.shape == mit.beauty.shape
+        assert cyc.mean() == pytest.approx(mit.beauty.mean(), rel=0.05), frame
+
+
+def test_a_keyframed_blend_gives_time_samples_equal_to_its_keys(tmp_path):
+    """A .blend keyed in Blender itself (no usdrelight stage behind it): location and power at frames 1, 5, 9."""
+    script = tmp_path / "make.py"
+    script.write_text(r'''
+import bpy, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+scene = bpy.context.scene
+scene.render.fps = 30
+light = bpy.data.lights.new("Key", "POINT")
+obj = bpy.data.objects.new("Key", light)
+scene.collection.objects.link(obj)
+for f, x, p in ((1, 0.0, 100.0), (5, 1.0, 200.0), (9, 3.0, 50.0)):
+    obj.location = (x, 2.0, 1.5)
+    obj.keyframe_insert("location", frame=f)
+    light.energy = p
+    light.keyframe_insert("energy", frame=f)
+scene.frame_start, scene.frame_end = 1, 9
+bpy.ops.wm.save_as_mainfile(filepath=args[0])
+''')
+    run_blender(script, str(tmp_path / "keyed.blend"))
+    stage = read_from_file(tmp_path / "keyed.blend").stage
+    prim = stage.GetPrimAtPath("/Scene/Lights/User/Key")
+    assert prim.GetAttribute("xformOp:transform").GetTimeSamples() == [1.0, 5.0, 9.0]
+    for f, x, p in ((1, 0.0, 100.0), (5, 1.0, 200.0), (9, 3.0, 50.0)):
+        rec = read_lights(stage, f)[0]
+        # Blender Z-up (x, 2, 1.5) -> USD Y-up (x, 1.5, -2); a point light of P watts: I = P / (4 pi) W/sr
+        np.testing.assert_allclose(rec.to_world[:3, 3], [x, 1.5, -2.0], atol=1e-6)
+        np.testing.assert_allclose(rec.radiance, p / (4 * np.pi), rtol=1e-6)
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetFramesPerSecond()) == (1, 9, 30)
