@@ -26,3 +26,19 @@ def port(text: str) -> int:
     if not 0 <= v <= 65535:
         raise argparse.ArgumentTypeError(f"must be in 0..65535, got {v}")
     return v
+
+
+TIME_HELP = ("the USD time code lights are read at (default: the stage's startTimeCode, else each attribute's "
+             "first time sample)")
+
+
+def add_time_argument(parser) -> None:
+    """``--time T``: the USD time code a command reads lights at (render, convert, relight)."""
+    parser.add_argument("--time", type=float, metavar="T", help=TIME_HELP)
+
+
+def add_frames_argument(parser, what: str) -> None:
+    """``--frames [START:END[:STEP]]`` (without a value: the stage's own range); ``what`` the command writes."""
+    parser.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
+                        help=f"{what} for every USD time code from START to END (inclusive; STEP default 1); "
+                             f"without a value: the stage's startTimeCode:endTimeCode")

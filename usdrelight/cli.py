@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .argtypes import non_negative_int as _non_negative_int, port as _port, positive_int as _positive_int
+from .argtypes import add_frames_argument, add_time_argument, non_negative_int as _non_negative_int, port as _port, \
+    positive_int as _positive_int
 from .batch.args import add_batch_parser
 from .relight.args import add_relight_parser
 from .errors import UsdRelightError, one_line
@@ -291,8 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce)")
     r.add_argument("--aov", nargs="+", metavar="NAME", help="render only these declared products")
     r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--time", type=float, metavar="T", help="the USD time code lights are read at (default: the "
-                                                            "stage's startTimeCode, else the first time sample)")
+    add_time_argument(r)
     r.set_defaults(func=cmd_render)
 
     f = sub.add_parser("fit", parents=[common, reads, device], help="fit lights to the photo's diffuse image",
@@ -344,12 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce; Mitsuba XML, "
                         "Blender; default 3)")
     when = c.add_mutually_exclusive_group()
-    when.add_argument("--time", type=float, metavar="T",
-                      help="the USD time code lights are read at (default: the stage's startTimeCode, else each "
-                           "attribute's first time sample)")
-    when.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
-                      help="Mitsuba XML, mesh files: one file per time code, DST_NNNN.SUFFIX (default range: the "
-                           "stage's startTimeCode:endTimeCode)")
+    add_time_argument(when)
+    add_frames_argument(when, "Mitsuba XML, mesh files: one file DST_NNNN.SUFFIX")
     c.set_defaults(func=cmd_convert)
 
     sv = sub.add_parser("serve", parents=[common, reads, device], help="interactive relighting web app (the serve extra)",

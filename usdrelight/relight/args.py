@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..argtypes import positive_int as _positive_int
+from ..argtypes import add_frames_argument, add_time_argument, positive_int as _positive_int
 
 DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
                "time code of --frames) and --light, rendered, then composited (ratio, add) or through the network "
@@ -24,13 +24,9 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     frames.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
                         help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "
                              "render_diffuse_NNNN.exr")
-    frames.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
-                        help="render every USD time code from START to END (inclusive; STEP default 1); without a "
-                             "value: the stage's startTimeCode:endTimeCode. Lights whose time samples do not "
-                             "change between frames are not rendered again")
-    rl.add_argument("--time", type=float, metavar="T",
-                    help="the USD time code the stage's lights are read at (default: the stage's startTimeCode, "
-                         "else each attribute's first time sample)")
+    add_frames_argument(frames, "relit frames (lights whose time samples do not change between frames are not "
+                                "rendered again)")
+    add_time_argument(rl)
     rl.add_argument("--video", type=Path, metavar="OUT.mp4",
                     help="also encode the frames as an H.264 MP4 at the stage's framesPerSecond (PyAV)")
     rl.add_argument("--save-lights", type=Path, metavar="LAYER.usda",
