@@ -20,8 +20,8 @@ each given to RelightSession (fast renderer, full resolution) and path traced in
   colours, given as explicit lights (truth: the same lights).
 
 Outputs per relight: ``dtilde`` (the session's diffuse render D~, hole-filled where the stage has no geometry),
-``ratio``, ``add`` (``add`` kind only), ``neural``, ``auto`` (the mode the session resolves: ratio when the fitted
-lights are kept, else neural) and ``photo`` (the unchanged photo: how far the new lighting is from the old).
+``ratio``, ``add`` (``add`` kind only), ``neural``, ``auto`` (the mode the session resolves: add when the fitted
+lights are kept as they are, ratio when they are scaled, else render = D~ hole-filled) and ``photo`` (the unchanged photo: how far the new lighting is from the old).
 Metrics, over the pixels that see geometry in the full-3D scene:
 * PSNR (dB) and SSIM on sRGB images tonemapped with the truth's exposure (its 99.5th percentile -> 1, then the
   sRGB transfer, usdrelight.relight.contact_sheet.tonemapped), data_range 1 (SSIM: skimage's full map, averaged
@@ -131,7 +131,7 @@ def scene_run(family, seed, args, work, sheets):
             outs[mode] = fr.image
             if mode == "ratio":  # D~: the render under all the session's lights (mode add renders only the new)
                 outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
-        outs["auto"] = outs[s.mode]
+        outs["auto"] = outs["dtilde"] if s.mode == "render" else outs[s.mode]  # render: D~ with holes filled
         outs["photo"] = photo
         m = {"auto_is": s.mode, "lights": r["lights"], "truth_lights": r["truth"],
              "truth_photo_scale": r["truth_photo_scale"], "stage_valid_fraction": float(fr.valid.mean())}
@@ -173,7 +173,7 @@ def real_photo(args):
                 outs[mode] = fr.image
                 if mode == "ratio":
                     outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
-            outs["auto"] = outs[s.mode]
+            outs["auto"] = outs["dtilde"] if s.mode == "render" else outs[s.mode]
             valid = np.ones(fr.valid.shape, bool)
             out["kinds"][kind] = {"auto_is": s.mode, "lights": lights,
                                   **{m: {"detail_photo": detail_corr(img, photo, valid)} for m, img in outs.items()}}

@@ -57,6 +57,6 @@ def test_the_readme_python_example_runs_through_the_api(tmp_path):
     with usdrelight.RelightSession(res.stage, max_side=64, with_fitted=True) as session:
         same = session.render()
         brighter = session.render(["point:0.5,1,-2.5:3,3,3"])
-    assert session.mode == "ratio"
+    assert session.mode == "add"  # auto: the photo's light kept as it is
     np.testing.assert_allclose(same.image, session.photo, rtol=1e-5, atol=1e-6)  # the photo's own light: itself
     assert brighter.image.mean() > same.image.mean() and np.all(brighter.image >= same.image - 1e-6)

@@ -99,12 +99,22 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
 
     rep = cli.json("relight", fitted_stage, "--fitted-scale", "0.2", "--light", "point:0.5,1.0,-2.5:3,2,1",
                    "--max-side", "64", "--contact-sheet", "-o", tmp_path / "night")
-    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")  # auto: fitted light kept
+    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")  # auto: fitted light scaled
+    kept = cli.json("relight", fitted_stage, "--with-fitted", "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side",
+                    "48", "-o", tmp_path / "kept")
+    assert kept["mode"] == "add"  # auto: the photo's light kept as it is, a light added
     off = cli.json("relight", fitted_stage, "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side", "48",
                    "-o", tmp_path / "off")
-    assert off["mode"] == "neural"  # auto: the photo's light is switched off
+    assert off["mode"] == "render"  # auto: the photo's light is switched off
+    from usdrelight.neural.model import hole_fill
+    from usdrelight.relight.session import RelightSession
+
+    with RelightSession(fitted_stage, max_side=48, mode="render") as s:  # render: D~ with its holes filled
+        frame = s.render(["point:0.5,1.0,-2.5:3,2,1"])
+        np.testing.assert_array_equal(frame.image, hole_fill(frame.diffuse, frame.valid))
+        np.testing.assert_allclose(read_map(off["exr"], 3), frame.image, rtol=1e-6, atol=1e-7)
     sheet = read_photo(rep["contact_sheet"])
-    assert sheet.shape[1] > 4 * sheet.shape[0] / 2  # photo, D~ and three modes side by side
+    assert sheet.shape[1] > 5 * sheet.shape[0] / 2  # photo, D~ and four modes side by side
     img = read_map(rep["exr"], 3)
     assert np.all(np.isfinite(img)) and img.min() >= 0
     rc, _, err = cli("relight", fitted_stage, "--fitted-scale", "nan", "--light", "point:0,1,-2:1,1,1")

@@ -43,7 +43,7 @@ def test_the_stage_folder_carries_its_photo_and_moves_as_one(cli, fitted, tmp_pa
     rc, out, err = cli("relight", moved / "scene.usda", "--with-fitted", "--max-side", "48", "-o", tmp_path / "r",
                        "--json")
     assert rc == 0, err
-    assert json.loads(out)["mode"] == "ratio"
+    assert json.loads(out)["mode"] == "add"
     # the fitted lights kept and nothing added: the photo itself comes back
     relit = read_map(tmp_path / "r" / "relit.exr", 3)
     assert relit.shape[:2] == (36, 48) and np.all(np.isfinite(relit)) and relit.mean() > 0

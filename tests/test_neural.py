@@ -126,9 +126,9 @@ def test_relight_end_to_end(cli, moto_stage, tmp_path):
     assert rc == 2 and "no light" in err
     rc, _, err = cli("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--mode", "ratio")
     assert rc == 2 and "needs the fitted lights" in err and len(err.strip().splitlines()) == 1
-    # auto: no fitted lighting to keep -> the network
+    # auto: no fitted lighting to keep -> the physics render
     rep = cli.json("relight", moto_stage, "--light", "point:0.5,0.5,-1.5:3,3,3", "--max-side", "64", "-o", tmp_path / "a")
-    assert rep["mode"] == "neural"
+    assert rep["mode"] == "render"
 
 
 def test_shipped_model_gain_is_bounded_so_nothing_is_blacked_out():

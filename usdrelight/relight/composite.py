@@ -12,6 +12,8 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
   only scale I down), so the photo's light can really be switched down. Both branches give 1 at N = F, so I' is
   continuous, N = F gives I back exactly, adding a light (N >= F) never darkens a pixel, and I' is finite.
   Pixels without geometry take the ratio of their neighbours (pull-push fill of both renders).
+* ``render``: D~ itself, the physics render of the stage under the lights (albedo x shading, coverage-correct),
+  its holes (pixels whose centre sees no geometry) filled from their neighbours; no photo needed.
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
@@ -22,7 +24,7 @@ import numpy as np
 
 from ..neural.model import hole_fill
 
-MODES = ("neural", "ratio", "add")
+MODES = ("neural", "ratio", "add", "render")
 
 
 def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01,

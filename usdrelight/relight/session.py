@@ -26,7 +26,7 @@ import numpy as np
 from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
-from ..neural.model import RelightModel, build_input
+from ..neural.model import RelightModel, build_input, hole_fill
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
@@ -38,18 +38,23 @@ from .composite import MODES, add_composite, ratio_apply, ratio_reference
 
 log = logging.getLogger(__name__)
 DEFAULT_MODE = "auto"
-"""The mode ``relight`` uses unless told otherwise: ``auto`` is ``ratio`` when the photo's own (fitted) lighting
-is kept, at any scale > 0, and ``neural`` when it is switched off (README, "Modes": chosen by
-benchmarks/bench_relit_quality.py: ratio is far ahead when the photo's light stays and behind when it goes)."""
+"""The mode ``relight`` uses unless told otherwise: ``auto`` is ``add`` when the photo's own (fitted) lighting is
+kept as it is, ``ratio`` when it is kept scaled (dimmed or brightened), and ``render`` (the physics render D~,
+holes filled) when it is switched off or the photo is unknown. Chosen by measurement on held-out scene families
+(benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
+dimmed -> ratio far ahead; replaced or recoloured -> D~ ahead of the network in three families of four."""
 
 
-def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool) -> str:
-    """The mode that runs: ``auto`` -> ratio when the fitted lights are kept and the photo is known, else neural."""
+def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False) -> str:
+    """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known, ratio
+    when they are kept scaled (``fitted_scaled``), else render."""
     if mode not in ("auto", *MODES):
         raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
     if mode != "auto":
         return mode
-    return "ratio" if fitted_kept and photo_known else "neural"
+    if not (fitted_kept and photo_known):
+        return "render"
+    return "ratio" if fitted_scaled else "add"
 
 
 def source_photo_path(stage) -> str:
@@ -119,7 +124,8 @@ class RelightSession:
         self.scene = rec.with_camera(rec.camera.limited(max_side))
         self._source_photo = source_photo_path(stage)
         self._stage_folder = stage_folder(stage)
-        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "")
+        mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "",
+                            fitted_scale != 1.0)
         self.max_depth, self.mode = max_depth, mode
         self._model_path = model_path
         self.model = self.photo = None
@@ -182,7 +188,7 @@ class RelightSession:
         if mode == "ratio" and not self.fitted_lights:
             raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
                                   "or choose --mode neural or --mode add")
-        if mode != "neural" and self.photo is None:
+        if mode in ("ratio", "add") and self.photo is None:
             self.photo = self._photo()
 
     @property
@@ -238,6 +244,9 @@ class RelightSession:
                 fitted = self.engine.render(list(self._photo_lights)).beauty
                 self._ratio_reference = ratio_reference(self.photo, fitted, valid)
             image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
+            sec["composite"] = perf_counter() - t
+        elif mode == "render":  # the physics render D~ itself, its holes filled from the pixels around them
+            image = hole_fill(np.maximum(beauty, 0.0), valid)
             sec["composite"] = perf_counter() - t
         else:
             image = add_composite(self.photo, beauty)
