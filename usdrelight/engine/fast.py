@@ -40,7 +40,7 @@ class EngineSettings:
     """Latlong cells of the environment basis (rows, columns)."""
     env_samples: int = 128
     """Cosine-weighted visibility rays per pixel for the environment basis."""
-    indirect_samples: int = 32
+    indirect_samples: int = 24
     """Bounce rays per pixel for the one-bounce gather (then smoothed over 3 x 3 like neighbours)."""
     area_samples: int = 16
     """Shadow rays per pixel for sphere, disk, rect and wide distant lights."""

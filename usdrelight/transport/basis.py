@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..mitsuba.runtime import load_mitsuba
-from .sampling import cosine_directions, direction_to_cell, rays, stratified
+from .sampling import cosine_rays, ray_cells, rays
 from .surface import VisibleSurface
 
 
@@ -116,38 +116,41 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
                     seed: int = 0) -> LightTransport:
     """Trace the environment visibility columns and the indirect gather matrix of ``surf``."""
     mi = load_mitsuba()
+    import drjit as dr
+
     rng = np.random.default_rng(seed)
     N = surf.n_pixels
     eps = surf.eps
     o = surf.origins(eps)
     J = env_shape[0] * env_shape[1]
     H = np.zeros((N, J))
-    if J:
-        # in chunks to bound memory: N * S rays
-        chunk = max(1, 2_000_000 // env_samples)
+    # the rays are made, traced and binned by Mitsuba's JIT (float32, as the rays are): the same rays as
+    # cosine_directions() of stratified() samples, whose numpy arrays cost several times the ray tracing
+    if J and env_samples > 0:
+        S = env_samples
+        shift = rng.random((N, 2))  # stratified()'s shifts, drawn in the same order
+        chunk = max(1, 4_000_000 // S)  # in chunks to bound memory: N * S rays
         for s0 in range(0, N, chunk):
             sl = slice(s0, min(N, s0 + chunk))
-            # float32 throughout: the rays are float32 anyway, and these arrays are the precompute's bulk
-            n_ = surf.n[sl].astype(np.float32)
-            u1, u2 = stratified(len(n_), env_samples, rng)
-            dirs = cosine_directions(n_, u1.astype(np.float32), u2.astype(np.float32)).reshape(-1, 3)
-            orig = np.repeat(o[sl].astype(np.float32), env_samples, axis=0)
-            occl = np.array(surf.mi_scene.ray_test(rays(mi, orig, dirs)), bool)
-            cells = direction_to_cell(dirs, env_shape)
-            flat = np.repeat(np.arange(len(n_)), env_samples) * J + cells
-            H[sl] = np.bincount(flat[~occl], minlength=len(n_) * J).reshape(len(n_), J) / env_samples
+            m = sl.stop - s0
+            ray = cosine_rays(mi, o[sl], surf.n[sl], shift[sl], S)
+            free = ~surf.mi_scene.ray_test(ray)
+            # count the rays that leave the scene per (pixel, cell), in the JIT (numpy's bincount of the N * S
+            # indices costs more than the tracing)
+            flat = (dr.arange(mi.UInt32, m * S) // S) * J + ray_cells(mi, ray.d, env_shape)
+            dr.eval(flat, free)  # traced first: the scatter fused with the tracing is slower
+            counts = dr.zeros(mi.UInt32, m * J)
+            dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), flat, free)
+            H[sl] = counts.numpy().reshape(m, J) / S
     M = indirect_samples
     rows_all, cols_all = [], []
     if M > 0:
-        u1, u2 = stratified(N, M, rng)
-        dirs = cosine_directions(surf.n.astype(np.float32), u1.astype(np.float32),
-                                 u2.astype(np.float32)).reshape(-1, 3)
-        orig = np.repeat(o.astype(np.float32), M, axis=0)
-        si = surf.mi_scene.ray_intersect(rays(mi, orig, dirs))
-        hit = np.array(si.is_valid(), bool)
-        y = np.array(si.p, np.float64).T
-        pix = project_to_pixels(surf, y[hit])
-        src = np.repeat(np.arange(N), M)[hit]
+        ray = cosine_rays(mi, o, surf.n, rng.random((N, 2)), M)
+        pi = surf.mi_scene.ray_intersect_preliminary(ray)
+        hits = dr.compress(pi.is_valid())  # the rays that hit, and their hit points o + t d
+        y = dr.gather(mi.Point3f, ray(pi.t), hits).numpy().T.astype(np.float64)
+        pix = project_to_pixels(surf, y)
+        src = hits.numpy().astype(np.int64) // M
         lut = -np.ones(surf.height * surf.width, np.int64)
         lut[surf.flat_index()] = np.arange(N)
         inside = pix >= 0
@@ -156,8 +159,8 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
         # accept when the projected pixel's surface point is where the ray hit (visible from the camera)
         good = tgt >= 0
         cam = surf.scene.camera.to_world[:3, 3]
-        good[good] &= np.linalg.norm(surf.p[tgt[good]] - y[hit][good], axis=1) < 0.02 * np.linalg.norm(
-            y[hit][good] - cam, axis=1) + 4 * eps
+        good[good] &= np.linalg.norm(surf.p[tgt[good]] - y[good], axis=1) < 0.02 * np.linalg.norm(
+            y[good] - cam, axis=1) + 4 * eps
         rows_all, cols_all = src[good], tgt[good]
     P = sp.csr_matrix((np.full(len(rows_all), 1.0 / max(M, 1)), (rows_all, cols_all)), shape=(N, N))
     return LightTransport(surf, tuple(env_shape), H, P, surf.r_min, eps)

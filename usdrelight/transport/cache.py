@@ -23,7 +23,7 @@ import io
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -61,8 +61,10 @@ class TransportSettings:
     """Latlong cells of the environment basis (rows, columns)."""
     env_samples: int = 128
     """Cosine-weighted visibility rays per pixel for the environment basis."""
-    indirect_samples: int = 32
-    """Bounce rays per pixel for the one-bounce gather (then averaged over 3 x 3 like neighbours)."""
+    indirect_samples: int = 24
+    """Bounce rays per pixel for the one-bounce gather (then averaged over 3 x 3 like neighbours; 24 rather than
+    32 since issue 23: within 1.2% of 32's error against Mitsuba on every light set of
+    benchmarks/bench_prepare.py, for about 0.5 s less at 512 px)."""
     footprint: int = 4
     """k: k x k camera rays per pixel for its area-averaged albedo and coverage."""
     seed: int = 0
@@ -89,6 +91,8 @@ class PreparedTransport:
     """Loaded from the cache rather than traced."""
     seconds: float
     """Wall time to prepare or load."""
+    steps: dict = field(default_factory=dict)
+    """Wall time of each step of a cold prepare (surface, basis, filter, footprint, fringe), seconds."""
 
     @property
     def surface(self) -> VisibleSurface:
@@ -297,21 +301,34 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
             log.warning("transport cache entry %s does not fit (%s): rebuilding", cache.path(key), exc)
             lease.release()
             found = lease = None
+    steps = {}
     if found is None:
+        clock = time.perf_counter()
+
+        def step(name):
+            nonlocal clock
+            now = time.perf_counter()
+            steps[name], clock = now - clock, now
+
         surf = trace_surface(rec, settings.max_side)
+        step("surface")
         raw = build_transport(surf, settings.env_shape, settings.env_samples, settings.indirect_samples,
                               settings.seed)
+        step("basis")
         # the environment basis is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
         # noise is the largest error of an environment-lit frame), and kept in half precision, as cached
         smooth = bounce_filter(surf)
         H = (smooth @ raw.H).astype(np.float16).astype(np.float32)
         tr = LightTransport(surf, raw.env_shape, H, raw.P, raw.r_min, raw.eps)
+        step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
                                                        settings.footprint)
+        step("footprint")
         fringe = pixel_fringe(surf, albedo, coverage, hit_points)
         pixel_albedo, coverage = albedo[surf.flat_index()], coverage[surf.flat_index()]
+        step("fringe")
     prep = PreparedTransport(tr, pixel_albedo, coverage, fringe, smooth, key, found is not None,
-                             time.perf_counter() - t)
+                             time.perf_counter() - t, steps)
     if found is None and cache is not None:
         lease = cache.store(key, _arrays(prep, settings))
     return prep, lease

@@ -58,3 +58,48 @@ def stratified(n: int, s: int, rng) -> tuple[np.ndarray, np.ndarray]:
     base2 = ((gy.ravel() + 0.5) / sy)[:s]
     shift = rng.random((n, 2))
     return np.mod(base1[None] + shift[:, :1], 1.0), np.mod(base2[None] + shift[:, 1:], 1.0)
+
+
+def cosine_rays(mi, o: np.ndarray, n: np.ndarray, shift: np.ndarray, s: int):
+    """A Mitsuba ray batch of ``s`` stratified cosine-weighted directions around each normal of ``n`` (N, 3) from
+    the origins ``o`` (N, 3): ray ``i * s + k`` is sample k of pixel i, with the Cranley-Patterson ``shift``
+    (N, 2) of :func:`stratified`. The same rays as ``rays(mi, repeat(o), cosine_directions(n, *stratified(..)))``
+    in float32 (up to the last bit of the JIT's sine and cosine), built by Mitsuba's JIT rather than as (N * s, 3)
+    numpy arrays, which cost several times the ray tracing."""
+    import drjit as dr
+
+    sx = int(np.floor(np.sqrt(s)))
+    sy = int(np.ceil(s / sx))
+    n32 = n.astype(np.float32)
+    t, b = (f.astype(np.float32) for f in tangent_frames(n32))
+    i = dr.arange(mi.UInt32, len(n) * s)
+    pix = i // s
+    k = i - pix * s
+
+    def column(a, j, dtype=mi.Float):
+        return dr.gather(dtype, dtype(np.ascontiguousarray(a[:, j])), pix)
+
+    # the stratum and its shift in double precision, then rounded, as stratified() and its callers do
+    x1 = (mi.Float64(k % sx) + 0.5) / sx + column(shift, 0, mi.Float64)
+    x2 = (mi.Float64(k // sx) + 0.5) / sy + column(shift, 1, mi.Float64)
+    u1, u2 = mi.Float(x1 - dr.floor(x1)), mi.Float(x2 - dr.floor(x2))
+    r = dr.sqrt(u1)
+    phi = mi.Float(np.float32(2 * np.pi)) * u2
+    x, y, z = r * dr.cos(phi), r * dr.sin(phi), dr.sqrt(dr.maximum(0.0, 1.0 - u1))
+    d = mi.Vector3f(*(x * column(t, j) + y * column(b, j) + z * column(n32, j) for j in range(3)))
+    return mi.Ray3f(mi.Point3f(*(column(o, j) for j in range(3))), d)
+
+
+def ray_cells(mi, d, shape):
+    """Flat latlong cell index (UInt32) of the unit directions ``d`` (a Mitsuba Vector3f) in a grid of ``shape``,
+    as :func:`direction_to_cell` computes in float32."""
+    import drjit as dr
+
+    bh, bw = shape
+    two_pi = mi.Float(np.float32(2 * np.pi))
+    phi = dr.atan2(d.x, -d.z)
+    phi = dr.select(phi < 0, phi + two_pi, phi)
+    theta = dr.acos(dr.clip(d.y, -1.0, 1.0))
+    j = dr.minimum(mi.UInt32(phi / two_pi * bw), bw - 1)
+    i = dr.minimum(mi.UInt32(theta / mi.Float(np.float32(np.pi)) * bh), bh - 1)
+    return i * bw + j
