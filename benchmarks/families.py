@@ -160,6 +160,18 @@ def textured(img, scale=0.85, tint=(1, 1, 1), uv_scale=1.0):
     return {"type": "diffuse", "reflectance": tex}
 
 
+def _kinds(added: list, new: list, recoloured: list) -> dict:
+    """The four relights of a scene: ``add`` (the fitted lights kept + ``added``; truth: the scene's lights +
+    ``added``), ``dim`` (fitted scale 0.3; truth: the scene's lights x 0.3), ``replace`` (fitted off, ``new``) and
+    ``recolour`` (fitted off, ``recoloured``: the scene's own light geometry in new colours)."""
+    off = {"with_fitted": False, "fitted_scale": 0.0, "truth_photo_scale": 0.0}
+    return {"add": {"lights": added, "with_fitted": True, "fitted_scale": 1.0, "truth": added,
+                    "truth_photo_scale": 1.0},
+            "dim": {"lights": [], "with_fitted": True, "fitted_scale": 0.3, "truth": [], "truth_photo_scale": 0.3},
+            "replace": {"lights": new, "truth": new, **off},
+            "recolour": {"lights": recoloured, "truth": recoloured, **off}}
+
+
 def _scene_room(seed, w, h):
     rng = np.random.default_rng(100 + seed)
     b = _Builder(cam_height=1.4, pitch_deg=12, cam_z=0.5)
@@ -181,17 +193,11 @@ def _scene_room(seed, w, h):
     key = [lx, 2.7, -3.5]
     spot_at = [-lx * 0.5, 1.0, -7.0]
     photo = [b.point(key, [5.0, 4.6, 4.0]), b.spot([-lx, 2.6, -2.0], spot_at, [6.0, 6.0, 5.5], 30)]
-    rel = {
-        "add": {"lights": [b.point([-lx, 1.2, -2.5], [1.5, 2.5, 4.0])], "with_fitted": True, "fitted_scale": 1.0,
-                "truth": [b.point([-lx, 1.2, -2.5], [1.5, 2.5, 4.0])], "truth_photo_scale": 1.0},
-        "dim": {"lights": [], "with_fitted": True, "fitted_scale": 0.3, "truth": [], "truth_photo_scale": 0.3},
-        "replace": {"lights": (new := [b.spot([2.5, 2.8, -1.0], [-1.0, 0.0, -4.5], [14.0, 12.0, 10.0], 35),
-                                       "dome:0.01,0.01,0.012"]),
-                    "with_fitted": False, "fitted_scale": 0.0, "truth": new, "truth_photo_scale": 0.0},
-        "recolour": {"lights": (rc := [b.point(key, [6.0, 2.6, 0.8]), b.spot([-lx, 2.6, -2.0], spot_at,
-                                                                              [1.0, 2.5, 7.0], 30)]),
-                     "with_fitted": False, "fitted_scale": 0.0, "truth": rc, "truth_photo_scale": 0.0},
-    }
+    rel = _kinds([b.point([-lx, 1.2, -2.5], [1.5, 2.5, 4.0])],
+                 [b.spot([2.5, 2.8, -1.0], [-1.0, 0.0, -4.5], [14.0, 12.0, 10.0], 35),
+                  "dome:0.01,0.01,0.012"],
+                 [b.point(key, [6.0, 2.6, 0.8]), b.spot([-lx, 2.6, -2.0], spot_at,
+                                                                              [1.0, 2.5, 7.0], 30)])
     return FamilyScene("room", f"room{seed}", w, h, 65.0, b.shapes, photo, None, rel)
 
 
@@ -225,16 +231,10 @@ def _scene_outdoor(seed, w, h):
     else:
         photo.append("dome:0.15,0.18,0.25")
     lamp = [rng.uniform(-1.5, 1.5), 2.2, -4.0]
-    rel = {
-        "add": {"lights": [b.point(lamp, [8.0, 6.0, 3.0])], "with_fitted": True, "fitted_scale": 1.0,
-                "truth": [b.point(lamp, [8.0, 6.0, 3.0])], "truth_photo_scale": 1.0},
-        "dim": {"lights": [], "with_fitted": True, "fitted_scale": 0.3, "truth": [], "truth_photo_scale": 0.3},
-        "replace": {"lights": (new := [b.spot([-4.0, 5.0, -1.0], [1.0, 0.0, -7.0], [120.0, 110.0, 100.0], 30),
-                                       "dome:0.01,0.012,0.02"]),
-                    "with_fitted": False, "fitted_scale": 0.0, "truth": new, "truth_photo_scale": 0.0},
-        "recolour": {"lights": (rc := [b.sun(sun_d, [3.2, 1.4, 0.4]), "dome:0.03,0.05,0.12"]),
-                     "with_fitted": False, "fitted_scale": 0.0, "truth": rc, "truth_photo_scale": 0.0},
-    }
+    rel = _kinds([b.point(lamp, [8.0, 6.0, 3.0])],
+                 [b.spot([-4.0, 5.0, -1.0], [1.0, 0.0, -7.0], [120.0, 110.0, 100.0], 30),
+                  "dome:0.01,0.012,0.02"],
+                 [b.sun(sun_d, [3.2, 1.4, 0.4]), "dome:0.03,0.05,0.12"])
     return FamilyScene("outdoor", f"outdoor{seed}", w, h, 60.0, b.shapes, photo, hdri, rel)
 
 
@@ -261,16 +261,10 @@ def _scene_tabletop(seed, w, h):
     b.cylinder([rng.uniform(-0.4, -0.3), 0.0, rng.uniform(-1.3, -1.1)], 0.05, 0.25, textured(imgs[order[2]], 0.8))
     lamp = [rng.uniform(-0.6, -0.3), 0.7, rng.uniform(-0.9, -0.5)]
     photo = [b.point(lamp, [0.35, 0.32, 0.26]), "dome:0.02,0.022,0.025"]
-    rel = {
-        "add": {"lights": [b.point([0.5, 0.4, -0.5], [0.1, 0.15, 0.3])], "with_fitted": True, "fitted_scale": 1.0,
-                "truth": [b.point([0.5, 0.4, -0.5], [0.1, 0.15, 0.3])], "truth_photo_scale": 1.0},
-        "dim": {"lights": [], "with_fitted": True, "fitted_scale": 0.3, "truth": [], "truth_photo_scale": 0.3},
-        "replace": {"lights": (new := [b.spot([0.6, 0.9, -0.2], [-0.1, 0.0, -0.9], [1.2, 1.1, 1.0], 25),
-                                       "dome:0.004,0.004,0.005"]),
-                    "with_fitted": False, "fitted_scale": 0.0, "truth": new, "truth_photo_scale": 0.0},
-        "recolour": {"lights": (rc := [b.point(lamp, [0.1, 0.2, 0.45]), "dome:0.03,0.015,0.005"]),
-                     "with_fitted": False, "fitted_scale": 0.0, "truth": rc, "truth_photo_scale": 0.0},
-    }
+    rel = _kinds([b.point([0.5, 0.4, -0.5], [0.1, 0.15, 0.3])],
+                 [b.spot([0.6, 0.9, -0.2], [-0.1, 0.0, -0.9], [1.2, 1.1, 1.0], 25),
+                  "dome:0.004,0.004,0.005"],
+                 [b.point(lamp, [0.1, 0.2, 0.45]), "dome:0.03,0.015,0.005"])
     return FamilyScene("tabletop", f"tabletop{seed}", w, h, 55.0, b.shapes, photo, None, rel)
 
 
@@ -293,15 +287,9 @@ def _scene_occluder(seed, w, h):
     key = [-1.0 + rng.uniform(-0.3, 0.3), 4.6, 4.0]
     photo = [b.point(key, [60.0, 55.0, 45.0]), "dome:0.03,0.03,0.035"]
     key2 = [1.5, 4.4, 4.0]
-    rel = {
-        "add": {"lights": [b.point([-1.5, 1.0, -1.8], [1.5, 2.0, 3.0])], "with_fitted": True, "fitted_scale": 1.0,
-                "truth": [b.point([-1.5, 1.0, -1.8], [1.5, 2.0, 3.0])], "truth_photo_scale": 1.0},
-        "dim": {"lights": [], "with_fitted": True, "fitted_scale": 0.3, "truth": [], "truth_photo_scale": 0.3},
-        "replace": {"lights": (new := [b.point(key2, [55.0, 60.0, 70.0]), "dome:0.005,0.005,0.006"]),
-                    "with_fitted": False, "fitted_scale": 0.0, "truth": new, "truth_photo_scale": 0.0},
-        "recolour": {"lights": (rc := [b.point(key, [70.0, 35.0, 10.0]), "dome:0.01,0.02,0.05"]),
-                     "with_fitted": False, "fitted_scale": 0.0, "truth": rc, "truth_photo_scale": 0.0},
-    }
+    rel = _kinds([b.point([-1.5, 1.0, -1.8], [1.5, 2.0, 3.0])],
+                 [b.point(key2, [55.0, 60.0, 70.0]), "dome:0.005,0.005,0.006"],
+                 [b.point(key, [70.0, 35.0, 10.0]), "dome:0.01,0.02,0.05"])
     return FamilyScene("occluder", f"occluder{seed}", w, h, 60.0, b.shapes, photo, None, rel)
 
 
