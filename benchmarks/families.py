@@ -197,7 +197,7 @@ def _scene_room(seed, w, h):
                  [b.spot([2.5, 2.8, -1.0], [-1.0, 0.0, -4.5], [14.0, 12.0, 10.0], 35),
                   "dome:0.01,0.01,0.012"],
                  [b.point(key, [6.0, 2.6, 0.8]), b.spot([-lx, 2.6, -2.0], spot_at,
-                                                                              [1.0, 2.5, 7.0], 30)])
+                  [1.0, 2.5, 7.0], 30)])
     return FamilyScene("room", f"room{seed}", w, h, 65.0, b.shapes, photo, None, rel)
 
 
