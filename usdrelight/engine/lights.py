@@ -50,7 +50,7 @@ def point_light(tr: LightTransport, light: LightRecord) -> np.ndarray:
 def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
     surf = tr.surface
     radius = light.radius * float(np.cbrt(np.prod(world_scale(light.to_world))))
-    o = surf.origins(tr.eps)
+    o = tr.origins
     w = light.to_world[:3, 3][None] - o
     dist = np.linalg.norm(w, axis=1)
     outside = dist > radius * (1 + 1e-6)
@@ -88,7 +88,7 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
         local = np.stack([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, np.zeros_like(u1)], 1)
     ys = local @ light.to_world[:3, :3].T + light.to_world[:3, 3]
     n_l = light_direction(light)
-    o = surf.origins(tr.eps)
+    o = tr.origins
     acc = np.zeros(surf.n_pixels)
     for y in ys:  # one shadow-ray batch per light sample: memory stays at N rays
         v = y[None] - o
@@ -106,7 +106,7 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
 def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
     surf = tr.surface
     towards = -light_direction(light)
-    o = surf.origins(tr.eps)
+    o = tr.origins
     half = math.radians(light.angle_deg) / 2.0
     if half <= 0:
         cos_x = np.maximum(surf.n @ towards, 0.0)

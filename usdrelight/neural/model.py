@@ -69,18 +69,24 @@ def hole_fill(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def build_input(dtilde: np.ndarray, albedo: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The 7-channel network input (7, H, W) from the AOVs, holes filled."""
-    for name, a in (("diffuse", dtilde), ("albedo", albedo)):
+def build_input(dtilde: np.ndarray, albedo: np.ndarray, valid: np.ndarray,
+                filled_albedo: np.ndarray | None = None) -> np.ndarray:
+    """The 7-channel network input (7, H, W) from the AOVs, holes filled; ``filled_albedo``: the albedo already
+    hole-filled (it does not depend on the lights: a session fills it once)."""
+    checked = (("diffuse", dtilde),) if filled_albedo is not None else (("diffuse", dtilde), ("albedo", albedo))
+    for name, a in checked:
         if not np.all(np.isfinite(a)):
             raise UsdRelightError(f"the {name} AOV contains NaN or Inf pixels")
     if dtilde.shape != albedo.shape or dtilde.shape[:2] != valid.shape:
         raise UsdRelightError(f"AOV sizes differ: diffuse {dtilde.shape[:2]}, albedo {albedo.shape[:2]}, "
                               f"valid {valid.shape}")
     d = hole_fill(np.maximum(dtilde, 0.0), valid)
-    a = hole_fill(np.clip(albedo, 0.0, 1.0), valid)
-    inv = (~valid).astype(np.float32)[..., None]
-    return np.concatenate([d, a, inv], 2).transpose(2, 0, 1).astype(np.float32)
+    a = hole_fill(np.clip(albedo, 0.0, 1.0), valid) if filled_albedo is None else filled_albedo
+    x = np.empty((7,) + valid.shape, np.float32)  # channels first, written in place
+    x[0:3] = np.moveaxis(d, 2, 0)
+    x[3:6] = np.moveaxis(a, 2, 0)
+    x[6] = ~valid
+    return x
 
 
 class RelightModel:

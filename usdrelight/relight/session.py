@@ -130,6 +130,7 @@ class RelightSession:
         self._model_path = model_path
         self.model = self.photo = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
+        self._filled_albedo = None  # the albedo AOV hole-filled (neural input): once per session
         self._prepare_mode(mode)
         self.seconds = {"read": perf_counter() - t0}
         cache = cache if cache is not None else TransportCache.for_stage(self.stage_path)
@@ -234,7 +235,9 @@ class RelightSession:
         sec = {"render": perf_counter() - t0}
         t = perf_counter()
         if mode == "neural":
-            x = build_input(beauty, albedo, valid)
+            if self._filled_albedo is None:  # light-independent: filled once per session
+                self._filled_albedo = hole_fill(np.clip(albedo, 0.0, 1.0), valid)
+            x = build_input(beauty, albedo, valid, self._filled_albedo)
             sec["hole_fill"] = perf_counter() - t
             t = perf_counter()
             image = self.model(x)

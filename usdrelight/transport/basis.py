@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -40,6 +41,11 @@ class LightTransport:
     eps: float
     """Secondary-ray origin offset, metres."""
 
+    @cached_property
+    def origins(self) -> np.ndarray:
+        """(N, 3) secondary-ray origins of the surface (:meth:`VisibleSurface.origins` at ``eps``), made once."""
+        return self.surface.origins(self.eps)
+
     def point_columns(self, positions: np.ndarray, with_grad: bool = False):
         """g (N, K), and optionally dg/dl (N, K, 3), for point lights at ``positions`` (K, 3), metres.
 
@@ -54,7 +60,7 @@ class LightTransport:
         if K == 0:
             return (g, grad) if with_grad else g
         mi = load_mitsuba()
-        o = surf.origins(self.eps)
+        o = self.origins
         step = max(1, 4_000_000 // max(N, 1))
         for k0 in range(0, K, step):
             ks = slice(k0, min(K, k0 + step))
