@@ -6,6 +6,7 @@ rendered at 96 px: every app starts in about a second.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -321,49 +322,61 @@ def test_without_viser_the_command_names_the_extra(stage, cli, monkeypatch):
 
 
 # ---- the browser ------------------------------------------------------------------------------------
-def test_browser_adds_a_point_light_and_saves_it(stage):
-    """Headless Chromium (Debian's, driven by Playwright) adds a point light through the UI, picks its colour
-    and position, waits for the relit image to change, saves; lights_user.usda then holds that light."""
+@contextlib.contextmanager
+def app_page(stage):
+    """The web app on ``stage`` and a headless Chromium page on it (Debian's, driven by Playwright), its editor
+    loaded (the "Add light" button shown); skipped with the reason when viser, Playwright or Chromium is missing."""
     pytest.importorskip("viser")
     sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (the test extra)")
     if not CHROMIUM.exists():
         pytest.skip(f"{CHROMIUM} not found: scripts/setup.sh installs Debian's chromium (apt-get install chromium)")
-    from pxr import Gf, UsdLux
-
     from usdrelight.serve.app import ServeApp
 
-    picked, position = (255, 128, 0), (0.3, 0.8, -2.0)
     with ServeApp(stage, port=0, max_side=SIDE) as app, sync_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
         try:
             page = browser.new_page(viewport={"width": 1400, "height": 850})
             page.goto(app.url)
-            add = page.get_by_role("button", name="Add light")
-            add.wait_for(timeout=30000)
-            image = page.locator("img[src^='blob:']").first
-            image.wait_for(timeout=30000)
-            first_src = image.get_attribute("src")
-            add.click()  # the kind dropdown starts at "point"
-            page.get_by_text("point Point1").wait_for(timeout=15000)
-            colour = page.locator("input.mantine-ColorInput-input").first
-            colour.fill("rgb({}, {}, {})".format(*picked))
-            colour.press("Enter")
-            x = page.get_by_label("Position")
-            xyz = x.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]") \
-                .locator("input[inputmode='decimal']")
-            assert xyz.count() == 3
-            for i, v in enumerate(position):
-                xyz.nth(i).fill(str(v))
-                xyz.nth(i).press("Enter")
-            page.wait_for_function("s => { const i = document.querySelector(\"img[src^='blob:']\"); "
-                                   "return i && i.src !== s; }", arg=first_src, timeout=20000)
-            deadline = time.monotonic() + 20
-            while app.states["Point1"].position != position and time.monotonic() < deadline:
-                time.sleep(0.1)
-            page.get_by_role("button", name="Save lights").click()
-            page.get_by_text("Saved 1 light(s) to lights_user.usda").wait_for(timeout=20000)
+            page.get_by_role("button", name="Add light").wait_for(timeout=30000)
+            yield app, page
         finally:
             browser.close()
+
+
+def position_inputs(page):
+    """The three number inputs of the selected light's Position field."""
+    return page.get_by_label("Position").locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]") \
+        .locator("input[inputmode='decimal']")
+
+
+def test_browser_adds_a_point_light_and_saves_it(stage):
+    """Headless Chromium (Debian's, driven by Playwright) adds a point light through the UI, picks its colour
+    and position, waits for the relit image to change, saves; lights_user.usda then holds that light."""
+    from pxr import Gf, UsdLux
+
+    picked, position = (255, 128, 0), (0.3, 0.8, -2.0)
+    with app_page(stage) as (app, page):
+        add = page.get_by_role("button", name="Add light")
+        image = page.locator("img[src^='blob:']").first
+        image.wait_for(timeout=30000)
+        first_src = image.get_attribute("src")
+        add.click()  # the kind dropdown starts at "point"
+        page.get_by_text("point Point1").wait_for(timeout=15000)
+        colour = page.locator("input.mantine-ColorInput-input").first
+        colour.fill("rgb({}, {}, {})".format(*picked))
+        colour.press("Enter")
+        xyz = position_inputs(page)
+        assert xyz.count() == 3
+        for i, v in enumerate(position):
+            xyz.nth(i).fill(str(v))
+            xyz.nth(i).press("Enter")
+        page.wait_for_function("s => { const i = document.querySelector(\"img[src^='blob:']\"); "
+                               "return i && i.src !== s; }", arg=first_src, timeout=20000)
+        deadline = time.monotonic() + 20
+        while app.states["Point1"].position != position and time.monotonic() < deadline:
+            time.sleep(0.1)
+        page.get_by_role("button", name="Save lights").click()
+        page.get_by_text("Saved 1 light(s) to lights_user.usda").wait_for(timeout=20000)
     saved = open_stage(stage)
     prim = saved.GetPrimAtPath("/Scene/Lights/User/Point1")
     assert prim and prim.GetTypeName() == "SphereLight"

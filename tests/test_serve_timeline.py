@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from test_serve import CHROMIUM, SIDE, base_stage, stage  # noqa: F401  (fixtures)
+from test_serve import SIDE, app_page, base_stage, position_inputs, stage  # noqa: F401  (fixtures)
 from usdrelight.stage.layout import USER_LIGHTS
 from usdrelight.stage.read import read_lights
 from usdrelight.stage.validate import open_stage
@@ -207,44 +207,29 @@ def test_app_keys_plays_saves_and_exports_a_video(stage):
 def test_browser_keys_a_light_at_two_frames_and_saves(stage):
     """Headless Chromium adds a point light, keys it at frame 1, moves the frame slider to the end (48), moves
     the light, keys it again, saves: lights_user.usda holds the two time samples."""
-    pytest.importorskip("viser")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed (the test extra)")
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} not found: scripts/setup.sh installs Debian's chromium (apt-get install chromium)")
-    from usdrelight.serve.app import ServeApp
-
-    with ServeApp(stage, port=0, max_side=SIDE) as app, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-        try:
-            page = browser.new_page(viewport={"width": 1400, "height": 850})
-            page.goto(app.url)
-            add = page.get_by_role("button", name="Add light")
-            add.wait_for(timeout=30000)
-            add.click()
-            page.get_by_text("point Point1").wait_for(timeout=15000)
-            page.get_by_role("button", name="Set key").click()
-            page.get_by_text("Keys of Point1: 1").wait_for(timeout=15000)
-            frame = page.locator("[role=slider][aria-valuemin='1'][aria-valuemax='48']")
-            assert frame.count() == 1
-            frame.focus()
-            frame.press("End")
-            deadline = time.monotonic() + 20
-            while app.timeline.frame != 48.0 and time.monotonic() < deadline:
-                time.sleep(0.1)
-            assert app.timeline.frame == 48.0
-            xyz = page.get_by_label("Position").locator(
-                "xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator("input[inputmode='decimal']")
-            xyz.nth(0).fill("1.5")
-            xyz.nth(0).press("Enter")
-            while app.states["Point1"].position[0] != 1.5 and time.monotonic() < deadline:
-                time.sleep(0.1)
-            page.get_by_role("button", name="Set key").click()
-            page.get_by_text("Keys of Point1: 1, 48").wait_for(timeout=15000)
-            page.get_by_role("button", name="Save lights").click()
-            page.get_by_text("Saved 1 light(s) to lights_user.usda").wait_for(timeout=20000)
-            start = app.states["Point1"]
-        finally:
-            browser.close()
+    with app_page(stage) as (app, page):
+        page.get_by_role("button", name="Add light").click()
+        page.get_by_text("point Point1").wait_for(timeout=15000)
+        page.get_by_role("button", name="Set key").click()
+        page.get_by_text("Keys of Point1: 1").wait_for(timeout=15000)
+        frame = page.locator("[role=slider][aria-valuemin='1'][aria-valuemax='48']")
+        assert frame.count() == 1
+        frame.focus()
+        frame.press("End")
+        deadline = time.monotonic() + 20
+        while app.timeline.frame != 48.0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert app.timeline.frame == 48.0
+        xyz = position_inputs(page)
+        xyz.nth(0).fill("1.5")
+        xyz.nth(0).press("Enter")
+        while app.states["Point1"].position[0] != 1.5 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        page.get_by_role("button", name="Set key").click()
+        page.get_by_text("Keys of Point1: 1, 48").wait_for(timeout=15000)
+        page.get_by_role("button", name="Save lights").click()
+        page.get_by_text("Saved 1 light(s) to lights_user.usda").wait_for(timeout=20000)
+        start = app.states["Point1"]
     saved = open_stage(stage)
     translate = _attr(saved, "/Scene/Lights/User/Point1", "xformOp:translate")
     assert translate.GetTimeSamples() == [1.0, 48.0]
