@@ -198,7 +198,8 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
 
 
 # ---- Blender -> USD (lights) -------------------------------------------------------------------
-_DUMP = (Path(__file__).resolve().parent / "blender_dump.py.txt").read_text()
+DUMP_SCRIPT = Path(__file__).resolve().parent / "blender_dump.py.txt"
+"""Run inside Blender by :func:`blender_lights`: the lights of a .blend (and their keyframes) as JSON."""
 
 
 def blender_lights(path) -> BlenderLights:
@@ -211,7 +212,7 @@ def blender_lights(path) -> BlenderLights:
         raise UsdRelightError(f"file not found: {path}")
     with tempfile.TemporaryDirectory() as td:
         script = Path(td) / "dump.py"
-        script.write_text(_DUMP)
+        script.write_text(DUMP_SCRIPT.read_text())
         out = Path(td) / "lights.json"
         run_blender(script, str(path.absolute()), str(out))
         dump = json.loads(out.read_text())
