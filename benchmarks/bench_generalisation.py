@@ -66,7 +66,7 @@ from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 log = logging.getLogger("bench_generalisation")
 LUM = np.array([0.2126, 0.7152, 0.0722])
 KINDS = ("add", "dim", "replace", "recolour")
-OUTPUTS = ("dtilde", "ratio", "add", "neural", "auto", "photo")
+OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "auto", "photo")
 
 
 def psnr_ssim(img, truth, valid):
@@ -126,12 +126,12 @@ def scene_run(family, seed, args, work, sheets):
                                            fitted_scale=r["fitted_scale"], mode="auto")
         s = sessions[key]
         outs = {}
-        for mode in ("ratio", "neural") + (("add",) if kind == "add" else ()):
+        for mode in ("ratio", "neural", "render") + (("add",) if kind == "add" else ()):
             fr = s.render(r["lights"], mode=mode)
             outs[mode] = fr.image
             if mode == "ratio":  # D~: the render under all the session's lights (mode add renders only the new)
                 outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
-        outs["auto"] = outs["dtilde"] if s.mode == "render" else outs[s.mode]  # render: D~ with holes filled
+        outs["auto"] = outs[s.mode]
         outs["photo"] = photo
         m = {"auto_is": s.mode, "lights": r["lights"], "truth_lights": r["truth"],
              "truth_photo_scale": r["truth_photo_scale"], "stage_valid_fraction": float(fr.valid.mean())}
@@ -168,12 +168,12 @@ def real_photo(args):
         with RelightSession(stage, max_side=args.real_side, with_fitted=wf, fitted_scale=k, mode="auto") as s:
             photo = s.source_photo()
             outs = {}
-            for mode in ("ratio", "neural") + (("add",) if kind == "add" else ()):
+            for mode in ("ratio", "neural", "render") + (("add",) if kind == "add" else ()):
                 fr = s.render(lights, mode=mode)
                 outs[mode] = fr.image
                 if mode == "ratio":
                     outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
-            outs["auto"] = outs["dtilde"] if s.mode == "render" else outs[s.mode]
+            outs["auto"] = outs[s.mode]
             valid = np.ones(fr.valid.shape, bool)
             out["kinds"][kind] = {"auto_is": s.mode, "lights": lights,
                                   **{m: {"detail_photo": detail_corr(img, photo, valid)} for m, img in outs.items()}}

@@ -108,11 +108,23 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
     assert off["mode"] == "render"  # auto: the photo's light is switched off
     from usdrelight.neural.model import hole_fill
     from usdrelight.relight.session import RelightSession
+    from usdrelight.stage.light_specs import parse_lights as s_lights
 
-    with RelightSession(fitted_stage, max_side=48, mode="render") as s:  # render: D~ with its holes filled
+    with RelightSession(fitted_stage, max_side=None, mode="render") as s:  # render: D~ as a photo shows it
         frame = s.render(["point:0.5,1.0,-2.5:3,2,1"])
-        np.testing.assert_array_equal(frame.image, hole_fill(frame.diffuse, frame.valid))
-        np.testing.assert_allclose(read_map(off["exr"], 3), frame.image, rtol=1e-6, atol=1e-7)
+        cov = s.engine.render(list(s.base_lights) + s_lights(["point:0.5,1.0,-2.5:3,2,1"])).coverage
+        seen = cov > 0
+        expected = hole_fill(np.where(seen[..., None], frame.diffuse / np.maximum(cov, 1e-6)[..., None], 0.0)
+                             .astype(np.float32), seen)
+        np.testing.assert_allclose(frame.image, expected, rtol=1e-6, atol=1e-7)
+        # the half-covered first and last rows and columns are not darker than their neighbours
+        assert 0.4 < cov[0].mean() < 0.9 and 0.4 < cov[:, -1].mean() < 0.9
+        lum = frame.image.mean(-1)
+        for edge, inner in ((lum[0], lum[1]), (lum[-1], lum[-2]), (lum[:, 0], lum[:, 1]), (lum[:, -1], lum[:, -2])):
+            assert edge.mean() == pytest.approx(inner.mean(), rel=0.1)
+    with RelightSession(fitted_stage, max_side=48, mode="render") as s:  # what the command wrote
+        np.testing.assert_allclose(read_map(off["exr"], 3), s.render(["point:0.5,1.0,-2.5:3,2,1"]).image,
+                                   rtol=1e-6, atol=1e-7)
     sheet = read_photo(rep["contact_sheet"])
     assert sheet.shape[1] > 5 * sheet.shape[0] / 2  # photo, D~ and four modes side by side
     img = read_map(rep["exr"], 3)

@@ -12,8 +12,10 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
   only scale I down), so the photo's light can really be switched down. Both branches give 1 at N = F, so I' is
   continuous, N = F gives I back exactly, adding a light (N >= F) never darkens a pixel, and I' is finite.
   Pixels without geometry take the ratio of their neighbours (pull-push fill of both renders).
-* ``render``: D~ itself, the physics render of the stage under the lights (albedo x shading, coverage-correct),
-  its holes (pixels whose centre sees no geometry) filled from their neighbours; no photo needed.
+* ``render``: D~ itself, the physics render of the stage under the lights (albedo x shading), as a photo shows
+  it: divided by each pixel's coverage (a pixel half covered at a depth cut or the image border is not dimmed),
+  pixels that see no geometry filled from their neighbours; no photo needed
+  (:func:`render_photo`).
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
@@ -66,3 +68,14 @@ def add_composite(photo: np.ndarray, added: np.ndarray) -> np.ndarray:
     """I + A (A: the render of the added lights only); finite and >= 0."""
     out = np.maximum(photo, 0.0) + np.maximum(added, 0.0)
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
+
+def render_photo(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """The ``render`` mode's picture: D~ as a photo shows it. The render is box-filtered over each pixel (a pixel
+    half covered by the 2.5D mesh, at a depth cut or the image border, holds half its surface's radiance, as
+    Mitsuba renders it); a photo's pixel is covered whole. So D~ is divided by the coverage, and the pixels that
+    see no geometry at all are filled from the pixels around them."""
+    cov = np.asarray(coverage, np.float64)
+    seen = cov > 0
+    out = np.where(seen[..., None], np.maximum(beauty, 0.0) / np.maximum(cov, 1e-6)[..., None], 0.0)
+    return hole_fill(out.astype(np.float32), seen)

@@ -34,7 +34,7 @@ from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
-from .composite import MODES, add_composite, ratio_apply, ratio_reference
+from .composite import MODES, add_composite, ratio_apply, ratio_reference, render_photo
 
 log = logging.getLogger(__name__)
 DEFAULT_MODE = "auto"
@@ -47,7 +47,7 @@ dimmed -> ratio far ahead; replaced or recoloured -> D~ ahead of the network in 
 
 def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False) -> str:
     """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known, ratio
-    when they are kept scaled (``fitted_scaled``), else render."""
+    when they are kept scaled (``fitted_scaled``), else render (:func:`usdrelight.relight.composite.render_photo`)."""
     if mode not in ("auto", *MODES):
         raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
     if mode != "auto":
@@ -248,8 +248,8 @@ class RelightSession:
                 self._ratio_reference = ratio_reference(self.photo, fitted, valid)
             image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
             sec["composite"] = perf_counter() - t
-        elif mode == "render":  # the physics render D~ itself, its holes filled from the pixels around them
-            image = hole_fill(np.maximum(beauty, 0.0), valid)
+        elif mode == "render":
+            image = render_photo(beauty, aovs.coverage)
             sec["composite"] = perf_counter() - t
         else:
             image = add_composite(self.photo, beauty)
