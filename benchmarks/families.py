@@ -293,7 +293,32 @@ def _scene_occluder(seed, w, h):
     return FamilyScene("occluder", f"occluder{seed}", w, h, 60.0, b.shapes, photo, None, rel)
 
 
-MAKERS = {"room": _scene_room, "outdoor": _scene_outdoor, "tabletop": _scene_tabletop, "occluder": _scene_occluder}
+def _scene_procedural(seed, w, h):
+    """NOT held out: the training generator's own scenes (usdrelight.mitsuba.procedural.random_spec, what the
+    network was trained on), relit the same four ways. Used only to calibrate what may be calibrated
+    (benchmarks/calibrate_transfer.py), never to report generalisation."""
+    from usdrelight.mitsuba.procedural import mitsuba_dict, random_spec
+
+    spec = random_spec(1000 + seed, w, h, n_lights=1 + seed % 2)
+    b = _Builder(cam_height=0.0, pitch_deg=0.0)  # random_spec is already in the camera frame
+    b.shapes = {k: v for k, v in mitsuba_dict(spec).items() if k.startswith("shape")}
+    rng = np.random.default_rng(500 + seed)
+    env = ",".join(f"{x:g}" for x in spec.env_radiance)
+    photo = [b.point(l.position, l.intensity) for l in spec.point_lights] + [f"dome:{env}"]
+    pos = [np.asarray(l.position) for l in spec.point_lights]
+    new_p = [rng.uniform(-1.5, 1.5), rng.uniform(0.3, 1.2), rng.uniform(-4.0, -1.5)]
+    target = [rng.uniform(-1.0, 1.0), -1.0, rng.uniform(-4.5, -3.0)]
+    rel = _kinds([b.point([rng.uniform(-1.5, 1.5), 0.5, -2.0], rng.uniform(1.0, 3.0, 3))],
+                 [b.spot(new_p, target, rng.uniform(6.0, 12.0) * np.array([1.0, 0.9, 0.8]), 35),
+                  "dome:0.005,0.005,0.006"],
+                 [b.point(p, rng.uniform(1.0, 8.0, 3)) for p in pos] + [f"dome:{_csv(rng.uniform(0.01, 0.08, 3))}"])
+    return FamilyScene("procedural", f"procedural{seed}", w, h, spec.fov_x_deg, b.shapes, photo, None, rel)
+
+
+MAKERS = {"room": _scene_room, "outdoor": _scene_outdoor, "tabletop": _scene_tabletop, "occluder": _scene_occluder,
+          "procedural": _scene_procedural}
+CALIBRATION = ("procedural",)
+"""Families that may be used to calibrate (the training generator's); never reported as held out."""
 
 
 def make_family_scene(family: str, seed: int = 0, width: int = 128, height: int = 96) -> FamilyScene:

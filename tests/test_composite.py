@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from usdrelight.imageio import read_photo, resize_image
-from usdrelight.relight.composite import add_composite, ratio_composite, ratio_guard
+from usdrelight.relight.composite import (add_composite, ratio_composite, ratio_guard, transfer_apply,
+                                          transfer_reference)
+from usdrelight.relight.light_match import match_angles, match_weight
 from usdrelight.relight.session import RelightSession
 from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.records import FitProvenance, PointLightValue
@@ -50,6 +52,67 @@ def test_ratio_scales_by_the_light_change_and_never_darkens_when_light_is_added(
 def test_add_with_no_added_light_gives_the_photo_and_never_darkens():
     np.testing.assert_array_equal(add_composite(PHOTO, np.zeros_like(PHOTO)), PHOTO)
     assert np.all(add_composite(PHOTO, RNG.random(PHOTO.shape)) >= PHOTO)
+
+
+def _shading(h=48, w=64, x0=0.3):
+    """A smooth Lambertian-like shading pool centred at x0 (fraction of the width)."""
+    yy, xx = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
+    s = 1.0 / (1.0 + 20 * ((xx - x0) ** 2 + (yy - 0.5) ** 2))
+    return np.repeat(s[..., None], 3, 2).astype(np.float32)
+
+
+def test_transfer_is_the_render_when_the_photo_adds_nothing_and_the_photo_when_the_light_is_the_fit():
+    f = _shading(x0=0.3) * np.array([0.5, 0.4, 0.3], np.float32)
+    valid = np.ones(f.shape[:2], bool)
+    new = _shading(x0=0.8) * np.array([0.2, 0.5, 0.6], np.float32)
+    # a photo the fit explains exactly: r = 0, the transfer is the new render itself, whatever the light
+    np.testing.assert_allclose(transfer_apply(new, transfer_reference(f, f, valid), 1.0), new, rtol=1e-6)
+    # a photo with texture the fit does not explain; lit by the photo's own light (w = 1, nothing clipped):
+    # F exp(L(r) + H(r)) = F (I + k) / (F + k), i.e. the photo up to the 1% guard k
+    tex = (1.0 + 0.3 * np.sign(np.sin(np.arange(64) * 1.3)))[None, :, None].astype(np.float32)
+    photo = f * tex
+    ref = transfer_reference(photo, f, valid, sigma=2.0, clip=7.0)
+    k = 0.01 * f.reshape(-1, 3).mean(0)
+    np.testing.assert_allclose(transfer_apply(2.0 * f, ref, 1.0), 2.0 * f * (photo + k) / (f + k), rtol=1e-5)
+
+
+def test_transfer_keeps_the_photo_detail_not_the_old_light_under_a_moved_light():
+    from scipy.ndimage import gaussian_filter
+
+    f = _shading(x0=0.25)
+    new = _shading(x0=0.75)
+    valid = np.ones(f.shape[:2], bool)
+    rng = np.random.default_rng(0)
+    tex = np.exp(0.2 * rng.standard_normal(f.shape[:2]))[..., None].astype(np.float32)
+    photo = f * tex * 1.2  # the fit 20% too dark: a low-frequency residual that belongs to the old light
+    out = transfer_apply(new, transfer_reference(photo, f, valid, sigma=2.0), 0.0)  # a light from elsewhere
+    assert np.all(np.isfinite(out)) and out.min() >= 0
+    hp = lambda a: np.log(a.mean(-1)) - gaussian_filter(np.log(a.mean(-1)), 2.0)  # noqa: E731
+    assert np.corrcoef(hp(out).ravel(), hp(tex[..., 0:1].repeat(3, 2)).ravel())[0, 1] > 0.8  # the texture is kept
+    # low frequencies: the new light's pool, not the old one's 20% (the fit's error under the old light)
+    lo = gaussian_filter(out.mean(-1), 4) / gaussian_filter(new.mean(-1), 4)
+    assert np.all(np.abs(lo[8:-8, 8:-8] - 1.0) < 0.03)
+    # extreme inputs: a black photo, a black fit, huge values: finite and >= 0
+    for p_, f_ in ((np.zeros_like(f), f), (photo, np.zeros_like(f)), (photo * 1e30, f), (photo, f * 1e-30)):
+        for w in (0.0, 1.0, float("nan")):
+            o = transfer_apply(new, transfer_reference(p_, f_, valid), w)
+            assert np.all(np.isfinite(o)) and o.min() >= 0
+
+
+def test_light_match_weighs_each_light_by_its_share_and_its_angle_to_the_photo_lights():
+    from usdrelight.stage.light_specs import parse_lights
+
+    photo = parse_lights(["point:0,2,-3:1,1,1", "dome:0.1,0.1,0.1"])
+    centre = np.array([0.0, 0.0, -3.0])
+    same, moved, sun_above = parse_lights(["point:0,4,-3:5,1,1", "point:2,0,-3:1,1,1", "sun:0,-1,0:1,1,1"])
+    angles = match_angles([same, moved, sun_above, photo[1]], photo, centre)
+    np.testing.assert_allclose(angles, [0.0, 90.0, 0.0, 0.0], atol=1e-9)  # a dome matches the photo's dome
+    assert match_angles([photo[1]], photo[:1], centre) == [180.0]  # no dome in the photo
+    assert match_weight([0.0, 90.0], [3.0, 1.0]) == pytest.approx(0.75)
+    a = 5.0  # halfway in cosine between 0 and 10 degrees is not 5 degrees: linear in the cosine
+    c = lambda deg: np.cos(np.radians(deg))  # noqa: E731
+    assert match_weight([a], [1.0], 10.0) == pytest.approx((c(a) - c(10.0)) / (1 - c(10.0)))
+    assert match_weight([], []) == 0.0 and match_weight([0.0], [0.0]) == 0.0
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +168,7 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
     assert kept["mode"] == "add"  # auto: the photo's light kept as it is, a light added
     off = cli.json("relight", fitted_stage, "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side", "48",
                    "-o", tmp_path / "off")
-    assert off["mode"] == "render"  # auto: the photo's light is switched off
+    assert off["mode"] == "transfer"  # auto: the photo's light is switched off (and a fit exists)
     from usdrelight.neural.model import hole_fill
     from usdrelight.relight.session import RelightSession
     from usdrelight.stage.light_specs import parse_lights as s_lights
@@ -122,7 +185,7 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
         lum = frame.image.mean(-1)
         for edge, inner in ((lum[0], lum[1]), (lum[-1], lum[-2]), (lum[:, 0], lum[:, 1]), (lum[:, -1], lum[:, -2])):
             assert edge.mean() == pytest.approx(inner.mean(), rel=0.1)
-    with RelightSession(fitted_stage, max_side=48, mode="render") as s:  # what the command wrote
+    with RelightSession(fitted_stage, max_side=48, mode="transfer") as s:  # what the command wrote
         np.testing.assert_allclose(read_map(off["exr"], 3), s.render(["point:0.5,1.0,-2.5:3,2,1"]).image,
                                    rtol=1e-6, atol=1e-7)
     sheet = read_photo(rep["contact_sheet"])

@@ -16,6 +16,16 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
   it: divided by each pixel's coverage (a pixel half covered at a depth cut or the image border is not dimmed),
   pixels that see no geometry filled from their neighbours; no photo needed
   (:func:`render_photo`).
+* ``transfer``: the physics render under the new lights with the photo's own detail: I' = N~ exp(w L(r) +
+  clip(H(r), -c, c)), with N~ and F~ the renders under the new and the fitted lights as a photo shows them
+  (``render`` below) and r = log((I + k) / (F~ + k)) what the fit does not explain: texture and fine shading the
+  2.5D albedo misses (kept, as high frequencies H, bounded by c), the old light's shadows and highlights that the
+  fitted render does explain (divided out). L(r), the low frequencies (light the fit missed: an out-of-view
+  occluder's shadow, indirect light), belongs to the photo's lights; it is kept in proportion w to how much of
+  the new light comes from where the photo's lights came from (:mod:`usdrelight.relight.light_match`): a
+  recoloured light keeps it (w -> 1: the ``ratio`` answer), a moved one does not (w -> 0: the render plus the
+  photo's detail).
+  Everything is bounded: I' is finite and >= 0, and it is N~ where the photo adds nothing.
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
@@ -26,9 +36,13 @@ import numpy as np
 
 from ..neural.model import hole_fill
 
-MODES = ("neural", "ratio", "add", "render")
-
-
+MODES = ("neural", "ratio", "add", "render", "transfer")
+TRANSFER_SIGMA = 2.0
+"""``transfer``: the Gaussian (pixels at 512 px on the longer side; scaled with the image) that splits the log
+residual into low (L) and high (H) frequencies. Calibrated on the training generator's scenes only
+(benchmarks/calibrate_transfer.py), never on the held-out families."""
+TRANSFER_CLIP = 1.0
+"""``transfer``: the bound c on the high-frequency log residual (1: detail may scale a pixel by 0.37..2.7)."""
 def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01,
                 sigmas: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """(k_up, k_down), each (3,) per channel: ``sigmas`` x the RMS of I - F over valid pixels (at least k_down),
@@ -79,3 +93,31 @@ def render_photo(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     seen = cov > 0
     out = np.where(seen[..., None], np.maximum(beauty, 0.0) / np.maximum(cov, 1e-6)[..., None], 0.0)
     return hole_fill(out.astype(np.float32), seen)
+
+
+def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, sigma: float | None = None,
+                       clip: float = TRANSFER_CLIP):
+    """What ``transfer`` needs of the photo and the fitted render F~ (as a photo shows it), the same for every
+    new render: (F~ hole-filled, L(r), clip(H(r), -c, c)) with r = log((I + k) / (F~ + k)), k = 1% of F~'s mean
+    per channel; ``sigma`` in pixels (default :data:`TRANSFER_SIGMA` scaled to the image's longer side)."""
+    from scipy.ndimage import gaussian_filter
+
+    if sigma is None:
+        sigma = TRANSFER_SIGMA * max(photo.shape[:2]) / 512.0
+    f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
+    sel = valid if valid.any() else np.ones(valid.shape, bool)
+    k = np.maximum(0.01 * f[sel].mean(0), 1e-8)
+    r = np.clip(np.log(np.maximum(photo, 0.0) + k) - np.log(f + k), -7.0, 7.0)
+    low = gaussian_filter(r, (max(sigma, 1e-3), max(sigma, 1e-3), 0), mode="nearest")
+    return f, low, np.clip(r - low, -clip, clip)
+
+
+def transfer_apply(new: np.ndarray, reference, weight: float = 0.0) -> np.ndarray:
+    """N~ exp(w L(r) + clip(H(r))) for a :func:`transfer_reference`; ``new`` is N~, the new render as a photo
+    shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in [0, 1]: how much the new
+    lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`); finite, >= 0."""
+    _, low, high = reference
+    n = np.maximum(new, 0.0).astype(np.float64)
+    w = float(np.clip(weight, 0.0, 1.0)) if np.isfinite(weight) else 0.0
+    out = n * np.exp(w * low + high)
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine import EngineSettings, check_renderer_options, open_renderer
+from ..engine.fast import light_key
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
 from ..neural.model import RelightModel, build_input, hole_fill
@@ -34,26 +35,33 @@ from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
-from .composite import MODES, add_composite, ratio_apply, ratio_reference, render_photo
+from .composite import (MODES, add_composite, ratio_apply, ratio_reference, render_photo, transfer_apply,
+                        transfer_reference)
+from .light_match import match_angles, match_weight, scene_centre
 
 log = logging.getLogger(__name__)
 DEFAULT_MODE = "auto"
 """The mode ``relight`` uses unless told otherwise: ``auto`` is ``add`` when the photo's own (fitted) lighting is
-kept as it is, ``ratio`` when it is kept scaled (dimmed or brightened), and ``render`` (the physics render D~,
-holes filled) when it is switched off or the photo is unknown. Chosen by measurement on held-out scene families
+kept as it is, ``ratio`` when it is kept scaled (dimmed or brightened), ``transfer`` (the physics render with the
+photo's own detail) when it is switched off and the stage has fitted lights and its photo, and ``render`` (the
+physics render D~, holes filled) otherwise. Chosen by measurement on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
-dimmed -> ratio far ahead; replaced or recoloured -> D~ ahead of the network in three families of four."""
+dimmed -> ratio far ahead; replaced or recoloured -> transfer ahead of D~, ratio and the network."""
 
 
-def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False) -> str:
+def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False,
+                 fitted_known: bool = False) -> str:
     """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known, ratio
-    when they are kept scaled (``fitted_scaled``), else render (:func:`usdrelight.relight.composite.render_photo`)."""
+    when they are kept scaled (``fitted_scaled``), transfer when they are off but exist (``fitted_known``) and
+    the photo is known, else render (:func:`usdrelight.relight.composite.render_photo`)."""
     if mode not in ("auto", *MODES):
         raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
     if mode != "auto":
         return mode
-    if not (fitted_kept and photo_known):
+    if not photo_known:
         return "render"
+    if not fitted_kept:
+        return "transfer" if fitted_known else "render"
     return "ratio" if fitted_scaled else "add"
 
 
@@ -85,6 +93,8 @@ class RelitFrame:
     """Wall time: render, then hole_fill + network (neural) or composite (ratio, add), total."""
     time: float | None = None
     """The USD time code the stage's lights were read at (None: the default time)."""
+    coverage: np.ndarray | None = None
+    """(H, W) float in [0, 1]: how much of each pixel the stage's surfaces cover (None: not known)."""
 
 
 class RelightSession:
@@ -125,11 +135,14 @@ class RelightSession:
         self._source_photo = source_photo_path(stage)
         self._stage_folder = stage_folder(stage)
         mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "",
-                            fitted_scale != 1.0)
+                            fitted_scale != 1.0, bool(fitted))
         self.max_depth, self.mode = max_depth, mode
         self._model_path = model_path
         self.model = self.photo = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
+        self._transfer_reference = None  # the fitted render as a photo shows it + the photo's residual: once
+        self._centre = None  # the scene's centre (transfer's light matching): once
+        self._shares = {}  # light content -> its direct light's sum (transfer's light matching)
         self._filled_albedo = None  # the albedo AOV hole-filled (neural input): once per session
         self._prepare_mode(mode)
         self.seconds = {"read": perf_counter() - t0}
@@ -186,10 +199,10 @@ class RelightSession:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if mode == "neural" and self.model is None:
             self.model = RelightModel(self._model_path)
-        if mode == "ratio" and not self.fitted_lights:
-            raise UsdRelightError("mode ratio needs the fitted lights: run `usdrelight fit` first, "
-                                  "or choose --mode neural or --mode add")
-        if mode in ("ratio", "add") and self.photo is None:
+        if mode in ("ratio", "transfer") and not self.fitted_lights:
+            raise UsdRelightError(f"mode {mode} needs the fitted lights: run `usdrelight fit` first, "
+                                  "or choose --mode render or --mode add")
+        if mode in ("ratio", "add", "transfer") and self.photo is None:
             self.photo = self._photo()
 
     @property
@@ -212,6 +225,33 @@ class RelightSession:
         check_read(path, self._stage_folder, "source photo (usdrelight:sourcePhoto)")
         k = self.scene.camera.intrinsics
         return resize_image(read_photo(path), k.width, k.height)
+
+    def transfer_match(self, lights) -> tuple[list[float], list[float]]:
+        """For ``lights`` (``--light`` strings or LightRecords, all that a frame renders): the angle (degrees) of
+        each to the nearest photo light, seen from the scene's centre, and its share of the render's light (the
+        sum of its own render, from the renderer's per-light terms; equal shares with Mitsuba, which would path
+        trace each). See :mod:`usdrelight.relight.light_match`."""
+        if self._centre is None:
+            self._centre = scene_centre(self.scene.meshes)
+        lights = parse_lights(lights)
+        if self.engine.name == "fast":  # direct light only (enough to weigh lights), kept by content
+            shares = []
+            for light in lights:
+                key = light_key(light) + np.asarray(light.radiance, np.float64).tobytes()
+                if key not in self._shares:
+                    if len(self._shares) > 256:
+                        self._shares.clear()
+                    self._shares[key] = float(np.maximum(self.engine.render([light], max_depth=1).beauty,
+                                                         0.0).sum())
+                shares.append(self._shares[key])
+        else:
+            shares = [1.0] * len(lights)
+        return match_angles(lights, self._photo_lights, self._centre), shares
+
+    def transfer_weight(self, lights) -> float:
+        """w of mode ``transfer`` for ``lights``: how much of their light comes from where the photo's lights
+        came from (:meth:`transfer_match`, :func:`usdrelight.relight.light_match.match_weight`)."""
+        return match_weight(*self.transfer_match(lights))
 
     def render(self, lights=(), mode: str | None = None, time_code: float | None = None) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
@@ -248,6 +288,14 @@ class RelightSession:
                 self._ratio_reference = ratio_reference(self.photo, fitted, valid)
             image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
             sec["composite"] = perf_counter() - t
+        elif mode == "transfer":
+            if self._transfer_reference is None:
+                fitted = self.engine.render(list(self._photo_lights))
+                self._transfer_reference = transfer_reference(
+                    self.photo, render_photo(fitted.beauty, fitted.coverage), fitted.coverage > 0)
+            image = transfer_apply(render_photo(beauty, aovs.coverage), self._transfer_reference,
+                                   self.transfer_weight(all_lights))
+            sec["composite"] = perf_counter() - t
         elif mode == "render":
             image = render_photo(beauty, aovs.coverage)
             sec["composite"] = perf_counter() - t
@@ -255,4 +303,4 @@ class RelightSession:
             image = add_composite(self.photo, beauty)
             sec["composite"] = perf_counter() - t
         sec["total"] = perf_counter() - t0
-        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec, self.time)
+        return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec, self.time, aovs.coverage)
