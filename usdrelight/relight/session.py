@@ -7,7 +7,8 @@ The stage's user lights apply unless ``stage_lights=False``; its fitted lights (
 ``with_fitted``.
 
 Modes (:mod:`usdrelight.relight.composite`): ``neural`` (the network on D~, albedo and mask), ``ratio`` (the photo
-times the new render over the fitted render) and ``add`` (the photo plus the render of the added lights).
+times the new render over the fitted render), ``add`` (the photo plus the render of the added lights), ``render``
+(D~ as a photo shows it) and ``transfer`` (``render`` with the photo's own detail).
 
 Renderers (:func:`usdrelight.engine.open_renderer`): ``fast`` (default; light-independent work in the transport
 cache, ``STAGE_DIR/cache``) or ``mitsuba`` (path tracing, the reference). The fast renderer handles Lambertian
@@ -106,9 +107,10 @@ class RelightSession:
     lights passed to :meth:`render`, for callers that own the whole light list; the fitted lights still define
     the ``ratio`` reference); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
     ``max_depth`` (Mitsuba's samples per pixel and path length; the fast renderer's bounce depth);
-    ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto``, ``neural``, ``ratio``,
-    ``add``); ``cache`` (the transport cache; default ``STAGE_DIR/cache``); ``time`` (the USD time code the
-    stage's lights are read at: see :func:`usdrelight.stage.timing.frame_time`; :meth:`render` may move it).
+    ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto`` or one of
+    :data:`usdrelight.relight.composite.MODES`); ``cache`` (the transport cache; default ``STAGE_DIR/cache``);
+    ``time`` (the USD time code the stage's lights are read at: see :func:`usdrelight.stage.timing.frame_time`;
+    :meth:`render` may move it).
 
     Use it as a context manager, or call :meth:`close`, to release its hold on the cache entry."""
 
@@ -229,8 +231,8 @@ class RelightSession:
     def transfer_match(self, lights) -> tuple[list[float], list[float]]:
         """For ``lights`` (``--light`` strings or LightRecords, all that a frame renders): the angle (degrees) of
         each to the nearest photo light, seen from the scene's centre, and its share of the render's light (the
-        sum of its own render, from the renderer's per-light terms; equal shares with Mitsuba, which would path
-        trace each). See :mod:`usdrelight.relight.light_match`."""
+        sum of its own direct light, kept per light content; equal shares with Mitsuba, which would path trace
+        each). See :mod:`usdrelight.relight.light_match`."""
         if self._centre is None:
             self._centre = scene_centre(self.scene.meshes)
         lights = parse_lights(lights)
@@ -255,8 +257,8 @@ class RelightSession:
 
     def render(self, lights=(), mode: str | None = None, time_code: float | None = None) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
-        in the session's mode or in ``mode`` (neural, ratio or add; what it needs is loaded on first use);
-        ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
+        in the session's mode or in ``mode`` (one of :data:`usdrelight.relight.composite.MODES`; what it needs is
+        loaded on first use); ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
         In ``add`` mode the fitted lights are not rendered: the photo already holds their light."""
         t0 = perf_counter()
         if time_code is not None:
