@@ -146,7 +146,7 @@ class RelightSession:
         self._centre = None  # the scene's centre (transfer's light matching): once
         self._shares = {}  # light content -> its direct light's sum (transfer's light matching)
         self._filled_albedo = None  # the albedo AOV hole-filled (neural input): once per session
-        self._prepare_mode(mode)
+        self.prepare_mode(mode)
         self.seconds = {"read": perf_counter() - t0}
         cache = cache if cache is not None else TransportCache.for_stage(self.stage_path)
         self.engine = open_renderer(rec, renderer, max_side=max_side, spp=spp, max_depth=max_depth,
@@ -195,8 +195,9 @@ class RelightSession:
         """``fast`` or ``mitsuba``: what renders (after any fallback)."""
         return self.engine.name
 
-    def _prepare_mode(self, mode: str) -> None:
-        """Load what ``mode`` needs (the network; the source photo) once; clear errors when it cannot run."""
+    def prepare_mode(self, mode: str) -> None:
+        """Load what ``mode`` (one of :data:`usdrelight.relight.composite.MODES`) needs (the network; the source
+        photo) once; a clear error when the stage cannot run it."""
         if mode not in MODES:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if mode == "neural" and self.model is None:
@@ -264,7 +265,7 @@ class RelightSession:
         if time_code is not None:
             self.set_time(time_code)
         mode = mode or self.mode
-        self._prepare_mode(mode)
+        self.prepare_mode(mode)
         added = parse_lights(lights)
         all_lights = list(self.base_lights) + added
         if mode == "add":

@@ -29,13 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..relight.composite import MODES
 from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
 from .files import export_relit, read_user_states, store_upload, write_user_layer
 from .guard import Guard, guarded
 from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
-from .live import FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
+from .live import APP_MODES, FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
 from .scene_view import SceneView, scene_size
 from .state import KINDS, LightState, checked_vector, quat_pointing_along, unique_name
 from .timeline import Timeline, TimelineGui, render_video
@@ -290,8 +289,8 @@ class ServeApp:
         self._refresh(("fitted_on",) * (on is not None) + ("dimmer",) * (dimmer is not None))
 
     def set_mode(self, mode: str) -> None:
-        if mode not in MODES:
-            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
+        if mode not in APP_MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(APP_MODES)})")
         with self._lock:
             self.mode = mode
         self._refresh(("mode",))

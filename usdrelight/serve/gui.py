@@ -22,7 +22,7 @@ import threading
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..relight.composite import MODES
+from .live import APP_MODES
 from .state import (KINDS, checked_direction, checked_vector, color_from_picker, picker_from_color,
                     quat_pointing_along)
 
@@ -82,7 +82,7 @@ class Gui:
         self.widgets: dict = {}
         self.image_panel()
         with gui.add_folder("Output"):
-            mode = gui.add_dropdown("Mode", MODES, initial_value=app.mode,
+            mode = gui.add_dropdown("Mode", APP_MODES, initial_value=app.mode,
                                     hint="neural: the network on the render; ratio: photo x new / fitted render; "
                                          "add: photo + added lights")
             mode.on_update(self._guard(lambda e: app.set_mode(str(mode.value)), "mode"))
@@ -218,7 +218,8 @@ class Gui:
         sec = frame.seconds
         parts = [f"{k} {v:.3f} s" for k, v in sec.items() if k not in ("total", "update")]
         text = (f"frame {frame.request}: **{sec.get('update', 0):.3f} s** from the change "
-                f"({sec.get('total', 0):.3f} s relight: {', '.join(parts)}), {frame.lights} light(s)")
+                f"({sec.get('total', 0):.3f} s relight: {', '.join(parts)}), {frame.lights} light(s), "
+                f"mode {frame.mode or '?'}")
         self.timing.content = text if not frame.error else f"{text}  \n**error:** {frame.error}"
 
     # ---- light editor ----------------------------------------------------------------------------

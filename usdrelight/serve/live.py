@@ -1,11 +1,13 @@
 """The web app's relight engine, free of any GUI: the light set, the relit frame, the update loop.
 
-:class:`LiveRelight` keeps one :class:`usdrelight.relight.session.RelightSession` per output mode (made when the
-mode is first used; each loads the stage's transport cache) and owns the light list it renders: the user's
+:class:`LiveRelight` keeps one :class:`usdrelight.relight.session.RelightSession` (each output mode loads what it
+needs on first use) and owns the light list it renders: the user's
 editable lights, the stage's other non-fitted lights, and the fitted lights scaled by a dimmer (the photo's own
 lighting, 1 = as fitted, 0 = off: day to night). Mode ``ratio`` divides by the render under the full fitted
 lighting, so dimming it darkens the photo itself; mode ``add`` keeps the photo's light, so the fitted lights
-are never added again there (the dimmer does not apply). When the stage animates lights (time samples), the
+are never added again there (the dimmer does not apply). Mode ``auto`` (the default, as ``relight``'s) picks per
+frame what :func:`usdrelight.relight.session.resolve_mode` picks: ``add`` while the photo's lighting is on at 1,
+``ratio`` while it is dimmed, ``transfer`` once it is off. When the stage animates lights (time samples), the
 other lights are read at the light set's time code (the app's timeline frame).
 
 :class:`FrameLoop` is the update path: a GUI thread calls :meth:`FrameLoop.request` with the newest light set
@@ -28,17 +30,18 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb
 from ..relight.composite import MODES
-from ..relight.session import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession
+from ..relight.session import DEFAULT_MODE as RELIGHT_DEFAULT_MODE, RelightSession, resolve_mode
 from ..stage.layout import FITTED_LIGHTS_SCOPE, USER_LIGHTS_SCOPE
 from ..stage.read import read_lights
 from ..stage.timing import light_time_codes
 from .state import to_record
 
 log = logging.getLogger(__name__)
-#: The app's first mode: relight's default when it names one mode; otherwise (a rule such as "auto" that
-#: depends on whether the fitted lighting is kept, which the app changes live) ratio, the mode for a kept and
-#: dimmable photo lighting. A stage that cannot run it (no fit) falls back to neural.
-DEFAULT_MODE = RELIGHT_DEFAULT_MODE if RELIGHT_DEFAULT_MODE in MODES else "ratio"
+#: The modes the app offers: ``auto`` (resolved per frame, as ``relight`` resolves it) and every fixed mode.
+APP_MODES = ("auto",) + MODES
+#: The app's first mode: relight's default. A fixed mode the stage cannot run (ratio without a fit) falls back
+#: to auto.
+DEFAULT_MODE = RELIGHT_DEFAULT_MODE
 
 
 def to_display(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:
@@ -68,7 +71,7 @@ class LightSet:
     dimmer: float = 1.0
     """Scale of the fitted lights' radiance, >= 0."""
     mode: str = DEFAULT_MODE
-    """neural | ratio | add."""
+    """One of :data:`APP_MODES` (auto: resolved per frame by :meth:`LiveRelight.resolve`)."""
     time: float | None = None
     """USD time code the stage's other lights are read at (None: as read at start)."""
 
@@ -89,6 +92,8 @@ class Frame:
     """Why the frame could not be rendered ('' = fine); the image is then the last good one or black."""
     requested_at: float = 0.0
     """time.perf_counter() when the request was made (for the request -> shown latency)."""
+    mode: str = ""
+    """The fixed mode that made the image (what ``auto`` resolved to)."""
 
 
 def check_servable(stage, path) -> None:
@@ -117,16 +122,18 @@ class LiveRelight:
         self._sessions: dict = {}
         self._lock = threading.Lock()
         mode = mode or DEFAULT_MODE
+        if mode not in APP_MODES:
+            raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(APP_MODES)})")
         try:
-            first = self.session(mode)
+            first = self.session("render")  # needs nothing of the stage but its camera and mesh
+            if mode != "auto":
+                first.prepare_mode(mode)
         except UsdRelightError as exc:
             if "camera" in str(exc):
                 raise UsdRelightError(f"{stage_path} has no camera: usdrelight serve needs a stage with a camera "
                                       f"and a mesh (as `usdrelight build` writes)") from None
-            if mode == "neural":
-                raise
-            log.warning("mode %s is not available (%s): using neural", mode, exc)
-            mode, first = "neural", self.session("neural")
+            log.warning("mode %s is not available (%s): using auto", mode, exc)
+            mode = "auto"
         if not first.scene.meshes:
             raise UsdRelightError(f"{stage_path} has no mesh: usdrelight serve needs a stage with a camera and a "
                                   f"mesh (as `usdrelight build` writes)")
@@ -171,16 +178,19 @@ class LiveRelight:
             return self._others_at[1]
 
     def session(self, mode: str) -> RelightSession:
-        """The session for ``mode`` (made on first use)."""
+        """The live session, ready for the fixed mode ``mode`` (one of MODES; made on first use, shared by every
+        mode: one renderer, one transport cache entry). A clear error when the stage cannot run ``mode``."""
         if mode not in MODES:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         with self._lock:
-            if mode not in self._sessions:
+            if "live" not in self._sessions:
                 # the app owns the whole light list (see lights()); the renderer keeps each light's term, so a
                 # drag re-renders one light and a colour or dimmer change none
-                self._sessions[mode] = RelightSession(self.stage_path, max_side=self.max_side, stage_lights=False,
-                                                      mode=mode)
-            return self._sessions[mode]
+                self._sessions["live"] = RelightSession(self.stage_path, max_side=self.max_side,
+                                                        stage_lights=False, mode="render")
+            session = self._sessions["live"]
+        session.prepare_mode(mode)
+        return session
 
     @property
     def resolution(self) -> tuple:
@@ -193,10 +203,19 @@ class LiveRelight:
         session's (read at start-up in ratio and add modes)."""
         return self._first.source_photo()
 
+    def resolve(self, ls: LightSet) -> str:
+        """The fixed mode that renders ``ls``: its own, or for ``auto`` add (the photo's lighting on at 1), ratio
+        (on, dimmed), transfer (off; render without a fit or a photo), as ``relight`` resolves it."""
+        if ls.mode != "auto":
+            return ls.mode
+        kept = bool(self.fitted) and ls.fitted_on and ls.dimmer > 0
+        return resolve_mode("auto", kept, self._first.source_photo() is not None, ls.dimmer != 1.0,
+                            bool(self.fitted))
+
     def lights(self, ls: LightSet) -> list:
         """The light records of ``ls`` in render order: other lights, fitted (dimmed), the user's."""
         records = list(self.others_at(ls.time))
-        if ls.fitted_on and ls.dimmer > 0 and ls.mode != "add":
+        if ls.fitted_on and ls.dimmer > 0 and self.resolve(ls) != "add":
             records += [replace(l, radiance=l.radiance * float(ls.dimmer)) for l in self.fitted]
         for s in ls.states:
             rec = to_record(s, self.hdris)
@@ -205,23 +224,24 @@ class LiveRelight:
         return records
 
     def render(self, ls: LightSet, session: RelightSession | None = None) -> tuple[np.ndarray, dict, int]:
-        """(linear relit image, seconds, lights) for ``ls``; black when nothing emits (neural/ratio)."""
-        session = session or self.session(ls.mode)
+        """(linear relit image, seconds, lights) for ``ls``; black when nothing emits (all modes but add)."""
+        mode = self.resolve(ls)
+        session = session or self.session(mode)
         records = self.lights(ls)
-        if not records and ls.mode != "add":
+        if not records and mode != "add":
             w, h = (session.scene.camera.intrinsics.width, session.scene.camera.intrinsics.height)
             return np.zeros((h, w, 3), np.float32), {"total": 0.0}, 0
-        frame = session.render(records)
+        frame = session.render(records, mode=mode)
         return frame.image, dict(frame.seconds), frame.lights
 
     def export(self, ls: LightSet) -> np.ndarray:
         """The relit image of ``ls`` at the stage's full resolution (a full-size session, made once)."""
-        key = ("full", ls.mode)
+        key = "full"
         with self._lock:
             if key not in self._sessions:
                 # the transport cache keeps both resolutions' entries (the live session holds its own)
                 self._sessions[key] = RelightSession(self.stage_path, max_side=None, stage_lights=False,
-                                                     mode=ls.mode)
+                                                     mode="render")
             session = self._sessions[key]
         return self.render(ls, session)[0]
 
@@ -264,7 +284,9 @@ class FrameLoop:
                     return
                 number, ls, t0 = self._pending
                 self._pending = None
+            mode = ""
             try:
+                mode = self.live.resolve(ls)
                 image, sec, n = self.live.render(ls)
                 self._last = image
                 err = ""
@@ -275,6 +297,6 @@ class FrameLoop:
                 log.warning("frame %d: %s", number, exc)
             sec["update"] = time.perf_counter() - t0
             try:
-                self.on_frame(Frame(image, sec, number, n, err, t0))
+                self.on_frame(Frame(image, sec, number, n, err, t0, mode))
             except Exception:  # a failing display must not stop the loop
                 log.exception("showing frame %d failed", number)
