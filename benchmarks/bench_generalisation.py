@@ -166,34 +166,76 @@ def scene_run(family, seed, args, work, sheets):
     return row
 
 
+def _blacked_pct(out, ref, floor=0.01):
+    """% of pixels where ``ref`` is not dark (luminance >= ``floor``) but the relit image is below 5% of it. With
+    the photo's light kept, ``ref`` is the photo; with it replaced, the physics render of the new lights (the
+    ``render`` mode; floor: 1% of its mean), since a new light may leave lit parts of the photo dark."""
+    lp, lo = ref @ LUM, out @ LUM
+    return float(100 * np.mean((lp >= floor) & (lo < 0.05 * lp)))
+
+
+def _darkened_pct(before, after, tol=0.02):
+    """% of pixels whose luminance drops by more than ``tol`` from ``before`` to ``after``."""
+    lb, la = before @ LUM, after @ LUM
+    return float(100 * np.mean(la < lb * (1 - tol) - 1e-6))
+
+
+def _right_view_stage() -> Path:
+    """The motorcycle's right view (examples/motorcycle/make_example.write_right_view), built and fitted once
+    into out/motorcycle_right (reused by later runs)."""
+    sys.path.insert(0, str(ROOT / "examples" / "motorcycle"))
+    from make_example import write_right_view
+
+    d = ROOT / "out" / "motorcycle_right"
+    stage = d / "stage" / "scene.usda"
+    if not (d / "fitted").is_file():
+        files = write_right_view(d / "src")
+        build(files["photo"], d / "stage", BuildOptions(depth=files["depth"], intrinsics=files["intrinsics"]))
+        fit(stage, FitSettings())
+        (d / "fitted").write_text("1\n")
+    return stage
+
+
 def real_photo(args):
-    """The fitted motorcycle stage: detail correlation of each mode against the photo."""
-    stage = ROOT / "out" / "motorcycle" / "scene.usda"
-    if not stage.is_file():
-        return {"skipped": f"{stage} missing (run make demo)"}
-    out = {"stage": str(stage.relative_to(ROOT)), "max_side": args.real_side, "kinds": {}}
+    """The fitted motorcycle stages (left: `make demo`'s; right: built here): detail correlation of each mode
+    against the photo, blacked-out pixels; identity and darkening for the kept light."""
+    left = ROOT / "out" / "motorcycle" / "scene.usda"
+    if not left.is_file():
+        return {"skipped": f"{left} missing (run make demo)"}
+    out = {"stage": str(left.relative_to(ROOT)), "max_side": args.real_side, "kinds": {}, "right": {}}
     relights = {"replace": (False, 0.0, ["spot:-1.0,1.0,-0.5:0.4,-0.5,-1.0:8,7.5,7:35:0.2", "dome:0.005,0.005,0.006"]),
                 "add": (True, 1.0, ["point:0.6,0.4,-1.2:4,3.6,3"]),
                 "dim": (True, 0.3, [])}
-    for kind, (wf, k, lights) in relights.items():
-        with RelightSession(stage, max_side=args.real_side, with_fitted=wf, fitted_scale=k, mode="auto") as s:
-            photo = s.source_photo()
-            outs = {}
-            for mode in ("ratio", "neural", "render", "transfer") + (("add",) if kind == "add" else ()):
-                fr = s.render(lights, mode=mode)
-                outs[mode] = fr.image
-                if mode == "ratio":
-                    outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
-            outs["auto"] = outs[s.mode]
-            valid = np.ones(fr.valid.shape, bool)
-            out["kinds"][kind] = {"auto_is": s.mode, "lights": lights,
-                                  **{m: {"detail_photo": detail_corr(img, photo, valid)} for m, img in outs.items()}}
-            log.info("motorcycle %s %s", kind, out["kinds"][kind])
-            if kind == "replace":
-                write_contact_sheet(ROOT / "docs" / "manual" / "images" / "generalisation_motorcycle.png",
-                                    [("photo", photo, photo)] + [(t, outs[m], outs["dtilde"]) for t, m in (
-                                        ("replace: D~", "dtilde"), ("ratio", "ratio"), ("neural", "neural"),
-                                        (f"auto (={s.mode})", "auto"))], outs["dtilde"], columns=5, fontsize=7)
+    for view, stage in (("left", left), ("right", _right_view_stage())):
+        target = out["kinds"] if view == "left" else out["right"]
+        for kind, (wf, k, lights) in relights.items():
+            with RelightSession(stage, max_side=args.real_side, with_fitted=wf, fitted_scale=k, mode="auto") as s:
+                photo = s.source_photo()
+                outs = {}
+                for mode in ("ratio", "neural", "render", "transfer") + (("add",) if kind == "add" else ()):
+                    fr = s.render(lights, mode=mode)
+                    outs[mode] = fr.image
+                    if mode == "ratio":
+                        outs["dtilde"] = hole_fill(np.maximum(fr.diffuse, 0.0), fr.valid)
+                outs["auto"] = outs[s.mode]
+                valid = np.ones(fr.valid.shape, bool)
+                ref, floor = (outs["render"], 0.01 * float((outs["render"] @ LUM).mean())) if kind == "replace" \
+                    else (photo, 0.01)
+                row = {"auto_is": s.mode, "lights": lights, "blacked_reference": "render" if kind == "replace"
+                       else "photo", **{m: {"detail_photo": detail_corr(img, photo, valid),
+                                            "blacked_pct": _blacked_pct(img, ref, floor)} for m, img in outs.items()}}
+                if kind == "add":  # the photo's light kept: identity and darkening by the added light
+                    ident = s.render([]).image
+                    row["identity_bit_exact"] = bool(np.array_equal(ident, np.maximum(photo, 0.0).astype(np.float32)))
+                    row["darkened_pct"] = _darkened_pct(ident, outs["auto"])
+                target[kind] = row
+                log.info("motorcycle %s %s %s", view, kind, {m: round(v["detail_photo"], 3)
+                                                            for m, v in row.items() if isinstance(v, dict)})
+                if kind == "replace" and view == "left":
+                    write_contact_sheet(ROOT / "docs" / "manual" / "images" / "generalisation_motorcycle.png",
+                                        [("photo", photo, photo)] + [(t, outs[m], outs["dtilde"]) for t, m in (
+                                            ("replace: D~", "dtilde"), ("ratio", "ratio"), ("neural", "neural"),
+                                            (f"auto (={s.mode})", "auto"))], outs["dtilde"], columns=5, fontsize=7)
     return out
 
 
@@ -266,11 +308,14 @@ def main():
                             columns=6, fontsize=7)
     print_table(means, over)
     if real and "kinds" in real:
-        print("motorcycle (real photo): kind | detail correlation vs photo per output")
-        for kind, v in real["kinds"].items():
-            print(f"{kind:8s} " + "  ".join(f"{o}={v[o]['detail_photo']:.3f}" for o in ("dtilde", "ratio", "add",
-                                                                                        "neural", "auto") if o in v)
-                  + f"  (auto={v['auto_is']})")
+        print("motorcycle (real photo): view kind | detail correlation vs photo (blacked-out %) per output")
+        for view, kinds in (("left", real["kinds"]), ("right", real["right"])):
+            for kind, v in kinds.items():
+                print(f"{view:5s} {kind:8s} " + "  ".join(
+                    f"{o}={v[o]['detail_photo']:.3f} ({v[o]['blacked_pct']:.3f}%)" for o in (
+                        "dtilde", "ratio", "add", "neural", "render", "transfer", "auto") if o in v)
+                      + f"  (auto={v['auto_is']})" + (f" identity exact {v['identity_bit_exact']}, darkened "
+                                                      f"{v['darkened_pct']:.3f}%" if kind == "add" else ""))
     print(f"total {time.perf_counter() - t0:.0f} s")
 
 

@@ -7,11 +7,14 @@ For each scene (the procedural ground-truth scene at 256 x 192, the motorcycle a
 * fast: prepare (cold, then from the cache) and per-frame render with every light rendered (``frame_seconds``)
   and with the lights' direct terms kept from the frame before (``frame_cached_seconds``: nothing moved);
   relative RMSE over valid pixels.
-Then, on the motorcycle: per-frame times (render + hole fill + network) with 1..8 point/spot lights added to the
-fitted ones, the added lights moving every frame (rendered anew) and the fitted ones kept, and prepare / frame
-times at 256, 512 px and full size (one light moving). Writes benchmarks/results/relight.json.
+Then, on the motorcycle: per-frame times of mode ``ratio`` (render + composite) with 1..8 point/spot lights added
+to the fitted ones, the added lights moving every frame (rendered anew) and the fitted ones kept; the issue-23
+frame (``modes``): the fitted lights kept + one point light moving, an 8-frame sequence in a fresh session, the
+median of frames 2-8 of each step for modes ``ratio`` and ``neural`` (render + hole fill + network); and prepare /
+the same ``ratio`` frame at 256, 512 px and full size. Writes benchmarks/results/relight.json (``--frames-only``:
+the motorcycle's frame times only, the error-against-time part kept from the file as it was).
 
-    python benchmarks/bench_relight.py [--stage out/motorcycle/scene.usda] [--quick]
+    python benchmarks/bench_relight.py [--stage out/motorcycle/scene.usda] [--quick] [--frames-only]
 """
 from __future__ import annotations
 
@@ -118,8 +121,26 @@ def _moved(spec: str, dx: float) -> str:
     return ":".join([kind, f"{x + dx:.4f},{y},{z}", *rest])
 
 
-def frame_times(stage: Path, max_side, light_counts, repeats: int = 5) -> list:
-    sess = RelightSession(stage, max_side=max_side, with_fitted=True)
+MOVING = "point:0.6,0.4,-1.2:4,3.6,3"
+"""The moving light of the per-frame times (moved 1 cm along x each frame)."""
+
+
+def mode_frames(stage: Path, max_side, mode: str, frames: int = 8) -> dict:
+    """A fresh session (transport from the cache) in ``mode`` with the fitted lights kept and :data:`MOVING`
+    moving: seconds of each step, the median of frames 2..``frames`` (frame 1 apart: the first-use work)."""
+    t = time.perf_counter()
+    sess = RelightSession(stage, max_side=max_side, with_fitted=True, mode=mode)
+    prepare = time.perf_counter() - t
+    secs = [sess.render([_moved(MOVING, 0.01 * (i + 1))]).seconds for i in range(frames)]
+    h, w = sess.engine.surface.height, sess.engine.surface.width
+    sess.close()
+    med = {f"{k}_seconds": float(np.median([s[k] for s in secs[1:]])) for k in secs[0]}
+    return {"mode": mode, "max_side": max_side, "resolution": [w, h], "pixels": w * h, "prepare_seconds": prepare,
+            "cache_hit": sess.cache_hit, "frame1_total_seconds": secs[0]["total"], **med}
+
+
+def frame_times(stage: Path, max_side, light_counts, repeats: int = 5, mode: str = "ratio") -> list:
+    sess = RelightSession(stage, max_side=max_side, with_fitted=True, mode=mode)
     base = len(sess.base_lights)
     specs = ["point:0.6,0.4,-1.2:4,3.6,3", "spot:-0.8,0.6,-1.0:0.5,-0.3,-1:10,8,6:35:0.3",
              "point:-0.4,0.9,-2.5:2,2,3", "spot:0.9,0.8,-1.8:-0.6,-0.5,-1:6,6,6:25:0.5",
@@ -143,41 +164,45 @@ def main() -> None:
     ap.add_argument("--stage", type=Path, default=ROOT / "out" / "motorcycle" / "scene.usda",
                     help="a fitted motorcycle stage (make demo)")
     ap.add_argument("--quick", action="store_true", help="fewer reference passes (for a smoke run)")
+    ap.add_argument("--frames-only", action="store_true",
+                    help="only the motorcycle's frame times (no Mitsuba); error_vs_time kept from relight.json")
     args = ap.parse_args()
     ref_passes = 8 if args.quick else 64
     spps = [16, 64, 256] if args.quick else [16, 64, 256, 1024]
-    out = {"error_vs_time": [], "frames": {}, "scaling": []}
-    with tempfile.TemporaryDirectory() as td:
-        ex = ROOT / "examples" / "procedural"
-        build(ex / "photo.exr", Path(td) / "proc", BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
-                                                                albedo=ex / "albedo.exr"))
-        rec = read_scene(open_stage(Path(td) / "proc" / "scene.usda"))
-        lights = parse_lights(["point:0.5,1.0,-2.5:3,2.5,2", "spot:0,1.5,-2:0.2,-1,-0.5:8,8,8:30:0.4",
-                               "point:-0.8,0.8,-3:1,1.5,2", "dome:0.2,0.25,0.3"])
-        out["error_vs_time"].append(error_vs_time("procedural", rec, lights, None, spps, ref_passes))
-        print(json.dumps(out["error_vs_time"][-1]["fast"]), flush=True)
+    out = {"error_vs_time": [], "frames": {}, "modes": [], "scaling": []}
+    if args.frames_only and (RESULTS / "relight.json").is_file():
+        out["error_vs_time"] = json.loads((RESULTS / "relight.json").read_text()).get("error_vs_time", [])
+    if not args.frames_only:
+        with tempfile.TemporaryDirectory() as td:
+            ex = ROOT / "examples" / "procedural"
+            build(ex / "photo.exr", Path(td) / "proc", BuildOptions(depth=ex / "depth.exr",
+                                                                    intrinsics=ex / "intrinsics.json",
+                                                                    albedo=ex / "albedo.exr"))
+            rec = read_scene(open_stage(Path(td) / "proc" / "scene.usda"))
+            lights = parse_lights(["point:0.5,1.0,-2.5:3,2.5,2", "spot:0,1.5,-2:0.2,-1,-0.5:8,8,8:30:0.4",
+                                   "point:-0.8,0.8,-3:1,1.5,2", "dome:0.2,0.25,0.3"])
+            out["error_vs_time"].append(error_vs_time("procedural", rec, lights, None, spps, ref_passes))
+            print(json.dumps(out["error_vs_time"][-1]["fast"]), flush=True)
     if not args.stage.is_file():
         sys.exit(f"{args.stage} not found: run `make demo` first")
     with tempfile.TemporaryDirectory() as td:
         stage = Path(td) / "moto" / "scene.usda"
         shutil.copytree(args.stage.parent, stage.parent, ignore=shutil.ignore_patterns("cache", "relit*", "renders"))
-        rec = read_scene(open_stage(stage))
-        lights = list(rec.lights) + parse_lights(["point:0.6,0.4,-1.2:4,3.6,3"])
-        out["error_vs_time"].append(error_vs_time("motorcycle", rec, lights, 512, spps, ref_passes))
-        print(json.dumps(out["error_vs_time"][-1]["fast"]), flush=True)
+        if not args.frames_only:
+            rec = read_scene(open_stage(stage))
+            lights = list(rec.lights) + parse_lights([MOVING])
+            out["error_vs_time"] = [e for e in out["error_vs_time"] if e["scene"] != "motorcycle"]
+            out["error_vs_time"].append(error_vs_time("motorcycle", rec, lights, 512, spps, ref_passes))
+            print(json.dumps(out["error_vs_time"][-1]["fast"]), flush=True)
         rows, info = frame_times(stage, 512, [1, 2, 4, 8])
-        out["frames"] = {"max_side": 512, **info, "rows": rows}
-        for side in (256, 512, None):
-            t = time.perf_counter()
-            sess = RelightSession(stage, max_side=side, with_fitted=True, settings=EngineSettings())
-            cold = time.perf_counter() - t
-            sess.render(["point:0.6,0.4,-1.2:4,3.6,3"])
-            f = [sess.render([_moved("point:0.6,0.4,-1.2:4,3.6,3", 0.01 * (i + 1))]).seconds for i in range(3)]
-            h, w = sess.render([]).image.shape[:2] if sess.base_lights else (0, 0)
-            out["scaling"].append({"max_side": side, "resolution": [w, h], "pixels": w * h,
-                                   "prepare_seconds": cold, "cache_hit": sess.cache_hit,
-                                   "frame_render_seconds": float(np.median([x["render"] for x in f])),
-                                   "frame_total_seconds": float(np.median([x["total"] for x in f]))})
+        out["frames"] = {"max_side": 512, "mode": "ratio", **info, "rows": rows}
+        for mode in ("ratio", "neural"):
+            out["modes"].append(mode_frames(stage, 512, mode))
+            print(json.dumps(out["modes"][-1]), flush=True)
+        for side in (256, 512, None):  # 256 and full size prepared cold (the copy has no cache), 512 cached
+            r = mode_frames(stage, side, "ratio")
+            out["scaling"].append({**r, "frame_render_seconds": r["render_seconds"],
+                                   "frame_total_seconds": r["total_seconds"]})
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "relight.json").write_text(json.dumps(out, indent=2) + "\n")
     print("\nerror against run time (relative RMSE vs the 4096-spp Mitsuba reference; seconds = render only)")
@@ -191,12 +216,18 @@ def main() -> None:
                   f"({r['seconds'] / f['frame_seconds']:.0f}x the fast frame)")
         print(f"   Mitsuba reaches the fast error at ~{f['mitsuba_spp_at_equal_error']:.0f} spp "
               f"(~{f['mitsuba_seconds_at_equal_error']:.1f} s): {f['speedup_per_frame']:.0f}x the fast frame time")
-    print(f"\nframe times at {out['frames']['resolution']} (median of 5; seconds)")
+    print(f"\nmode ratio at {out['frames']['resolution']}, added lights moving (median of 5; seconds)")
     steps = [k for k in out["frames"]["rows"][0] if k.endswith("_seconds")]  # render, the mode's steps, total
     print(" | ".join(["added lights", "total lights", *(k.removesuffix("_seconds") for k in steps)]))
     for r in out["frames"]["rows"]:
         print(" | ".join([f"{r['added_lights']:>12}", f"{r['lights_total']:>12}", *(f"{r[k]:.3f}" for k in steps)]))
-    print("\nmax side | pixels | prepare (cold) | frame render | frame total")
+    print("\nfitted lights kept + 1 moving point light, 512 px: median of frames 2-8 of an 8-frame sequence (seconds)")
+    for r in out["modes"]:
+        steps = [k for k in r if k.endswith("_seconds") and k not in ("prepare_seconds", "frame1_total_seconds")]
+        print(f"{r['mode']:>7}: " + ", ".join(f"{k.removesuffix('_seconds')} {r[k]:.3f}" for k in steps)
+              + f" (frame 1: {r['frame1_total_seconds']:.3f})")
+    print("\nmode ratio, 1 moving light (median of frames 2-8)")
+    print("max side | pixels | prepare | frame render | frame total")
     for r in out["scaling"]:
         print(f"{str(r['max_side']):>8} | {r['pixels']:>6} | {r['prepare_seconds']:.2f} | "
               f"{r['frame_render_seconds']:.3f} | {r['frame_total_seconds']:.3f}")

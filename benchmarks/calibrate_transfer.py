@@ -41,7 +41,9 @@ from usdrelight.relight.session import RelightSession  # noqa: E402
 log = logging.getLogger("calibrate_transfer")
 KINDS = ("dim", "replace", "recolour")
 SIGMAS = (2.0, 4.0, 8.0, 16.0, 32.0)
-CLIPS = (0.0, 0.1, 0.25, 0.5, 1.0, 7.0)
+# the bound stays below log(20): the photo's detail alone never takes a pixel below 5% of the physics render
+# (issue 21: no blacked-out pixels)
+CLIPS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 2.9)
 ANGLES = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 90.0)
 
 

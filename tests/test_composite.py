@@ -97,6 +97,12 @@ def test_transfer_keeps_the_photo_detail_not_the_old_light_under_a_moved_light()
         for w in (0.0, 1.0, float("nan")):
             o = transfer_apply(new, transfer_reference(p_, f_, valid), w)
             assert np.all(np.isfinite(o)) and o.min() >= 0
+    # a light from elsewhere (w = 0): the photo's detail never takes a pixel below e^-c (> 5%) of the render
+    from usdrelight.relight.composite import TRANSFER_CLIP
+
+    speckled = photo * np.where(rng.random(f.shape[:2]) < 0.1, 1e-6, 1.0)[..., None]
+    o = transfer_apply(new, transfer_reference(speckled, f, valid, sigma=2.0), 0.0)
+    assert np.exp(-TRANSFER_CLIP) > 0.05 and np.all(o >= np.exp(-TRANSFER_CLIP) * new * (1 - 1e-5))
 
 
 def test_light_match_weighs_each_light_by_its_share_and_its_angle_to_the_photo_lights():

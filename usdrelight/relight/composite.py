@@ -41,9 +41,9 @@ TRANSFER_SIGMA = 2.0
 """``transfer``: the Gaussian (pixels at 512 px on the longer side; scaled with the image) that splits the log
 residual into low (L) and high (H) frequencies. Calibrated on the training generator's scenes only
 (benchmarks/calibrate_transfer.py), never on the held-out families."""
-TRANSFER_CLIP = 7.0
-"""``transfer``: the bound c on the high-frequency log residual; 7 = the bound of r itself (the calibration found
-no gain in a tighter one: 1.0 was 0.01 dB behind)."""
+TRANSFER_CLIP = 2.0
+"""``transfer``: the bound c on the high-frequency log residual: detail may scale a pixel by 0.14..7.4, never
+below 5% of the physics render (bounds tried below log 20 only; calibrated like :data:`TRANSFER_SIGMA`)."""
 def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01,
                 sigmas: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """(k_up, k_down), each (3,) per channel: ``sigmas`` x the RMS of I - F over valid pixels (at least k_down),
@@ -66,10 +66,15 @@ def ratio_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_
 def ratio_apply(photo: np.ndarray, new: np.ndarray, valid: np.ndarray, reference) -> np.ndarray:
     """I * (N + k) / (F + k) for a :func:`ratio_reference` (F, (k_up, k_down)); N hole-filled; finite, >= 0."""
     f, (k_up, k_down) = reference
-    n = hole_fill(np.maximum(new, 0.0), valid).astype(np.float64)
-    gain = np.where(n >= f, (n + k_up) / (f + k_up), (n + k_down) / (f + k_down))
-    out = np.maximum(photo, 0.0) * gain
-    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    n = hole_fill(np.maximum(new, 0.0), valid)  # float32, promoted exactly in the float64 arithmetic below
+    up = n >= f
+    k, k_up, k_down = np.empty(f.shape), np.broadcast_to(k_up, f.shape[-1:]), np.broadcast_to(k_down, f.shape[-1:])
+    for c in range(f.shape[-1]):  # per channel: a scalar k, several times faster than broadcasting (3,)
+        k[..., c] = np.where(up[..., c], k_up[c], k_down[c])
+    gain = n + k  # float64, in place from here on
+    gain /= f + k
+    gain *= np.maximum(photo, 0.0)
+    return np.nan_to_num(gain, copy=False, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
 def ratio_composite(photo: np.ndarray, new: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
