@@ -17,9 +17,11 @@ def first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def open_session(path: str | Path):
+def open_session(path: str | Path, config: dict | None = None, threads: int | None = None):
     """An ``onnxruntime.InferenceSession`` for ``path`` on the selected device (:mod:`usdrelight.device`);
-    UsdRelightError when it cannot load."""
+    ``config``: session configuration entries (``SessionOptions.add_session_config_entry``); ``threads``: intra-op
+    threads (None: onnxruntime's default, one per physical core, its workers pinned to cores; a number: that many,
+    not pinned); UsdRelightError when it cannot load."""
     try:
         import onnxruntime as ort
     except ImportError:
@@ -30,6 +32,10 @@ def open_session(path: str | Path):
     try:
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
+        for key, value in (config or {}).items():
+            opts.add_session_config_entry(key, value)
+        if threads is not None:
+            opts.intra_op_num_threads = int(threads)
         return ort.InferenceSession(str(path), sess_options=opts,
                                     providers=onnx_providers(ort.get_available_providers()))
     except Exception as exc:  # onnxruntime raises its own exception types

@@ -46,4 +46,6 @@ class Renderer(Protocol):
 
 def nonnegative(image: np.ndarray) -> np.ndarray:
     """``image`` as float32 with NaN, Inf and negative values set to 0 (no such radiance leaves a renderer)."""
-    return np.maximum(np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    out = np.array(image, np.float32)  # one copy, cleaned in place
+    np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.maximum(out, 0.0, out=out)

@@ -9,7 +9,11 @@ misses as 0 (what a box pixel filter sees of a textured or partly covered pixel)
 camera rays; pixels whose centre sees no geometry are 0.
 
 Each light's direct term is kept for unit radiance (keyed by everything but its radiance, :func:`light_key`)
-and scaled by its radiance, so a light that did not change costs nothing in the next frame; lights that sample
+and scaled by its radiance, so a light that did not change costs nothing in the next frame. The sum of the terms
+is taken in the order of the lights, and the partial sum of the lights a frame shares at its start with the frame
+before (the kept ones: the fitted lights ahead of a moving one) is kept too, keyed by those lights' content, so
+such a frame adds only the lights after them; a frame's sum is bit for bit the one a fresh renderer makes. The
+light-independent AOVs (albedo, valid, coverage) are made once and copied into each frame. Lights that sample
 (area lights, a sun with an angular diameter) draw from a random stream seeded by their key, so a frame never
 depends on what was rendered before it. Stages with mesh lights (MeshLightAPI) or non-Lambertian materials are
 refused (:func:`usdrelight.engine.open_renderer` falls back to Mitsuba with one warning).
@@ -49,7 +53,8 @@ class EngineSettings:
     seed: int = 0
     """Seed of the stratified sample shifts (renders are deterministic for a seed)."""
     direct_terms: int = 24
-    """Most per-light direct terms kept between frames (each (N, 3) float64 over the valid pixels)."""
+    """Most per-light direct terms kept between frames (each (N, 3) float64 over the valid pixels; besides them up to
+    3 partial sums of a frame's first lights, see :meth:`FastRenderer._light_sum`); 0: none, nor partial sums."""
 
     @property
     def transport(self) -> TransportSettings:
@@ -100,6 +105,10 @@ class FastRenderer:
         self.seconds: dict = {"prepare": self.prepared.seconds}
         self.textures: dict = {}
         self._terms: dict = {}
+        self._sums: dict = {}  # content keys of a run of lights (a frame's start) -> their (N, 3) float64 sum
+        self._last: tuple = ()  # content keys of the lights of the frame before
+        self._static = None  # (albedo, valid, coverage) images: light-independent, made on first use
+        self._flat = self.surface.flat_index()
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -143,31 +152,76 @@ class FastRenderer:
             self._terms.pop(next(iter(self._terms)))
         return term * np.asarray(light.radiance, np.float64)[None, :]
 
+    def _light_sum(self, lights) -> np.ndarray:
+        """(N, 3) float64 e = sum of E / pi of ``lights`` at the valid pixels, added in their order. The partial
+        sum of the lights this call shares at its start with the call before is kept (``_sums``, by content:
+        :func:`light_key` and radiance) and a later call starting with the same lights adds only the others;
+        the same lights always give the same bits, whatever was rendered before."""
+        lights = list(lights)
+        term_keys = [light_key(l) for l in lights]
+        keys = tuple(k + np.asarray(l.radiance, np.float64).tobytes() for k, l in zip(term_keys, lights))
+        keep = self.settings.direct_terms > 0
+        start, e = 0, None
+        for prefix, part in self._sums.items():
+            if len(prefix) > start and keys[:len(prefix)] == prefix:
+                start, e = len(prefix), part
+        e = np.zeros((self.surface.n_pixels, 3)) if e is None else e.copy()
+        for key in term_keys[:start]:  # the kept terms of the lights summed before: most recently used
+            term = self._terms.pop(key, None)
+            if term is not None:
+                self._terms[key] = term
+        shared = next((i for i, (a, b) in enumerate(zip(keys, self._last)) if a != b),
+                      min(len(keys), len(self._last)))  # the lights this call starts with as the call before did
+        for i in range(start, len(lights)):
+            if keep and i == shared and i > start:
+                self._keep_sum(keys[:i], e)
+            e += self.direct(lights[i])
+        if keep and shared == len(keys) > start:
+            self._keep_sum(keys, e)
+        self._last = keys if keep else ()
+        return e
+
+    def _keep_sum(self, keys: tuple, e: np.ndarray) -> None:
+        """Keep a copy of the sum ``e`` of the lights of content ``keys`` (the 3 most recently made are kept)."""
+        self._sums[keys] = e.copy()
+        while len(self._sums) > 3:
+            self._sums.pop(next(iter(self._sums)))
+
+    def _static_aovs(self):
+        """(albedo (H, W, 3) float32, valid (H, W) bool, coverage (H, W) float32): the AOVs that do not depend
+        on the lights, made once (fringe pixels: the albedo of their covered part and their own coverage)."""
+        if self._static is None:
+            prep, surf = self.prepared, self.surface
+            albedo = surf.image(surf.albedo)
+            cov = np.zeros(surf.height * surf.width, np.float32)
+            cov[self._flat] = prep.coverage
+            fr = prep.fringe
+            if fr.pixels.size:
+                albedo.reshape(-1, 3)[fr.pixels] = fr.albedo / fr.coverage[:, None]
+                cov[fr.pixels] = fr.coverage
+            valid = np.zeros((surf.height, surf.width), bool)
+            valid[surf.idx[:, 0], surf.idx[:, 1]] = True
+            self._static = (albedo, valid, cov.reshape(surf.height, surf.width))
+        return self._static
+
     def render(self, lights, max_depth: int | None = None) -> Aovs:
         """Render the prepared stage under ``lights`` (LightRecords, world space, metres)."""
         prep, surf = self.prepared, self.surface
         depth = self.settings.max_depth if max_depth is None else max_depth
         sec: dict = {}
-        e = np.zeros((surf.n_pixels, 3))
-        for light in lights:
-            t = time.perf_counter()
-            e += self.direct(light)
-            sec[light.kind] = sec.get(light.kind, 0.0) + time.perf_counter() - t
         t = time.perf_counter()
-        a = surf.albedo
+        e = self._light_sum(lights)
+        sec["direct"] = time.perf_counter() - t
+        t = time.perf_counter()
         # the surface seen at the pixel centre reflects e (+ the bounce); the pixel averages albedo and coverage
         # over its area, as a box pixel filter does
-        light_out = e + prep.smooth @ (self.transport.P @ (a * e)) if depth >= 3 else e
-        radiance = nonnegative(prep.pixel_albedo * light_out)
-        beauty, albedo = surf.image(radiance), surf.image(a)
-        cov = np.zeros(surf.height * surf.width, np.float32)
-        cov[surf.flat_index()] = prep.coverage
+        light_out = e + prep.smooth @ (self.transport.P @ (surf.albedo * e)) if depth >= 3 else e
+        beauty = np.zeros((surf.height * surf.width, 3), np.float32)
+        beauty[self._flat] = nonnegative(prep.pixel_albedo * light_out)
         fr = prep.fringe  # partly covered pixels whose centre misses: shaded from their nearest hit, box-filtered
         if fr.pixels.size:
-            beauty.reshape(-1, 3)[fr.pixels] = nonnegative(fr.albedo * light_out[fr.source])
-            albedo.reshape(-1, 3)[fr.pixels] = fr.albedo / fr.coverage[:, None]
-            cov[fr.pixels] = fr.coverage
+            beauty[fr.pixels] = nonnegative(fr.albedo * light_out[fr.source])
         sec["bounce"] = time.perf_counter() - t
-        valid = np.zeros((surf.height, surf.width), bool)
-        valid[surf.idx[:, 0], surf.idx[:, 1]] = True
-        return Aovs(beauty, albedo, valid, cov.reshape(surf.height, surf.width), sec)
+        albedo, valid, cov = self._static_aovs()
+        return Aovs(beauty.reshape(surf.height, surf.width, 3), albedo.copy(), valid.copy(), cov.copy(), sec)
+

@@ -14,6 +14,8 @@ the mask-weighted average of the coarser level, recursively, so holes are filled
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -38,35 +40,72 @@ TILE = 1024
 OVERLAP = 64
 
 
+_PYRAMIDS: list = []  # [(valid mask, its weight pyramid and holes)], most recently used last (at most 4)
+_PYRAMIDS_LOCK = threading.Lock()
+
+
+def _pull(s: np.ndarray) -> np.ndarray:
+    """The sum of each 2 x 2 block of ``s`` (H, W, ...), in float64; an odd last row / column sums with zeros."""
+    h, w = s.shape[:2]
+    rows = np.empty(((h + 1) // 2,) + s.shape[1:])
+    np.add(s[0:h - 1:2], s[1:h:2], out=rows[:h // 2], dtype=np.float64)
+    if h % 2:
+        rows[-1] = s[-1]
+    out = np.empty(rows.shape[:1] + ((w + 1) // 2,) + s.shape[2:])
+    np.add(rows[:, 0:w - 1:2], rows[:, 1:w:2], out=out[:, :w // 2])
+    if w % 2:
+        out[:, -1] = rows[:, -1]
+    return out
+
+
+def _pyramid(valid: np.ndarray) -> tuple:
+    """What the pull-push fill needs of the mask alone, kept for the last 4 masks (a session fills every frame
+    with the same one): per level (weights floored at 1e-12 (h, w, 1), the flat indices of its pixels of weight
+    0 and of their parents at the next level)."""
+    with _PYRAMIDS_LOCK:
+        for i, (mask, pyr) in enumerate(_PYRAMIDS):
+            if mask.shape == valid.shape and np.array_equal(mask, valid):
+                _PYRAMIDS.append(_PYRAMIDS.pop(i))
+                return pyr
+    weights = [valid.astype(np.float64)]
+    while min(weights[-1].shape) > 1:
+        weights.append(_pull(weights[-1]))
+    pyr = []
+    for level, w in enumerate(weights):
+        rows, cols = np.nonzero(w <= 0)
+        parents = (rows // 2) * weights[level + 1].shape[1] + cols // 2 if level + 1 < len(weights) else None
+        pyr.append((np.maximum(w, 1e-12)[..., None], rows * w.shape[1] + cols, parents))
+    with _PYRAMIDS_LOCK:
+        _PYRAMIDS.append((valid.copy(), pyr))
+        del _PYRAMIDS[:-4]
+    return pyr
+
+
 def hole_fill(img: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Pull-push fill of the pixels where ``valid`` is False; valid pixels are returned unchanged."""
-    img = np.asarray(img, np.float64)
-    w = valid.astype(np.float64)
-    if w.all():
-        return img.astype(np.float32)
-    if not w.any():
-        return np.zeros_like(img, dtype=np.float32)
-    levels = [(img * w[..., None], w)]
-    while min(levels[-1][1].shape) > 1:
-        s, ww = levels[-1]
-        h, wd = ww.shape
-        ph, pw = h + h % 2, wd + wd % 2
-        sp = np.zeros((ph, pw, img.shape[2]))
-        wp = np.zeros((ph, pw))
-        sp[:h, :wd], wp[:h, :wd] = s, ww
-        s2 = sp.reshape(ph // 2, 2, pw // 2, 2, -1).sum((1, 3))
-        w2 = wp.reshape(ph // 2, 2, pw // 2, 2).sum((1, 3))
-        levels.append((s2, w2))
-    # push: from coarse to fine, fill where the weight is zero
-    s, ww = levels[-1]
-    avg = s / np.maximum(ww, 1e-12)[..., None]
-    for s, ww in reversed(levels[:-1]):
-        h, wd = ww.shape
-        up = np.repeat(np.repeat(avg, 2, 0), 2, 1)[:h, :wd]
-        cur = s / np.maximum(ww, 1e-12)[..., None]
-        avg = np.where((ww > 0)[..., None], cur, up)
-    out = np.where(valid[..., None], img, avg)
-    return out.astype(np.float32)
+    """Pull-push fill (H, W, C) float32 of the pixels of ``img`` (H, W, C) where ``valid`` (H, W) is False;
+    valid pixels are returned unchanged. Sums in float64; only the pixels of weight 0 take the coarser level's
+    value at each level; the mask's own pyramid is kept between calls (:func:`_pyramid`)."""
+    valid = np.asarray(valid, bool)
+    if valid.all():
+        return np.array(img, np.float32)
+    if not valid.any():
+        return np.zeros(np.shape(img), np.float32)
+    levels = _pyramid(valid)
+    c = np.shape(img)[2]
+    s = np.array(img)  # pull: mask-weighted sums, fine to coarse (x 0 where invalid: NaN stays NaN)
+    s.reshape(-1, c)[levels[0][1]] *= 0
+    sums = [s]
+    for _ in levels[1:]:
+        sums.append(_pull(sums[-1]))
+    avg = sums[-1] / levels[-1][0]
+    for s, (den, empty, parents) in zip(sums[-2:0:-1], levels[-2:0:-1]):  # push: coarse to fine, to level 1
+        cur = s / den
+        cur.reshape(-1, c)[empty] = avg.reshape(-1, c)[parents]
+        avg = cur
+    out = np.array(img, np.float32)
+    _, holes, parents = levels[0]
+    out.reshape(-1, c)[holes] = avg.reshape(-1, c)[parents if len(levels) > 1 else holes]  # one row / column: 0
+    return out
 
 
 def build_input(dtilde: np.ndarray, albedo: np.ndarray, valid: np.ndarray,
@@ -94,7 +133,10 @@ class RelightModel:
 
     def __init__(self, path=None):
         self.path = Path(path) if path is not None else DEFAULT_MODEL
-        self.session = open_session(self.path)
+        # a thread per usable core, not pinned (a worker pinned to the core the caller runs on halves the speed)
+        # and not spin-waiting (spinning threads take the cores from the renderer between frames)
+        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        self.session = open_session(self.path, {"session.intra_op.allow_spinning": "0"}, threads)
         ins, outs = self.session.get_inputs(), self.session.get_outputs()
         if len(ins) != 1 or ins[0].name != "input" or (isinstance(ins[0].shape[1], int) and ins[0].shape[1] != 7):
             raise UsdRelightError(f"model {self.path.name} breaks the contract: expected one input 'input' "
@@ -106,9 +148,12 @@ class RelightModel:
     def _run(self, x: np.ndarray) -> np.ndarray:
         c, h, w = x.shape
         ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
-        xp = np.pad(x, ((0, 0), (0, ph), (0, pw)), mode="edge")
+        xp = np.empty((1, c, h + ph, w + pw), np.float32)  # edge replication, written in place
+        xp[0, :, :h, :w] = x
+        xp[0, :, h:, :w] = x[:, h - 1:h]
+        xp[0, :, :, w:] = xp[0, :, :, w - 1:w]
         try:
-            y = self.session.run(["output"], {"input": xp[None]})[0]
+            y = self.session.run(["output"], {"input": xp})[0]
         except Exception as exc:
             raise UsdRelightError(f"model {self.path.name} failed: {first_line(exc)}") from None
         if y.ndim != 4 or y.shape[1] != 3:
@@ -135,8 +180,9 @@ class RelightModel:
                     y[:, y0:y1, x0:x1] += t * wt
                     wsum[y0:y1, x0:x1] += wt
             y /= np.maximum(wsum, 1e-12)
-        out = np.nan_to_num(y.transpose(1, 2, 0), nan=0.0, posinf=0.0, neginf=0.0)
-        return np.maximum(out, 0.0).astype(np.float32)
+        out = np.ascontiguousarray(y.transpose(1, 2, 0), np.float32)  # one copy, cleaned in place
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+        return np.maximum(out, 0.0, out=out)
 
 
 @dataclass(frozen=True)

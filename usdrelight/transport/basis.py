@@ -46,6 +46,11 @@ class LightTransport:
         """(N, 3) secondary-ray origins of the surface (:meth:`VisibleSurface.origins` at ``eps``), made once."""
         return self.surface.origins(self.eps)
 
+    @cached_property
+    def _origins32(self) -> list:
+        """The x, y and z of :attr:`origins` as contiguous float32 arrays (N,) (Mitsuba's ray precision)."""
+        return [np.ascontiguousarray(self.origins[:, j], np.float32) for j in range(3)]
+
     def point_columns(self, positions: np.ndarray, with_grad: bool = False):
         """g (N, K), and optionally dg/dl (N, K, 3), for point lights at ``positions`` (K, 3), metres.
 
@@ -60,7 +65,6 @@ class LightTransport:
         if K == 0:
             return (g, grad) if with_grad else g
         mi = load_mitsuba()
-        o = self.origins
         step = max(1, 4_000_000 // max(N, 1))
         for k0 in range(0, K, step):
             ks = slice(k0, min(K, k0 + step))
@@ -68,13 +72,15 @@ class LightTransport:
             r2 = np.maximum(np.einsum("knj,knj->kn", d, d), self.r_min ** 2)
             r = np.sqrt(r2)
             ndl = np.einsum("nj,knj->kn", surf.n, d)
-            kk, nn = np.nonzero(ndl > 0)
-            vis = np.zeros(ndl.shape, bool)
-            if len(kk):
-                rr = r[kk, nn]
-                occl = np.array(surf.mi_scene.ray_test(rays(mi, o[nn], d[kk, nn] / rr[:, None],
-                                                            np.maximum(rr - 2 * self.eps, 0))), bool)
-                vis[kk[~occl], nn[~occl]] = True
+            vis = ndl > 0
+            if vis.any():  # a shadow ray per pixel and light, traced where the pixel faces the light (active)
+                k = ndl.shape[0]
+                o32 = self._origins32 if k == 1 else [np.tile(c, k) for c in self._origins32]
+                ray = mi.Ray3f(mi.Point3f(*o32), mi.Vector3f(*(np.ravel(d[..., j] / r, "C").astype(np.float32)
+                                                               for j in range(3))))
+                ray.maxt = mi.Float(np.ravel(np.maximum(r - 2 * self.eps, 0), "C").astype(np.float32))
+                occl = np.array(surf.mi_scene.ray_test(ray, mi.Bool(vis.ravel())), bool)
+                vis &= ~occl.reshape(vis.shape)
             g[:, ks] = np.where(vis, ndl / (np.pi * r2 * r), 0.0).T
             if with_grad:
                 # d/dl [n.d / (pi r^3)] = n / (pi r^3) - 3 (n.d) d / (pi r^5)
