@@ -105,13 +105,13 @@ def main(argv=None) -> int:
     app = ServeApp(stage, port=0, max_side=args.max_side)
     start = time.perf_counter() - t
     results = {"stage": str(stage), "resolution": list(app.live.resolution), "start_seconds": start,
-               "cache_hit": app.live.session(app.mode).cache_hit, "fitted_lights": len(app.live.fitted),
+               "cache_hit": app.live.session("render").cache_hit, "fitted_lights": len(app.live.fitted),
                "machine": {"cpus": __import__("os").cpu_count(), "platform": platform.platform()}, "modes": {}}
     try:
         name = app.add_light("point")
         app.wait_shown(app.loop._requests, timeout=300)
         s0 = app.states[name]
-        modes = [app.mode] + [m for m in MODES if m != app.mode]
+        modes = [app.mode] + [m for m in MODES if m != app.mode]  # auto (the default) first
         for mode in modes:
             app.set_mode(mode)
             shown = app.wait_shown(app.loop._requests, timeout=300)  # first frame of a mode opens its session
