@@ -168,7 +168,7 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
 
     rep = cli.json("relight", fitted_stage, "--fitted-scale", "0.2", "--light", "point:0.5,1.0,-2.5:3,2,1",
                    "--max-side", "64", "--contact-sheet", "-o", tmp_path / "night")
-    assert rep["mode"] == "ratio" and rep["contact_sheet"].endswith("contact_sheet.png")  # auto: fitted light scaled
+    assert rep["mode"] == "transfer" and rep["contact_sheet"].endswith("contact_sheet.png")  # auto: fitted light scaled
     kept = cli.json("relight", fitted_stage, "--with-fitted", "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side",
                     "48", "-o", tmp_path / "kept")
     assert kept["mode"] == "add"  # auto: the photo's light kept as it is, a light added

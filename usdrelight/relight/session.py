@@ -43,18 +43,19 @@ from .light_match import match_angles, match_weight, scene_centre
 log = logging.getLogger(__name__)
 DEFAULT_MODE = "auto"
 """The mode ``relight`` uses unless told otherwise: ``auto`` is ``add`` when the photo's own (fitted) lighting is
-kept as it is, ``ratio`` when it is kept scaled (dimmed or brightened), ``transfer`` (the physics render with the
-photo's own detail) when it is switched off and the stage has fitted lights and its photo, and ``render`` (the
-physics render D~, holes filled) otherwise. Chosen by measurement on held-out scene families
+kept as it is, ``transfer`` (the physics render with the photo's own detail) when it is scaled (dimmed or
+brightened) or switched off and the stage has fitted lights and its photo, and ``render`` (the physics render
+D~, holes filled) otherwise. Chosen by measurement: on the training generator's scenes
+(benchmarks/calibrate_transfer.py: dimmed -> transfer +1.4 dB over ratio) and on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
-dimmed -> ratio far ahead; replaced or recoloured -> transfer ahead of D~, ratio and the network."""
+dimmed -> transfer ahead of ratio; replaced or recoloured -> transfer ahead of D~, ratio and the network."""
 
 
 def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False,
                  fitted_known: bool = False) -> str:
-    """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known, ratio
-    when they are kept scaled (``fitted_scaled``), transfer when they are off but exist (``fitted_known``) and
-    the photo is known, else render (:func:`usdrelight.relight.composite.render_photo`)."""
+    """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known,
+    transfer when they are kept scaled (``fitted_scaled``) or are off but exist (``fitted_known``) and the photo
+    is known, else render (:func:`usdrelight.relight.composite.render_photo`)."""
     if mode not in ("auto", *MODES):
         raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
     if mode != "auto":
@@ -63,7 +64,7 @@ def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled:
         return "render"
     if not fitted_kept:
         return "transfer" if fitted_known else "render"
-    return "ratio" if fitted_scaled else "add"
+    return "transfer" if fitted_scaled else "add"
 
 
 def source_photo_path(stage) -> str:
