@@ -227,6 +227,18 @@ def test_app_auto_mode_follows_relights_rule_per_frame(stage):
     live.close()
 
 
+def test_a_fixed_mode_the_stage_cannot_run_falls_back_to_auto(tmp_path):
+    """A stage without a fit cannot run ratio or transfer: the app starts in auto, which renders `render`."""
+    from usdrelight.serve.live import LightSet, LiveRelight
+
+    live = LiveRelight(build_procedural(tmp_path / "nofit", stride=4), max_side=SIDE, mode="ratio")
+    ls = LightSet((LightState("P", "point", intensity=6.0, position=(0.3, 0.8, -2.0)),), mode=live.mode)
+    assert live.mode == "auto" and live.resolve(ls) == "render"
+    image = live.render(ls)[0]
+    assert np.all(np.isfinite(image)) and image.max() > 0
+    live.close()
+
+
 def test_uploads_go_to_fixed_places(stage, tmp_path):
     folder = stage.parent
     content = _hdri(tmp_path / "x.exr").read_bytes()

@@ -72,6 +72,11 @@ def light_key(light: LightRecord) -> bytes:
     return repr(values).encode() + np.asarray(light.to_world, np.float64).tobytes()
 
 
+def content_key(light: LightRecord) -> bytes:
+    """:func:`light_key` and the radiance: two lights with the same content key light the stage the same."""
+    return light_key(light) + np.asarray(light.radiance, np.float64).tobytes()
+
+
 def _opaque_lambertian(m) -> bool:
     """Lambertian with a constant opacity of 1 (translucency and cutouts are Mitsuba's, not the fast engine's)."""
     return m.is_lambertian and not isinstance(m.opacity, TextureRecord) and m.opacity >= 1.0
@@ -154,12 +159,12 @@ class FastRenderer:
 
     def _light_sum(self, lights) -> np.ndarray:
         """(N, 3) float64 e = sum of E / pi of ``lights`` at the valid pixels, added in their order. The partial
-        sum of the lights this call shares at its start with the call before is kept (``_sums``, by content:
-        :func:`light_key` and radiance) and a later call starting with the same lights adds only the others;
+        sum of the lights this call shares at its start with the call before is kept (``_sums``, by
+        :func:`content_key`) and a later call starting with the same lights adds only the others;
         the same lights always give the same bits, whatever was rendered before."""
         lights = list(lights)
         term_keys = [light_key(l) for l in lights]
-        keys = tuple(k + np.asarray(l.radiance, np.float64).tobytes() for k, l in zip(term_keys, lights))
+        keys = tuple(content_key(l) for l in lights)
         keep = self.settings.direct_terms > 0
         start, e = 0, None
         for prefix, part in self._sums.items():

@@ -104,7 +104,7 @@ def render_photo(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
 def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, sigma: float | None = None,
                        clip: float = TRANSFER_CLIP):
     """What ``transfer`` needs of the photo and the fitted render F~ (as a photo shows it), the same for every
-    new render: (F~ hole-filled, L(r), clip(H(r), -c, c)) with r = log((I + k) / (F~ + k)), k = 1% of F~'s mean
+    new render: (L(r), clip(H(r), -c, c)) with r = log((I + k) / (F~ + k)), k = 1% of F~'s mean
     per channel; ``sigma`` in pixels (default :data:`TRANSFER_SIGMA` scaled to the image's longer side)."""
     from scipy.ndimage import gaussian_filter
 
@@ -115,14 +115,14 @@ def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
     k = np.maximum(0.01 * f[sel].mean(0), 1e-8)
     r = np.clip(np.log(np.maximum(photo, 0.0) + k) - np.log(f + k), -7.0, 7.0)
     low = gaussian_filter(r, (max(sigma, 1e-3), max(sigma, 1e-3), 0), mode="nearest")
-    return f, low, np.clip(r - low, -clip, clip)
+    return low, np.clip(r - low, -clip, clip)
 
 
 def transfer_apply(new: np.ndarray, reference, weight: float = 0.0) -> np.ndarray:
     """N~ exp(w L(r) + clip(H(r))) for a :func:`transfer_reference`; ``new`` is N~, the new render as a photo
     shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in [0, 1]: how much the new
     lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`); finite, >= 0."""
-    _, low, high = reference
+    low, high = reference
     n = np.maximum(new, 0.0).astype(np.float64)
     w = float(np.clip(weight, 0.0, 1.0)) if np.isfinite(weight) else 0.0
     out = n * np.exp(w * low + high)

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine import EngineSettings, check_renderer_options, open_renderer
-from ..engine.fast import light_key
+from ..engine.fast import content_key
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
 from ..neural.model import RelightModel, build_input, hole_fill
@@ -143,7 +143,7 @@ class RelightSession:
         self._model_path = model_path
         self.model = self.photo = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
-        self._transfer_reference = None  # the fitted render as a photo shows it + the photo's residual: once
+        self._transfer_reference = None  # the photo's residual over the fitted render, split: once
         self._centre = None  # the scene's centre (transfer's light matching): once
         self._shares = {}  # light content -> its direct light's sum (transfer's light matching)
         self._filled_albedo = None  # the albedo AOV hole-filled (neural input): once per session
@@ -241,7 +241,7 @@ class RelightSession:
         if self.engine.name == "fast":  # direct light only (enough to weigh lights), kept by content
             shares = []
             for light in lights:
-                key = light_key(light) + np.asarray(light.radiance, np.float64).tobytes()
+                key = content_key(light)
                 if key not in self._shares:
                     if len(self._shares) > 256:
                         self._shares.clear()

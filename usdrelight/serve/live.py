@@ -126,14 +126,17 @@ class LiveRelight:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(APP_MODES)})")
         try:
             first = self.session("render")  # needs nothing of the stage but its camera and mesh
-            if mode != "auto":
-                first.prepare_mode(mode)
         except UsdRelightError as exc:
             if "camera" in str(exc):
                 raise UsdRelightError(f"{stage_path} has no camera: usdrelight serve needs a stage with a camera "
                                       f"and a mesh (as `usdrelight build` writes)") from None
-            log.warning("mode %s is not available (%s): using auto", mode, exc)
-            mode = "auto"
+            raise
+        if mode != "auto":
+            try:
+                first.prepare_mode(mode)
+            except UsdRelightError as exc:
+                log.warning("mode %s is not available (%s): using auto", mode, exc)
+                mode = "auto"
         if not first.scene.meshes:
             raise UsdRelightError(f"{stage_path} has no mesh: usdrelight serve needs a stage with a camera and a "
                                   f"mesh (as `usdrelight build` writes)")
