@@ -42,10 +42,14 @@ class EngineSettings:
     """Longer image side in pixels (None: the stage's full resolution)."""
     env_shape: tuple = (8, 16)
     """Latlong cells of the environment basis (rows, columns)."""
-    env_samples: int = 128
+    env_samples: int = TransportSettings.env_samples
     """Cosine-weighted visibility rays per pixel for the environment basis."""
-    indirect_samples: int = 24
-    """Bounce rays per pixel for the one-bounce gather (then smoothed over 3 x 3 like neighbours)."""
+    indirect_samples: int = TransportSettings.indirect_samples
+    """Bounce rays per pixel for the one-bounce gather."""
+    filter_radius: int = TransportSettings.filter_radius
+    """The bounce is averaged over (2 r + 1)^2 like neighbours (the transport's bounce filter)."""
+    env_filter_radius: int = TransportSettings.env_filter_radius
+    """The environment term likewise."""
     area_samples: int = 16
     """Shadow rays per pixel for sphere, disk, rect and wide distant lights."""
     max_depth: int = 3
@@ -60,7 +64,8 @@ class EngineSettings:
     def transport(self) -> TransportSettings:
         """The transport layer's part of these settings."""
         return TransportSettings(self.max_side, tuple(self.env_shape), self.env_samples, self.indirect_samples,
-                                 seed=self.seed)
+                                 seed=self.seed, filter_radius=self.filter_radius,
+                                 env_filter_radius=self.env_filter_radius)
 
 
 def light_key(light: LightRecord) -> bytes:

@@ -154,4 +154,4 @@ def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int =
 
 
 def dome_light(tr: LightTransport, light: LightRecord, textures: dict) -> np.ndarray:
-    return tr.H @ dome_cell_radiance(light, tr.env_shape, textures).astype(tr.H.dtype)
+    return tr.environment(dome_cell_radiance(light, tr.env_shape, textures))

@@ -90,22 +90,38 @@ def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.
     """(albedo (H * W, 3), coverage (H * W,), hit point (H * W, 3)) of every pixel from k x k stratified camera
     rays: the diffuse albedo averaged over the pixel's area with misses counting as 0, the fraction of the area
     that sees geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel), and the mean
-    world-space position of the rays that hit (0 where none)."""
-    acc = np.zeros((width * height, 3))
-    pos = np.zeros((width * height, 3))
-    cov = np.zeros(width * height)
+    world-space position of the rays that hit (0 where none).
+
+    The k x k rays of a run of pixels are one wavefront (ray ``pixel * k^2 + s``, s row-major in the pixel), made
+    by Mitsuba's JIT, in chunks of about 4M rays to bound memory."""
+    import drjit as dr
+
+    sensor = scene.sensors()[0]
     dx, dy = PRIMARY_RAY_NUDGE_PX
-    for i in range(k):
-        for j in range(k):
-            _, si = trace_pixels(mi, scene, width, height, ((j + 0.5) / k + dx, (i + 0.5) / k + dy))
-            hit = np.array(si.is_valid(), bool)
-            alb = np.array(si.bsdf().eval_diffuse_reflectance(si), np.float64).T
-            p = np.array(si.p, np.float64).T
-            acc += np.where(hit[:, None] & np.isfinite(alb), alb, 0.0)
-            pos += np.where(hit[:, None] & np.isfinite(p), p, 0.0)
-            cov += hit
+    n, kk = width * height, k * k
+    acc, pos, cov = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)
+    step = max(1, (4 << 20) // kk)
+    for p0 in range(0, n, step):
+        m = min(n, p0 + step) - p0
+        i = dr.arange(mi.UInt32, m * kk)
+        pix = i // kk + p0
+        s = i % kk
+        row = pix // width
+        fx = (mi.Float(pix - row * width) + (mi.Float(s % k) + 0.5) / k + dx) / width
+        fy = (mi.Float(row) + (mi.Float(s // k) + 0.5) / k + dy) / height
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(fx, fy), mi.Point2f(0.5, 0.5))
+        si = scene.ray_intersect(ray)
+        hit = si.is_valid()
+        alb, p = si.bsdf().eval_diffuse_reflectance(si), si.p
+        alb = dr.select(hit & dr.isfinite(alb.x) & dr.isfinite(alb.y) & dr.isfinite(alb.z), alb, 0.0)
+        p = dr.select(hit & dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z), p, 0.0)
+        dr.eval(alb, p, hit)
+        sl = slice(p0, p0 + m)  # summed over each pixel's rays (misses and non-finite values count 0)
+        acc[sl] = alb.numpy().reshape(3, m, kk).sum(-1, dtype=np.float64).T
+        pos[sl] = p.numpy().reshape(3, m, kk).sum(-1, dtype=np.float64).T
+        cov[sl] = hit.numpy().reshape(m, kk).sum(-1)
     hits = np.maximum(cov, 1.0)[:, None]
-    return np.clip(acc / (k * k), 0.0, 1.0), cov / (k * k), pos / hits
+    return np.clip(acc / kk, 0.0, 1.0), cov / kk, pos / hits
 
 
 def primary_aovs(mi, scene, cam_to_world: np.ndarray, width: int, height: int, wanted: set) -> dict:

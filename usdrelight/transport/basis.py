@@ -9,7 +9,9 @@
   cosine-weighted rays; a hit y on the 2.5D mesh is visible from the camera, so its direct light is the one
   already computed at the pixel it projects to. That gives a sparse gather matrix P: the light leaving the
   surface after one bounce is a * (e + P (a * e)) for direct E / pi = e.
-* :func:`bounce_filter`: joint-bilateral averaging over like neighbours, for the Monte Carlo noise of H and P.
+* :func:`bounce_filter`: joint-bilateral averaging over like neighbours, for the Monte Carlo noise of H and P
+  (the relight engine applies it to the environment term, :meth:`LightTransport.environment`, and the gathered
+  bounce).
 """
 from __future__ import annotations
 
@@ -33,13 +35,22 @@ class LightTransport:
     env_shape: tuple
     """(rows, columns) of the environment's latlong cell grid; (0, 0) = no environment."""
     H: np.ndarray
-    """(N, J) environment columns: fraction of cosine-weighted directions leaving through each cell."""
+    """(N, J) environment columns: fraction of cosine-weighted directions leaving through each cell (float32)."""
     P: sp.csr_matrix
     """(N, N) indirect gather: row x has weight 1/M at the pixel each of its M bounce rays lands on."""
     r_min: float
     """Distances to point lights are clamped to this, metres."""
     eps: float
     """Secondary-ray origin offset, metres."""
+    env_filter: sp.csr_matrix | None = None
+    """(N, N) averaging over like neighbours applied to the environment term (:meth:`environment`), or None:
+    ``H`` is used as traced. Filtering the (N, 3) term rather than ``H`` keeps ``H`` exact ray counts and costs
+    a (N, 3) product per environment change instead of a (N, J) one per prepare."""
+
+    def environment(self, cell_radiance: np.ndarray) -> np.ndarray:
+        """(N, C) ``H @ cell_radiance`` ((J, C) cell radiances), averaged by :attr:`env_filter` when set."""
+        e = self.H @ cell_radiance.astype(self.H.dtype)
+        return e if self.env_filter is None else self.env_filter @ e
 
     @cached_property
     def origins(self) -> np.ndarray:
@@ -97,31 +108,41 @@ class LightTransport:
         return ~np.array(self.surface.mi_scene.ray_test(rays(mi, o, d, m)), bool)
 
 
-def bounce_filter(surf: VisibleSurface, radius: int = 1, normal_power: float = 8.0, rel_dist: float = 0.02):
+def bounce_filter(surf: VisibleSurface, radius: int = 1, normal_power: int = 8, rel_dist: float = 0.02):
     """(N, N) row-normalised joint-bilateral weights over the (2 radius + 1)^2 pixel neighbourhood: neighbours
     count by (n . n')^normal_power * exp(-(|p - p'| / (rel_dist |p|))^2), so the Monte Carlo noise of the
-    gathered bounce is averaged within a surface, never across a depth edge or a crease."""
-    H, W = surf.height, surf.width
-    lut = -np.ones((H, W), np.int64)
-    lut[surf.idx[:, 0], surf.idx[:, 1]] = np.arange(surf.n_pixels)
-    rows, cols, vals = [], [], []
-    scale = rel_dist * np.maximum(np.linalg.norm(surf.p, axis=1), 1e-12)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            r, c = surf.idx[:, 0] + dy, surf.idx[:, 1] + dx
-            inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
-            j = np.full(surf.n_pixels, -1, np.int64)
-            j[inside] = lut[r[inside], c[inside]]
-            ok = j >= 0
-            i = np.nonzero(ok)[0]
-            j = j[ok]
-            w = np.clip(np.einsum("ij,ij->i", surf.n[i], surf.n[j]), 0.0, 1.0) ** normal_power
-            w *= np.exp(-(np.linalg.norm(surf.p[i] - surf.p[j], axis=1) / scale[i]) ** 2)
-            rows.append(i), cols.append(j), vals.append(w)
-    F = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(surf.n_pixels, surf.n_pixels))
-    norm = np.asarray(F.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(norm, 1e-300)) @ F
+    gathered bounce is averaged within a surface, never across a depth edge or a crease.
+
+    The weights are computed over the whole image (float32) with shifted views of padded position and normal
+    images, one neighbour offset at a time, and the matrix is assembled row by row (a missing neighbour is the
+    pixel itself at weight 0), so nothing is gathered per neighbour and no entries are sorted."""
+    H, W, N, r = surf.height, surf.width, surf.n_pixels, int(radius)
+    rows, cols = surf.idx[:, 0], surf.idx[:, 1]
+    lut = -np.ones((H + 2 * r, W + 2 * r), np.int32)  # padded: a neighbour outside the image is -1
+    lut[rows + r, cols + r] = np.arange(N, dtype=np.int32)
+    pos, nrm = (np.zeros((3, H + 2 * r, W + 2 * r), np.float32) for _ in range(2))
+    pos[:, rows + r, cols + r] = surf.p.T
+    nrm[:, rows + r, cols + r] = surf.n.T
+    centre = (slice(None), slice(r, r + H), slice(r, r + W))
+    p0, n0 = pos[centre], nrm[centre]
+    inv_scale2 = np.zeros((H, W), np.float32)
+    inv_scale2[rows, cols] = 1.0 / (rel_dist * np.maximum(np.linalg.norm(surf.p, axis=1), 1e-12)) ** 2
+    offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+    col = np.empty((N, len(offsets)), np.int32)
+    val = np.empty((N, len(offsets)))
+    for k, (dy, dx) in enumerate(offsets):
+        shifted = (slice(None), slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+        cos = np.clip(np.einsum("cij,cij->ij", n0, nrm[shifted]), 0.0, 1.0)
+        d = p0 - pos[shifted]
+        w = cos ** normal_power * np.exp(-np.einsum("cij,cij->ij", d, d) * inv_scale2)
+        j = lut[r + dy:r + dy + H, r + dx:r + dx + W][rows, cols]
+        ok = j >= 0
+        col[:, k] = np.where(ok, j, np.arange(N, dtype=np.int32))
+        val[:, k] = np.where(ok, w[rows, cols], 0.0)
+    val /= np.maximum(val.sum(axis=1, keepdims=True), 1e-300)
+    F = sp.csr_matrix((val.ravel(), col.ravel(), np.arange(0, N * len(offsets) + 1, len(offsets))), shape=(N, N))
+    F.eliminate_zeros()  # missing and unlike neighbours: each product with the filter skips them
+    return F
 
 
 def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 128, indirect_samples: int = 8,
@@ -135,7 +156,7 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
     eps = surf.eps
     o = surf.origins(eps)
     J = env_shape[0] * env_shape[1]
-    H = np.zeros((N, J))
+    H = np.zeros((N, J), np.float32)  # ray fractions k / S: exact in float32 when S is a power of two
     # the rays are made, traced and binned by Mitsuba's JIT (float32, as the rays are): the same rays as
     # cosine_directions() of stratified() samples, whose numpy arrays cost several times the ray tracing
     if J and env_samples > 0:
@@ -153,14 +174,17 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
             dr.eval(flat, free)  # traced first: the scatter fused with the tracing is slower
             counts = dr.zeros(mi.UInt32, m * J)
             dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), flat, free)
-            H[sl] = counts.numpy().reshape(m, J) / S
+            H[sl] = counts.numpy().reshape(m, J).astype(np.float32) / np.float32(S)
     M = indirect_samples
     rows_all, cols_all = [], []
     if M > 0:
         ray = cosine_rays(mi, o, surf.n, rng.random((N, 2)), M)
-        pi = surf.mi_scene.ray_intersect_preliminary(ray)
-        hits = dr.compress(pi.is_valid())  # the rays that hit, and their hit points o + t d
-        y = dr.gather(mi.Point3f, ray(pi.t), hits).numpy().T.astype(np.float64)
+        dr.eval(ray)  # made once: the tracing and the hit points below read it
+        t = surf.mi_scene.ray_intersect_preliminary(ray).t
+        dr.eval(t)
+        hits = dr.compress(dr.isfinite(t))  # the rays that hit, and their hit points o + t d
+        y = (dr.gather(mi.Point3f, ray.o, hits) + dr.gather(mi.Float, t, hits) * dr.gather(mi.Vector3f, ray.d, hits))
+        y = y.numpy().T.astype(np.float64)
         pix = project_to_pixels(surf, y)
         src = hits.numpy().astype(np.int64) // M
         lut = -np.ones(surf.height * surf.width, np.int64)

@@ -43,7 +43,7 @@ except ImportError:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-TRANSPORT_VERSION = 4
+TRANSPORT_VERSION = 5
 """Bumped whenever the cached arrays or their meaning change (part of every key)."""
 CACHE_DIR = "cache"
 """The stage-folder sub-folder of :meth:`TransportCache.for_stage`."""
@@ -59,12 +59,20 @@ class TransportSettings:
     """Longer image side in pixels (None: the stage's full resolution)."""
     env_shape: tuple = (8, 16)
     """Latlong cells of the environment basis (rows, columns)."""
-    env_samples: int = 128
-    """Cosine-weighted visibility rays per pixel for the environment basis."""
-    indirect_samples: int = 24
-    """Bounce rays per pixel for the one-bounce gather (then averaged over 3 x 3 like neighbours; 24 rather than
-    32 since issue 23: within 1.2% of 32's error against Mitsuba on every light set of
-    benchmarks/bench_prepare.py, for about 0.5 s less at 512 px)."""
+    env_samples: int = 64
+    """Cosine-weighted visibility rays per pixel for the environment basis (then averaged over
+    ``env_filter_radius`` like neighbours)."""
+    indirect_samples: int = 16
+    """Bounce rays per pixel for the one-bounce gather (then averaged over ``filter_radius`` like neighbours).
+
+    Issue 23 chose 64 / 16 rays averaged over 5 x 5 like neighbours, for 128 / 24 over 3 x 3: fewer rays, and
+    less error against Mitsuba on every light set of benchmarks/bench_prepare.py (its table is in the docs'
+    benchmarks page); the wider bounce filter costs about 6 ms a frame at 512 px."""
+    filter_radius: int = 2
+    """The bounce filter's neighbourhood, (2 r + 1)^2 pixels (:func:`~.basis.bounce_filter`), applied to the
+    gathered bounce of every frame."""
+    env_filter_radius: int = 2
+    """The same for the environment term (applied once per environment change)."""
     footprint: int = 4
     """k: k x k camera rays per pixel for its area-averaged albedo and coverage."""
     seed: int = 0
@@ -76,7 +84,7 @@ class PreparedTransport:
     """Everything light-independent that a renderer needs at one resolution."""
 
     transport: LightTransport
-    """Environment basis (averaged over like neighbours, float16 precision), gather matrix, shadow rays."""
+    """Environment basis (ray fractions, averaged over like neighbours when used), gather matrix, shadow rays."""
     pixel_albedo: np.ndarray
     """(N, 3) albedo averaged over each valid pixel's area, misses counting as 0."""
     coverage: np.ndarray
@@ -84,7 +92,8 @@ class PreparedTransport:
     fringe: PixelFringe
     """The partly covered pixels whose centre ray misses (depth cuts, the image border)."""
     smooth: sp.csr_matrix
-    """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface."""
+    """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface (also the transport's
+    ``env_filter``)."""
     key: str
     """The content key (:func:`scene_key`)."""
     cache_hit: bool
@@ -131,7 +140,8 @@ def scene_key(rec: SceneRecord, settings: TransportSettings) -> str:
     h.update(repr((cam.intrinsics, cam.near, cam.far)).encode())
     _hash_array(h, cam.to_world)
     h.update(repr((settings.max_side, tuple(settings.env_shape), settings.env_samples, settings.indirect_samples,
-                   settings.footprint, settings.seed)).encode())
+                   settings.footprint, settings.seed, settings.filter_radius,
+                   settings.env_filter_radius)).encode())
     return h.hexdigest()[:24]
 
 
@@ -259,10 +269,24 @@ def _arrays(prep: PreparedTransport, settings: TransportSettings) -> dict:
                 center=s.center, extent=s.extent, pixel_albedo=prep.pixel_albedo, coverage=prep.coverage,
                 fringe_pixels=prep.fringe.pixels, fringe_albedo=prep.fringe.albedo,
                 fringe_coverage=prep.fringe.coverage, fringe_source=prep.fringe.source,
-                H=tr.H.astype(np.float16),
+                H_counts=np.rint(tr.H * np.float32(settings.env_samples)).astype(np.uint16),
                 P_counts=np.round(tr.P.data * settings.indirect_samples).astype(np.uint16),
                 P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
                 env_shape=np.asarray(tr.env_shape))
+
+
+def filters(surf: VisibleSurface, settings: TransportSettings) -> tuple:
+    """(bounce filter, environment filter) of ``surf`` (:func:`~.basis.bounce_filter`; one matrix for both when
+    their radii agree)."""
+    smooth = bounce_filter(surf, settings.filter_radius)
+    if settings.env_filter_radius == settings.filter_radius:
+        return smooth, smooth
+    return smooth, bounce_filter(surf, settings.env_filter_radius)
+
+
+def _env_fractions(counts: np.ndarray, settings: TransportSettings) -> np.ndarray:
+    """The environment columns (float32) from their ray counts, as :func:`~.basis.build_transport` makes them."""
+    return counts.astype(np.float32) / np.float32(max(settings.env_samples, 1))
 
 
 def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tuple:
@@ -275,13 +299,16 @@ def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tupl
     n = surf.n_pixels
     # gather weights are ray counts over the bounce samples per pixel
     P = sp.csr_matrix((d["P_counts"] / settings.indirect_samples, d["P_indices"], d["P_indptr"]), shape=(n, n))
-    tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), d["H"].astype(np.float32), P,
-                        R_MIN_REL * surf.extent, surf.eps)
+    smooth, env_filter = filters(surf, settings)
+    # environment columns are ray counts over the environment samples per pixel
+    H = _env_fractions(d["H_counts"], settings)
+    tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), H, P, R_MIN_REL * surf.extent, surf.eps,
+                        env_filter=env_filter)
     fringe = PixelFringe(d["fringe_pixels"].astype(np.int64), d["fringe_albedo"], d["fringe_coverage"],
                          d["fringe_source"].astype(np.int64))
     if fringe.source.size and fringe.source.max() >= n:
         raise ValueError("fringe sources out of range")
-    return tr, d["pixel_albedo"], d["coverage"], fringe
+    return tr, d["pixel_albedo"], d["coverage"], fringe, smooth
 
 
 def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportSettings(),
@@ -295,8 +322,7 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
     if found is not None:
         arrays, lease = found
         try:
-            tr, pixel_albedo, coverage, fringe = _from_arrays(arrays, rec, settings)
-            smooth = bounce_filter(tr.surface)
+            tr, pixel_albedo, coverage, fringe, smooth = _from_arrays(arrays, rec, settings)
         except (ValueError, KeyError) as exc:
             log.warning("transport cache entry %s does not fit (%s): rebuilding", cache.path(key), exc)
             lease.release()
@@ -315,11 +341,11 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         raw = build_transport(surf, settings.env_shape, settings.env_samples, settings.indirect_samples,
                               settings.seed)
         step("basis")
-        # the environment basis is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
-        # noise is the largest error of an environment-lit frame), and kept in half precision, as cached
-        smooth = bounce_filter(surf)
-        H = (smooth @ raw.H).astype(np.float16).astype(np.float32)
-        tr = LightTransport(surf, raw.env_shape, H, raw.P, raw.r_min, raw.eps)
+        # the environment term is averaged over like neighbours, as the bounce is (its per-pixel Monte Carlo
+        # noise is the largest error of an environment-lit frame): the filter goes with the transport and is
+        # applied to each (N, 3) environment term, so H stays the traced ray fractions (what is cached)
+        smooth, env_filter = filters(surf, settings)
+        tr = LightTransport(surf, raw.env_shape, raw.H, raw.P, raw.r_min, raw.eps, env_filter=env_filter)
         step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
                                                        settings.footprint)
