@@ -70,8 +70,7 @@ def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_T
         h, w = env.shape[:2]
         cells = env[: h - h % env_shape[0], : w - w % env_shape[1]].reshape(
             env_shape[0], h // env_shape[0], env_shape[1], w // env_shape[1], 3).mean((1, 3)).reshape(-1, 3)
-        TH = tr.env_blocks()[0]
-        contrib = np.stack([TH[c] @ cells[:, c] for c in range(3)], 1)
+        contrib = np.stack([tr.env_render(c, cells[:, c]) for c in range(3)], 1)
         if np.sqrt(np.mean(contrib ** 2)) < tol * rms_d:
             env = None
     return replace(res, lights=tuple(res.lights[i] for i in keep), env=env)

@@ -21,6 +21,8 @@ class FitTransport(LightTransport):
 
     _blocks: tuple | None = field(default=None, init=False, repr=False)
     """Cached environment blocks (see :meth:`env_blocks`)."""
+    _f32: tuple | None = field(default=None, init=False, repr=False)
+    """H and P in float32 (see :meth:`_float32`)."""
 
     @property
     def problem(self) -> FitProblem:
@@ -34,18 +36,54 @@ class FitTransport(LightTransport):
         return cls(**{**values, **changes})
 
     # ---- cached environment blocks and the regularized non-negative solve -------------------
+    # T_H = A (H + P A H) (A = diag(a_c)) is never stored: at 512 px it is a (N, J) float64 array per channel,
+    # and allocating those costs more than the products (fresh pages). Products with it go through H, shared by
+    # the channels, in float32: T_H x = A (h + P A h) with h = H x, and U^T T_H = adjoint(U)^T H.
+    def _float32(self) -> tuple:
+        """(H, P) in float32 (made once)."""
+        if self._f32 is None:
+            self._f32 = (np.ascontiguousarray(self.H, np.float32), self.P.astype(np.float32))
+        return self._f32
+
+    def adjoint(self, u: np.ndarray, c: int) -> np.ndarray:
+        """T_c^T's action before G: A (u + P^T A u) for ``u`` (N,) or (N, K) in channel ``c`` (so that
+        u^T T_H = adjoint(u)^T H)."""
+        a = self.problem.albedo[:, c].reshape((-1,) + (1,) * (u.ndim - 1))
+        return a * (u + self.P.T @ (a * u))
+
+    def env_render(self, c: int, x: np.ndarray) -> np.ndarray:
+        """T_H x (N,) in channel ``c`` for environment cell radiances ``x`` (J,)."""
+        H32, P32 = self._float32()
+        h = (H32 @ np.asarray(x, np.float32)).astype(np.float64)
+        a = self.problem.albedo[:, c]
+        return a * (h + P32 @ (a * h))
+
+    def env_cross(self, u: np.ndarray, c: int) -> np.ndarray:
+        """u^T T_H (K, J) in channel ``c`` for ``u`` (N, K), accumulated in float64 over row blocks."""
+        H32 = self._float32()[0]
+        v = self.adjoint(u, c)
+        out = np.zeros((v.shape[1], H32.shape[1]))
+        for s in range(0, len(v), ROW_BLOCK):
+            out += v[s:s + ROW_BLOCK].T @ H32[s:s + ROW_BLOCK].astype(np.float64)
+        return out
+
     def env_blocks(self):
-        """Per channel: environment transport T_H (N, J), its Gram block, T_H^T D, and L^T L (cached)."""
+        """Per channel: the environment's Gram block T_H^T T_H (J, J) and T_H^T D (J,); and L^T L (cached)."""
         if self._blocks is None:
             prob = self.problem
-            TH, HH, Hb = [], [], []
+            H32, P32 = self._float32()
+            HH, Hb = [], []
             for c in range(3):
-                a = prob.albedo[:, c:c + 1]
-                T = a * (self.H + self.P @ (a * self.H))
-                TH.append(T)
-                HH.append(T.T @ T)
-                Hb.append(T.T @ prob.target[:, c])
-            self._blocks = (TH, HH, Hb, smoothness_operator(self.env_shape))
+                a = prob.albedo[:, c:c + 1].astype(np.float32)
+                PaH = P32 @ (a * H32)
+                G = np.zeros((H32.shape[1],) * 2)
+                for s in range(0, len(H32), ROW_BLOCK):
+                    sl = slice(s, s + ROW_BLOCK)
+                    T = a[sl].astype(np.float64) * (H32[sl] + PaH[sl])
+                    G += T.T @ T
+                HH.append(G)
+                Hb.append(self.env_cross(prob.target[:, c:c + 1], c)[0])
+            self._blocks = (HH, Hb, smoothness_operator(self.env_shape))
         return self._blocks
 
     def point_matrices(self, g: np.ndarray) -> list[np.ndarray]:
@@ -62,9 +100,9 @@ class FitTransport(LightTransport):
         neighbouring environment cells and s_c is the mean diagonal of the environment's Gram block (so
         ``smooth`` is scale-free). The reported MSE is the data term only.
         """
-        TH, HH, Hb, L = self.env_blocks()
-        prob = self.problem
         K, J = g.shape[1], self.H.shape[1] if env else 0
+        HH, Hb, L = self.env_blocks() if J else (None, None, None)
+        prob = self.problem
         Tk = self.point_matrices(g)
         theta = np.zeros((3, K + self.H.shape[1]))
         res = []
@@ -75,17 +113,20 @@ class FitTransport(LightTransport):
             G[:K, :K] = Tk[c].T @ Tk[c]
             r[:K] = Tk[c].T @ b
             if J:
-                G[:K, K:] = Tk[c].T @ TH[c]
+                G[:K, K:] = self.env_cross(Tk[c], c) if K else 0.0
                 G[K:, :K] = G[:K, K:].T
                 G[K:, K:] = HH[c] + smooth * max(np.mean(np.diag(HH[c])), 1e-30) * L
                 r[K:] = Hb[c]
             x = nnls_normal(G, r)
             theta[c, :K + J] = x
-            fit = Tk[c] @ x[:K] + (TH[c] @ x[K:] if J else 0.0)
+            fit = Tk[c] @ x[:K] + (self.env_render(c, x[K:]) if J else 0.0)
             res.append(fit - b)
         mse = float(np.mean(np.stack(res) ** 2))
         return theta, mse, res
 
+
+ROW_BLOCK = 16384
+"""Rows per block of the float64 products with the float32 environment columns (bounded temporaries)."""
 
 
 def smoothness_operator(shape) -> np.ndarray:

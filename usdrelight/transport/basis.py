@@ -174,7 +174,7 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
             dr.eval(flat, free)  # traced first: the scatter fused with the tracing is slower
             counts = dr.zeros(mi.UInt32, m * J)
             dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), flat, free)
-            H[sl] = counts.numpy().reshape(m, J).astype(np.float32) / np.float32(S)
+            np.divide(counts.numpy().reshape(m, J), np.float32(S), out=H[sl], dtype=np.float32)  # in float32
     M = indirect_samples
     rows_all, cols_all = [], []
     if M > 0:

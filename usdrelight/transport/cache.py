@@ -286,7 +286,7 @@ def filters(surf: VisibleSurface, settings: TransportSettings) -> tuple:
 
 def _env_fractions(counts: np.ndarray, settings: TransportSettings) -> np.ndarray:
     """The environment columns (float32) from their ray counts, as :func:`~.basis.build_transport` makes them."""
-    return counts.astype(np.float32) / np.float32(max(settings.env_samples, 1))
+    return np.divide(counts, np.float32(max(settings.env_samples, 1)), dtype=np.float32)
 
 
 def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tuple:
