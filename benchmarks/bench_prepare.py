@@ -1,8 +1,8 @@
 """Prepare benchmark: error against cold prepare time of the fast renderer's transport knobs (issue 23).
 
 For each scene (the procedural ground-truth scene at its full 256 x 192, the fitted motorcycle at 512 px after
-`make demo`) and each configuration of (env_samples, indirect_samples, footprint, filter radius: the bounce filter's
-and the environment's, (2 r + 1)^2 like neighbours):
+`make demo`) and each configuration of (env_samples, indirect_samples, footprint, environment filter radius, bounce
+filter radius: (2 r + 1)^2 like neighbours):
 
 * cold prepare time (no transport cache: trace_surface, environment basis, bounce gather, bounce filter, pixel
   footprint, fringe), with its steps; every configuration timed in the same run, in rounds of alternating order
@@ -50,14 +50,14 @@ from usdrelight.transport.cache import TransportSettings  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 MAX_SIDE = 512
-OLD_DEFAULT = (128, 32, 4, 1)
-"""(env_samples, indirect_samples, footprint, filter radius) before issue 23."""
-assert TransportSettings.filter_radius == TransportSettings.env_filter_radius
+OLD_DEFAULT = (128, 32, 4, 1, 1)
+"""(env_samples, indirect_samples, footprint, environment filter radius, bounce filter radius) before issue 23."""
 NEW_DEFAULT = (TransportSettings.env_samples, TransportSettings.indirect_samples, TransportSettings.footprint,
-               TransportSettings.filter_radius)
+               TransportSettings.env_filter_radius, TransportSettings.filter_radius)
 """The defaults now (marked * in the table)."""
-CONFIGS = [OLD_DEFAULT, (128, 24, 4, 1), (64, 32, 4, 1), (64, 16, 4, 1), (32, 8, 4, 1), (128, 32, 4, 2),
-           (64, 16, 4, 2), (64, 12, 4, 2), (48, 12, 4, 2), (32, 8, 4, 2), (64, 16, 3, 2), (64, 16, 4, 3)]
+CONFIGS = [OLD_DEFAULT, (128, 24, 4, 1, 1), (64, 32, 4, 1, 1), (64, 16, 4, 1, 1), (32, 8, 4, 1, 1),
+           (64, 32, 4, 2, 1), (64, 24, 4, 2, 1), (48, 24, 4, 2, 1), (64, 16, 4, 2, 1), (64, 16, 4, 2, 2),
+           (64, 12, 4, 2, 2), (32, 8, 4, 2, 2), (64, 24, 3, 2, 1), (64, 24, 4, 3, 1)]
 
 
 @dataclass(frozen=True)
@@ -74,9 +74,9 @@ class Knobs(EngineSettings):
 
 
 def knobs(cfg) -> Knobs:
-    env, ind, fp, radius = cfg
+    env, ind, fp, env_radius, radius = cfg
     return Knobs(max_side=MAX_SIDE, env_samples=env, indirect_samples=ind, footprint=fp, filter_radius=radius,
-                 env_filter_radius=radius)
+                 env_filter_radius=env_radius)
 
 
 def ref_path(rec, lights, ref_dir: Path, spp: int) -> Path:
@@ -203,7 +203,7 @@ def main() -> None:
             med = float(np.median(r["seconds"]))
             steps = {k: float(np.median([s[k] for s in r["steps"]])) for k in (r["steps"][0] if r["steps"] else {})}
             rows.append({"env_samples": cfg[0], "indirect_samples": cfg[1], "footprint": cfg[2],
-                         "filter_radius": cfg[3],
+                         "env_filter_radius": cfg[3], "filter_radius": cfg[4],
                          "seconds": r["seconds"], "median_seconds": med, "ratio_to_old_default": med / base,
                          "steps_median_seconds": steps, "error": r["error"], "resolution": r["resolution"],
                          "valid_pixels": r["valid_pixels"],
@@ -217,12 +217,12 @@ def main() -> None:
         sets = list(rows[0]["error"])
         print(f"\n{name} {rows[0]['resolution'][0]}x{rows[0]['resolution'][1]}: relative RMSE (valid pixels; "
               f"covered in brackets) against cold prepare seconds (median of {args.repeats})")
-        print(" | ".join(["env", "ind", "fp", "r", "seconds", "x old", *sets]))
+        print(" | ".join(["env", "ind", "fp", "r env", "r bounce", "seconds", "x old", *sets]))
         for r in rows:
-            cfg = [r["env_samples"], r["indirect_samples"], r["footprint"], r["filter_radius"]]
+            cfg = [r["env_samples"], r["indirect_samples"], r["footprint"], r["env_filter_radius"], r["filter_radius"]]
             mark = " *" if out["new_default"] == cfg else ""
             print(" | ".join([f"{r['env_samples']:>3}", f"{r['indirect_samples']:>3}", f"{r['footprint']:>2}",
-                              f"{r['filter_radius']}",
+                              f"{r['env_filter_radius']:>5}", f"{r['filter_radius']:>8}",
                               f"{r['median_seconds']:6.2f}", f"{r['ratio_to_old_default']:.2f}",
                               *(f"{r['error'][s]['valid']:.4f} ({r['error'][s]['covered']:.4f})" for s in sets)])
                   + mark)

@@ -1,6 +1,6 @@
 """Calibrate the ``transfer`` mode's three constants on the TRAINING generator's scenes only.
 
-The mode (usdrelight.relight.composite.transfer_apply) is I' = N~ exp(w L(r) + clip(H(r), -c, c)), with the split
+The mode (usdrelight.relight.composite.transfer_apply) is I' = N~ exp(max(w L(r) + clip(H(r), -c, c), -c)), with the split
 scale sigma (pixels at 512 px), the bound c and the angle a0 at which a new light stops matching a photo light
 (w = sum of light shares x match, usdrelight.relight.light_match). They are chosen here,
 on the ``procedural`` family (benchmarks/families.py: usdrelight.mitsuba.procedural.random_spec, the generator the
@@ -82,7 +82,7 @@ def grid(cases):
         for a0 in ANGLES:
             gains = {k: [] for k in KINDS}
             for c, ref, b in zip(cases, refs, base):
-                out = transfer_apply(c["n"], ref, match_weight(c["angles"], c["shares"], a0))
+                out = transfer_apply(c["n"], ref, match_weight(c["angles"], c["shares"], a0), floor=-clip)
                 gains[c["kind"]].append(psnr_ssim(out, c["truth"], c["gt_valid"])[0] - b)
             per_kind = {k: float(np.mean(v)) for k, v in gains.items()}
             rows.append({"sigma_512": sigma, "clip": clip, "match_angle_deg": a0, "gain_db": per_kind,
@@ -111,7 +111,7 @@ def main():
     for c in cases:
         ref = transfer_reference(c["photo"], c["f"], c["seen"], best["sigma_512"] * side / 512.0, best["clip"])
         w = match_weight(c["angles"], c["shares"], best["match_angle_deg"])
-        out = transfer_apply(c["n"], ref, w)
+        out = transfer_apply(c["n"], ref, w, floor=-best["clip"])
         per_case.append({"scene": c["scene"], "kind": c["kind"], "angles_deg": c["angles"], "weight": w,
                          "render_db": psnr_ssim(c["n"], c["truth"], c["gt_valid"])[0],
                          "transfer_db": psnr_ssim(out, c["truth"], c["gt_valid"])[0]})

@@ -103,6 +103,18 @@ def test_transfer_keeps_the_photo_detail_not_the_old_light_under_a_moved_light()
     speckled = photo * np.where(rng.random(f.shape[:2]) < 0.1, 1e-6, 1.0)[..., None]
     o = transfer_apply(new, transfer_reference(speckled, f, valid, sigma=2.0), 0.0)
     assert np.exp(-TRANSFER_CLIP) > 0.05 and np.all(o >= np.exp(-TRANSFER_CLIP) * new * (1 - 1e-5))
+    # nor does the photo's own low-frequency darkness under a matching light (w = 1): a photo 1000x darker
+    # than its fit in a blob (a shadow the fit missed) stays at e^-c of the render there, and is the photo
+    # (up to the guard) where the fit explains it
+    yy, xx = np.mgrid[0:f.shape[0], 0:f.shape[1]]
+    dist = np.hypot(yy - 24, xx - 32)
+    blob = np.where(dist < 12, 1e-3, 1.0)[..., None]
+    o = transfer_apply(new, transfer_reference(f * blob, f, valid, sigma=2.0), 1.0)
+    assert np.all(o >= np.exp(-TRANSFER_CLIP) * new * (1 - 1e-5))
+    inside, outside = dist < 4, dist > 24
+    assert inside.sum() > 20 and outside.sum() > 20
+    np.testing.assert_allclose(o[inside], (np.exp(-TRANSFER_CLIP) * new)[inside], rtol=1e-4)
+    np.testing.assert_allclose(o[outside], new[outside], rtol=1e-3)
 
 
 def test_light_match_weighs_each_light_by_its_share_and_its_angle_to_the_photo_lights():

@@ -118,12 +118,15 @@ def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
     return low, np.clip(r - low, -clip, clip)
 
 
-def transfer_apply(new: np.ndarray, reference, weight: float = 0.0) -> np.ndarray:
-    """N~ exp(w L(r) + clip(H(r))) for a :func:`transfer_reference`; ``new`` is N~, the new render as a photo
-    shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in [0, 1]: how much the new
-    lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`); finite, >= 0."""
+def transfer_apply(new: np.ndarray, reference, weight: float = 0.0, floor: float = -TRANSFER_CLIP) -> np.ndarray:
+    """N~ exp(max(w L(r) + clip(H(r)), floor)) for a :func:`transfer_reference`; ``new`` is N~, the new render as
+    a photo shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in [0, 1]: how much the
+    new lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`). The ``floor`` (the
+    detail bound's -c by default) keeps every pixel at e^floor (13.5%) of the physics render or more: where the
+    photo is far darker than its fit (a shadow the fit did not explain), the kept darkness is bounded as the
+    detail is, never a blacked-out pixel. Finite, >= 0."""
     low, high = reference
     n = np.maximum(new, 0.0).astype(np.float64)
     w = float(np.clip(weight, 0.0, 1.0)) if np.isfinite(weight) else 0.0
-    out = n * np.exp(w * low + high)
+    out = n * np.exp(np.maximum(w * low + high, floor))
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)

@@ -62,17 +62,16 @@ class TransportSettings:
     env_samples: int = 64
     """Cosine-weighted visibility rays per pixel for the environment basis (then averaged over
     ``env_filter_radius`` like neighbours)."""
-    indirect_samples: int = 16
-    """Bounce rays per pixel for the one-bounce gather (then averaged over ``filter_radius`` like neighbours).
-
-    Issue 23 chose 64 / 16 rays averaged over 5 x 5 like neighbours, for 128 / 24 over 3 x 3: fewer rays, and
-    less error against Mitsuba on every light set of benchmarks/bench_prepare.py (its table is in the docs'
-    benchmarks page); the wider bounce filter costs about 6 ms a frame at 512 px."""
-    filter_radius: int = 2
+    indirect_samples: int = 24
+    """Bounce rays per pixel for the one-bounce gather (then averaged over ``filter_radius`` like neighbours)."""
+    filter_radius: int = 1
     """The bounce filter's neighbourhood, (2 r + 1)^2 pixels (:func:`~.basis.bounce_filter`), applied to the
-    gathered bounce of every frame."""
+    gathered bounce of every frame (a wider one costs every frame: 5 x 5 about 6 ms more at 512 px)."""
     env_filter_radius: int = 2
-    """The same for the environment term (applied once per environment change)."""
+    """The same for the environment term, applied once per environment change. Issue 23 chose 64 environment
+    rays over 5 x 5 like neighbours for 128 over 3 x 3: half the rays, and no more error against Mitsuba than
+    the last default on any light set of benchmarks/bench_prepare.py (its table is in the docs' benchmarks
+    page)."""
     footprint: int = 4
     """k: k x k camera rays per pixel for its area-averaged albedo and coverage."""
     seed: int = 0
