@@ -290,7 +290,8 @@ def fit_fast_coarse_to_fine(prob: FitProblem, k: int = 16, env_shape=(8, 16), it
         curve = list(st.curve)
         tr = fit_transport(prob, env_shape, settings.env_samples, settings.indirect_samples, seed)
         if settings.filter_env and tr.H.shape[1]:
-            tr = FitTransport.of(tr, H=bounce_filter(prob).astype(np.float32) @ tr.H)  # float32: as H, and fast
+            tr = FitTransport.of(tr, H=bounce_filter(prob).astype(np.float32) @ tr.H,  # float32: as H, and fast
+                                 H_counts=None)
         t1 = time.perf_counter() - t0
         full = fit_fast(tr, st.positions, max(1, settings.polish_iterations), lr_rel=settings.polish_lr_rel,
                         smooth=smooth)

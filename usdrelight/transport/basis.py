@@ -42,6 +42,9 @@ class LightTransport:
     """Distances to point lights are clamped to this, metres."""
     eps: float
     """Secondary-ray origin offset, metres."""
+    H_counts: np.ndarray | None = None
+    """(N, J) the ray counts behind ``H`` as traced (H = H_counts / env_samples; uint8 up to 255 samples, else
+    uint16), kept for the transport cache; None once ``H`` is no longer the traced fractions."""
     env_filter: sp.csr_matrix | None = None
     """(N, N) averaging over like neighbours applied to the environment term (:meth:`environment`), or None:
     ``H`` is used as traced. Filtering the (N, 3) term rather than ``H`` keeps ``H`` exact ray counts and costs
@@ -157,6 +160,7 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
     o = surf.origins(eps)
     J = env_shape[0] * env_shape[1]
     H = np.zeros((N, J), np.float32)  # ray fractions k / S: exact in float32 when S is a power of two
+    H_counts = np.zeros((N, J), count_dtype(env_samples))
     # the rays are made, traced and binned by Mitsuba's JIT (float32, as the rays are): the same rays as
     # cosine_directions() of stratified() samples, whose numpy arrays cost several times the ray tracing
     if J and env_samples > 0:
@@ -174,7 +178,8 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
             dr.eval(flat, free)  # traced first: the scatter fused with the tracing is slower
             counts = dr.zeros(mi.UInt32, m * J)
             dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), flat, free)
-            np.divide(counts.numpy().reshape(m, J), np.float32(S), out=H[sl], dtype=np.float32)  # in float32
+            H_counts[sl] = counts.numpy().reshape(m, J)
+            np.divide(H_counts[sl], np.float32(S), out=H[sl], dtype=np.float32)  # in float32
     M = indirect_samples
     rows_all, cols_all = [], []
     if M > 0:
@@ -199,7 +204,12 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
             y[good] - cam, axis=1) + 4 * eps
         rows_all, cols_all = src[good], tgt[good]
     P = sp.csr_matrix((np.full(len(rows_all), 1.0 / max(M, 1)), (rows_all, cols_all)), shape=(N, N))
-    return LightTransport(surf, tuple(env_shape), H, P, surf.r_min, eps)
+    return LightTransport(surf, tuple(env_shape), H, P, surf.r_min, eps, H_counts=H_counts)
+
+
+def count_dtype(samples: int):
+    """The smallest unsigned integer type that holds ray counts up to ``samples``."""
+    return np.uint8 if samples <= 255 else np.uint16
 
 
 def project_to_pixels(surf: VisibleSurface, pts: np.ndarray) -> np.ndarray:

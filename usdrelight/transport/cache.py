@@ -33,7 +33,7 @@ from ..atomic import write_bytes_atomic
 from ..mitsuba.render import pixel_footprint
 from ..mitsuba.runtime import load_mitsuba
 from ..stage.records import SceneRecord, TextureRecord
-from .basis import LightTransport, bounce_filter, build_transport
+from .basis import LightTransport, bounce_filter, build_transport, count_dtype
 from .surface import R_MIN_REL, PixelFringe, VisibleSurface, geometry_scene, pixel_fringe, trace_surface
 
 try:  # POSIX; elsewhere entries in use are not protected from another process's eviction
@@ -268,8 +268,8 @@ def _arrays(prep: PreparedTransport, settings: TransportSettings) -> dict:
                 center=s.center, extent=s.extent, pixel_albedo=prep.pixel_albedo, coverage=prep.coverage,
                 fringe_pixels=prep.fringe.pixels, fringe_albedo=prep.fringe.albedo,
                 fringe_coverage=prep.fringe.coverage, fringe_source=prep.fringe.source,
-                H_counts=np.rint(tr.H * np.float32(settings.env_samples)).astype(
-                    np.uint8 if settings.env_samples <= 255 else np.uint16),
+                H_counts=tr.H_counts if tr.H_counts is not None else np.rint(tr.H * np.float32(
+                    settings.env_samples)).astype(count_dtype(settings.env_samples)),
                 P_counts=np.round(tr.P.data * settings.indirect_samples).astype(np.uint16),
                 P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
                 env_shape=np.asarray(tr.env_shape))
@@ -303,6 +303,7 @@ def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tupl
     # environment columns are ray counts over the environment samples per pixel
     H = _env_fractions(d["H_counts"], settings)
     tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), H, P, R_MIN_REL * surf.extent, surf.eps,
+                        H_counts=d["H_counts"],
                         env_filter=env_filter)
     fringe = PixelFringe(d["fringe_pixels"].astype(np.int64), d["fringe_albedo"], d["fringe_coverage"],
                          d["fringe_source"].astype(np.int64))
@@ -345,7 +346,8 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         # noise is the largest error of an environment-lit frame): the filter goes with the transport and is
         # applied to each (N, 3) environment term, so H stays the traced ray fractions (what is cached)
         smooth, env_filter = filters(surf, settings)
-        tr = LightTransport(surf, raw.env_shape, raw.H, raw.P, raw.r_min, raw.eps, env_filter=env_filter)
+        tr = LightTransport(surf, raw.env_shape, raw.H, raw.P, raw.r_min, raw.eps, H_counts=raw.H_counts,
+                            env_filter=env_filter)
         step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
                                                        settings.footprint)
