@@ -53,10 +53,9 @@ class FitTransport(LightTransport):
 
     def env_render(self, c: int, x: np.ndarray) -> np.ndarray:
         """T_H x (N,) in channel ``c`` for environment cell radiances ``x`` (J,)."""
-        H32, P32 = self._float32()
-        h = (H32 @ np.asarray(x, np.float32)).astype(np.float64)
+        h = (self._float32()[0] @ np.asarray(x, np.float32)).astype(np.float64)
         a = self.problem.albedo[:, c]
-        return a * (h + P32 @ (a * h))
+        return a * (h + self.P @ (a * h))  # the float64 P: a float32 one would be converted at every call
 
     def env_cross(self, u: np.ndarray, c: int) -> np.ndarray:
         """u^T T_H (K, J) in channel ``c`` for ``u`` (N, K), accumulated in float64 over row blocks."""

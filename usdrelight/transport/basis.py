@@ -179,7 +179,7 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
             counts = dr.zeros(mi.UInt32, m * J)
             dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), flat, free)
             H_counts[sl] = counts.numpy().reshape(m, J)
-            np.divide(H_counts[sl], np.float32(S), out=H[sl], dtype=np.float32)  # in float32
+            env_fractions(H_counts[sl], S, out=H[sl])
     M = indirect_samples
     rows_all, cols_all = [], []
     if M > 0:
@@ -210,6 +210,12 @@ def build_transport(surf: VisibleSurface, env_shape=(8, 16), env_samples: int = 
 def count_dtype(samples: int):
     """The smallest unsigned integer type that holds ray counts up to ``samples``."""
     return np.uint8 if samples <= 255 else np.uint16
+
+
+def env_fractions(counts: np.ndarray, samples: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Environment columns H = counts / samples in float32 (exact when ``samples`` is a power of two); the same
+    bits whether the counts were just traced or read back from the transport cache."""
+    return np.divide(counts, np.float32(max(samples, 1)), out=out, dtype=np.float32)
 
 
 def project_to_pixels(surf: VisibleSurface, pts: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ import io
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from ..atomic import write_bytes_atomic
 from ..mitsuba.render import pixel_footprint
 from ..mitsuba.runtime import load_mitsuba
 from ..stage.records import SceneRecord, TextureRecord
-from .basis import LightTransport, bounce_filter, build_transport, count_dtype
+from .basis import LightTransport, bounce_filter, build_transport, env_fractions
 from .surface import R_MIN_REL, PixelFringe, VisibleSurface, geometry_scene, pixel_fringe, trace_surface
 
 try:  # POSIX; elsewhere entries in use are not protected from another process's eviction
@@ -91,8 +91,8 @@ class PreparedTransport:
     fringe: PixelFringe
     """The partly covered pixels whose centre ray misses (depth cuts, the image border)."""
     smooth: sp.csr_matrix
-    """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface (also the transport's
-    ``env_filter``)."""
+    """(N, N) the bounce filter (:func:`~.basis.bounce_filter`) of the surface at ``filter_radius`` (the
+    transport's ``env_filter`` is the same matrix when ``env_filter_radius`` equals it)."""
     key: str
     """The content key (:func:`scene_key`)."""
     cache_hit: bool
@@ -268,8 +268,7 @@ def _arrays(prep: PreparedTransport, settings: TransportSettings) -> dict:
                 center=s.center, extent=s.extent, pixel_albedo=prep.pixel_albedo, coverage=prep.coverage,
                 fringe_pixels=prep.fringe.pixels, fringe_albedo=prep.fringe.albedo,
                 fringe_coverage=prep.fringe.coverage, fringe_source=prep.fringe.source,
-                H_counts=tr.H_counts if tr.H_counts is not None else np.rint(tr.H * np.float32(
-                    settings.env_samples)).astype(count_dtype(settings.env_samples)),
+                H_counts=tr.H_counts,
                 P_counts=np.round(tr.P.data * settings.indirect_samples).astype(np.uint16),
                 P_indices=tr.P.indices.astype(np.int32), P_indptr=tr.P.indptr.astype(np.int64),
                 env_shape=np.asarray(tr.env_shape))
@@ -284,11 +283,6 @@ def filters(surf: VisibleSurface, settings: TransportSettings) -> tuple:
     return smooth, bounce_filter(surf, settings.env_filter_radius)
 
 
-def _env_fractions(counts: np.ndarray, settings: TransportSettings) -> np.ndarray:
-    """The environment columns (float32) from their ray counts, as :func:`~.basis.build_transport` makes them."""
-    return np.divide(counts, np.float32(max(settings.env_samples, 1)), dtype=np.float32)
-
-
 def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tuple:
     rec = rec.with_lights(()).with_camera(rec.camera.limited(settings.max_side))
     W, H = int(d["width"]), int(d["height"])
@@ -301,10 +295,9 @@ def _from_arrays(d: dict, rec: SceneRecord, settings: TransportSettings) -> tupl
     P = sp.csr_matrix((d["P_counts"] / settings.indirect_samples, d["P_indices"], d["P_indptr"]), shape=(n, n))
     smooth, env_filter = filters(surf, settings)
     # environment columns are ray counts over the environment samples per pixel
-    H = _env_fractions(d["H_counts"], settings)
+    H = env_fractions(d["H_counts"], settings.env_samples)
     tr = LightTransport(surf, tuple(int(x) for x in d["env_shape"]), H, P, R_MIN_REL * surf.extent, surf.eps,
-                        H_counts=d["H_counts"],
-                        env_filter=env_filter)
+                        H_counts=d["H_counts"], env_filter=env_filter)
     fringe = PixelFringe(d["fringe_pixels"].astype(np.int64), d["fringe_albedo"], d["fringe_coverage"],
                          d["fringe_source"].astype(np.int64))
     if fringe.source.size and fringe.source.max() >= n:
@@ -346,8 +339,7 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         # noise is the largest error of an environment-lit frame): the filter goes with the transport and is
         # applied to each (N, 3) environment term, so H stays the traced ray fractions (what is cached)
         smooth, env_filter = filters(surf, settings)
-        tr = LightTransport(surf, raw.env_shape, raw.H, raw.P, raw.r_min, raw.eps, H_counts=raw.H_counts,
-                            env_filter=env_filter)
+        tr = replace(raw, env_filter=env_filter)
         step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
                                                        settings.footprint)
