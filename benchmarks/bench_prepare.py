@@ -55,9 +55,10 @@ OLD_DEFAULT = (128, 32, 4, 1, 1)
 NEW_DEFAULT = (TransportSettings.env_samples, TransportSettings.indirect_samples, TransportSettings.footprint,
                TransportSettings.env_filter_radius, TransportSettings.filter_radius)
 """The defaults now (marked * in the table)."""
-CONFIGS = [OLD_DEFAULT, (128, 24, 4, 1, 1), (64, 32, 4, 1, 1), (64, 16, 4, 1, 1), (32, 8, 4, 1, 1),
+CONFIGS = [OLD_DEFAULT, (128, 24, 4, 1, 1), (64, 32, 4, 1, 1), (64, 16, 4, 1, 1), (32, 8, 4, 1, 1), (64, 24, 4, 1, 1),
            (64, 32, 4, 2, 1), (64, 24, 4, 2, 1), (48, 24, 4, 2, 1), (64, 16, 4, 2, 1), (64, 16, 4, 2, 2),
-           (64, 12, 4, 2, 2), (32, 8, 4, 2, 2), (64, 24, 3, 2, 1), (64, 24, 4, 3, 1)]
+           (64, 12, 4, 2, 2), (48, 12, 4, 2, 2), (64, 8, 4, 2, 2), (32, 8, 4, 2, 2), (64, 24, 3, 2, 1),
+           (64, 24, 4, 3, 1), (64, 12, 3, 2, 2)]
 
 
 @dataclass(frozen=True)
