@@ -107,6 +107,7 @@ def rank(rows: list[dict], tol: float = TIE_DB) -> list[dict]:
     chosen = {id(r) for r in first}
     return first + sorted((r for r in rows if id(r) not in chosen), key=lambda r: -r["mean_gain_db"])
 
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", type=int, default=6)

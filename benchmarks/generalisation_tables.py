@@ -66,7 +66,7 @@ def main() -> None:
         for kind, r in sc["kinds"].items():
             auto_is.setdefault(kind, r.get("auto_is", "?"))
     real = d.get("real_photo", {})
-    real = {"left": real.get("kinds", {}), **{k: v for k, v in real.items() if k == "right"}}
+    real = {"left": real.get("kinds", {}), "right": real.get("right", {})}  # the left view's kinds are top-level
     for table in (psnr_table(d["means_per_family"], d["means_over_families"], auto_is),
                   ssim_detail_table(d["means_over_families"]), real_photo_table(real)):
         print("\n".join(table) + "\n")

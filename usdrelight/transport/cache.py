@@ -71,8 +71,8 @@ class TransportSettings:
     """The same for the environment term, applied once per environment change. Issue 23 chose, by error against
     Mitsuba and cold prepare time (benchmarks/bench_prepare.py, table on the docs' benchmarks page), 64
     environment rays and 12 bounce rays, both averaged over 5 x 5 like neighbours, for 128 and 32 over 3 x 3:
-    less error on every light set, a 40% shorter prepare (the bounce filter is then the environment filter, one
-    matrix), at about 6 ms more per frame."""
+    less error on five of its six light sets (0.02% more on the sixth), a 37% shorter prepare (the bounce filter
+    is then the environment filter, one matrix), at about 6 ms more per changed light's bounce filter."""
     footprint: int = 4
     """k: k x k camera rays per pixel for its area-averaged albedo and coverage."""
     seed: int = 0
