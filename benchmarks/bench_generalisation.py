@@ -39,7 +39,8 @@ detail correlation of each mode against the photo (no truth exists there).
 
 Writes benchmarks/results/generalisation.json and docs/manual/images/generalisation_<family>.png (per relight
 kind a row: photo, truth, D~, ratio, neural, auto; one exposure per row, the truth's) and
-generalisation_motorcycle.png (photo; its light replaced: D~, ratio, neural, auto at D~'s exposure). Run after `make setup`:
+generalisation_motorcycle.png / generalisation_motorcycle_right.png (left / right view: photo; its light replaced: D~,
+ratio, neural, auto at D~'s exposure). Run after `make setup`:
     python benchmarks/bench_generalisation.py [--scenes 2] [--spp 1024] [--width 128 --height 96]
 """
 from __future__ import annotations
@@ -231,8 +232,9 @@ def real_photo(args):
                 target[kind] = row
                 log.info("motorcycle %s %s %s", view, kind, {m: round(v["detail_photo"], 3)
                                                             for m, v in row.items() if isinstance(v, dict)})
-                if kind == "replace" and view == "left":
-                    write_contact_sheet(ROOT / "docs" / "manual" / "images" / "generalisation_motorcycle.png",
+                if kind == "replace":
+                    name = "generalisation_motorcycle.png" if view == "left" else "generalisation_motorcycle_right.png"
+                    write_contact_sheet(ROOT / "docs" / "manual" / "images" / name,
                                         [("photo", photo, photo)] + [(t, outs[m], outs["dtilde"]) for t, m in (
                                             ("replace: D~", "dtilde"), ("ratio", "ratio"), ("neural", "neural"),
                                             (f"auto (={s.mode})", "auto"))], outs["dtilde"], columns=5, fontsize=7)

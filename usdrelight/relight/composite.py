@@ -17,33 +17,63 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
   pixels that see no geometry filled from their neighbours; no photo needed
   (:func:`render_photo`).
 * ``transfer``: the physics render under the new lights with the photo's own detail: I' = N~ exp(w L(r) +
-  clip(H(r), -c, c)), with N~ and F~ the renders under the new and the fitted lights as a photo shows them
-  (``render`` below) and r = log((I + k) / (F~ + k)) what the fit does not explain: texture and fine shading the
-  2.5D albedo misses (kept, as high frequencies H, bounded by c), the old light's shadows and highlights that the
-  fitted render does explain (divided out). L(r), the low frequencies (light the fit missed: an out-of-view
-  occluder's shadow, indirect light), belongs to the photo's lights; it is kept in proportion w to how much of
-  the new light comes from where the photo's lights came from (:mod:`usdrelight.relight.light_match`): a
-  recoloured light keeps it (w -> 1: the ``ratio`` answer), a moved one does not (w -> 0: the render plus the
-  photo's detail).
-  Everything is bounded: I' is finite and >= 0, and it is N~ where the photo adds nothing.
+  clip(H(r), -c, c) - (1 - b) clip(D, -c, c)), with N~ and F~ the renders under the new and the fitted lights as a
+  photo shows them (``render`` below) and r = log((I + k) / (F~ + k)) what the fit does not explain: texture and
+  fine shading the 2.5D albedo misses (kept, as high frequencies H, bounded by c), the old light's shadows and
+  highlights that the fitted render does explain (divided out). L(r), the low frequencies (light the fit missed:
+  an out-of-view occluder's shadow, indirect light), belongs to the photo's lights; it is kept in proportion w to
+  how much of the new light comes from where the photo's lights came from
+  (:mod:`usdrelight.relight.light_match`): a recoloured light keeps it (w -> 1: the ``ratio`` answer), a moved one
+  does not (w -> 0: the render plus the photo's detail). D = H(log(N~ + k)) - H(log(F~ + k)) is the change of
+  the renders' own fine shading (below the split scale) from the fitted to the new lights: the 2.5D mesh's fine
+  normals, the renderer's noise and aliased shadow edges; only the share b of it is kept
+  (:data:`TRANSFER_RENDER_DETAIL`), the rest of the fine scale is the photo's. At b = 0,
+  I' ~ exp(L(log N~) + w L(r) + H(log I)): the new light at coarse scales, the photo at fine ones.
+  Everything is bounded: I' is finite and >= 0, never below e^-c of N~, and it is N~ where the photo adds nothing
+  and the renders' fine shading does not change.
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..neural.model import hole_fill
 
 MODES = ("neural", "ratio", "add", "render", "transfer")
-TRANSFER_SIGMA = 2.0
+TRANSFER_SIGMA = 4.0
 """``transfer``: the Gaussian (pixels at 512 px on the longer side; scaled with the image) that splits the log
 residual into low (L) and high (H) frequencies. Calibrated on the training generator's scenes only
 (benchmarks/calibrate_transfer.py), never on the held-out families."""
-TRANSFER_CLIP = 2.0
-"""``transfer``: the bound c on the high-frequency log residual: detail may scale a pixel by 0.14..7.4, never
+TRANSFER_CLIP = 2.9
+"""``transfer``: the bound c on the high-frequency log residual: detail may scale a pixel by 0.055..18, never
 below 5% of the physics render (bounds tried below log 20 only; calibrated like :data:`TRANSFER_SIGMA`)."""
+TRANSFER_RENDER_DETAIL = 0.25
+"""``transfer``: the share b of the renders' own fine-scale shading change (below :data:`TRANSFER_SIGMA`) that is
+kept; the rest of the fine scale comes from the photo. Calibrated like :data:`TRANSFER_SIGMA` (0, 0.25, 0.5,
+0.75, 1 tried; 1 was this mode before)."""
+
+
+class TransferReference(NamedTuple):
+    """What ``transfer`` keeps of the photo and the fitted render F~ (:func:`transfer_reference`); log images
+    (H, W, 3) float64 at the photo's resolution."""
+
+    low: np.ndarray
+    """L(r): the Gaussian low-pass of r = log((I + k) / (F~ + k))."""
+    high: np.ndarray
+    """clip(H(r), -c, c): r minus its low-pass, bounded by the clip c."""
+    fitted_detail: np.ndarray
+    """H(log(F~ + k)): the fitted render's own fine shading."""
+    k: np.ndarray
+    """(3,) the guard: 1% of F~'s mean over the valid pixels, per channel (linear RGB)."""
+    sigma: float
+    """The split scale in pixels."""
+    clip: float
+    """The bound c."""
+
 def ratio_guard(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, k_rel: float = 0.01,
                 sigmas: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """(k_up, k_down), each (3,) per channel: ``sigmas`` x the RMS of I - F over valid pixels (at least k_down),
@@ -101,32 +131,49 @@ def render_photo(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     return hole_fill(out.astype(np.float32), seen)
 
 
-def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, sigma: float | None = None,
-                       clip: float = TRANSFER_CLIP):
-    """What ``transfer`` needs of the photo and the fitted render F~ (as a photo shows it), the same for every
-    new render: (L(r), clip(H(r), -c, c)) with r = log((I + k) / (F~ + k)), k = 1% of F~'s mean
-    per channel; ``sigma`` in pixels (default :data:`TRANSFER_SIGMA` scaled to the image's longer side)."""
+def _split_high(log_img: np.ndarray, sigma: float) -> np.ndarray:
+    """H(x) = x minus its Gaussian blur (``sigma`` pixels, per channel, edges replicated)."""
     from scipy.ndimage import gaussian_filter
 
+    s = max(sigma, 1e-3)
+    return log_img - gaussian_filter(log_img, (s, s, 0), mode="nearest")
+
+
+def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, sigma: float | None = None,
+                       clip: float = TRANSFER_CLIP) -> TransferReference:
+    """What ``transfer`` needs of the photo and the fitted render F~ (as a photo shows it), the same for every
+    new render (:class:`TransferReference`): r = log((I + k) / (F~ + k)) split into L(r) and clip(H(r), -c, c),
+    k = 1% of F~'s mean per channel; ``sigma`` in pixels (default :data:`TRANSFER_SIGMA` scaled to the image's
+    longer side)."""
     if sigma is None:
         sigma = TRANSFER_SIGMA * max(photo.shape[:2]) / 512.0
     f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
     sel = valid if valid.any() else np.ones(valid.shape, bool)
     k = np.maximum(0.01 * f[sel].mean(0), 1e-8)
-    r = np.clip(np.log(np.maximum(photo, 0.0) + k) - np.log(f + k), -7.0, 7.0)
-    low = gaussian_filter(r, (max(sigma, 1e-3), max(sigma, 1e-3), 0), mode="nearest")
-    return low, np.clip(r - low, -clip, clip)
+    log_f = np.log(f + k)
+    r = np.clip(np.log(np.maximum(photo, 0.0) + k) - log_f, -7.0, 7.0)
+    high = _split_high(r, sigma)
+    return TransferReference(r - high, np.clip(high, -clip, clip), _split_high(log_f, sigma), k, float(sigma),
+                             float(clip))
 
 
-def transfer_apply(new: np.ndarray, reference, weight: float = 0.0, floor: float = -TRANSFER_CLIP) -> np.ndarray:
-    """N~ exp(max(w L(r) + clip(H(r)), floor)) for a :func:`transfer_reference`; ``new`` is N~, the new render as
-    a photo shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in [0, 1]: how much the
-    new lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`). The ``floor`` (the
-    detail bound's -c by default) keeps every pixel at e^floor (13.5%) of the physics render or more: where the
-    photo is far darker than its fit (a shadow the fit did not explain), the kept darkness is bounded as the
-    detail is, never a blacked-out pixel. Finite, >= 0."""
-    low, high = reference
+def transfer_apply(new: np.ndarray, reference: TransferReference, weight: float = 0.0,
+                   floor: float | None = None, render_detail: float = TRANSFER_RENDER_DETAIL) -> np.ndarray:
+    """N~ exp(max(w L(r) + clip(H(r)) - (1 - b) clip(D), floor)) for a :func:`transfer_reference`; ``new`` is N~,
+    the new render as a photo shows it (:func:`render_photo`: coverage-divided, holes filled); ``weight`` w in
+    [0, 1]: how much the new lights are the photo's own (:func:`usdrelight.relight.light_match.match_weight`);
+    ``render_detail`` b: the share of the renders' fine shading change D = H(log(N~ + k)) - H(log(F~ + k)) kept.
+    The ``floor`` (the bound's -c by default) keeps every pixel at e^floor (5.5%) of the physics render or more:
+    where the photo is far darker than its fit (a shadow the fit did not explain), the kept darkness is bounded
+    as the detail is, never a blacked-out pixel. Finite, >= 0."""
+    ref = reference
     n = np.maximum(new, 0.0).astype(np.float64)
     w = float(np.clip(weight, 0.0, 1.0)) if np.isfinite(weight) else 0.0
-    out = n * np.exp(np.maximum(w * low + high, floor))
+    b = float(np.clip(render_detail, 0.0, 1.0)) if np.isfinite(render_detail) else 0.0
+    log_gain = w * ref.low + ref.high
+    if b < 1.0:
+        d = _split_high(np.log(n.astype(np.float32) + ref.k.astype(np.float32)), ref.sigma)  # float32: 2x faster
+        d = d - ref.fitted_detail
+        log_gain -= (1.0 - b) * np.clip(d, -ref.clip, ref.clip)
+    out = n * np.exp(np.maximum(log_gain, -ref.clip if floor is None else floor))
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-MATCH_ANGLE_DEG = 20.0
+MATCH_ANGLE_DEG = 30.0
 """A new light fully matches a photo light at the same direction and not at all at this angle or more (linear
 in the cosine between). Calibrated on the training generator's scenes only (benchmarks/calibrate_transfer.py)."""
 

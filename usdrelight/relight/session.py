@@ -48,7 +48,8 @@ brightened) or switched off and the stage has fitted lights and its photo, and `
 D~, holes filled) otherwise. Chosen by measurement: on the training generator's scenes
 (benchmarks/calibrate_transfer.py: dimmed -> transfer +1.4 dB over ratio) and on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
-dimmed -> transfer ahead of ratio; replaced or recoloured -> transfer ahead of D~, ratio and the network."""
+dimmed -> transfer ahead of ratio; replaced or recoloured -> transfer ahead of D~, ratio and the network on
+average (replace: 1.1 dB behind the coverage-correct render in one family, recolour ahead in every one)."""
 
 
 def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False,
