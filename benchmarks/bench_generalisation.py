@@ -64,14 +64,17 @@ from families import FAMILIES, ground_truth_maps, make_family_scene, render  # n
 from usdrelight.fit.run import FitSettings, fit  # noqa: E402
 from usdrelight.imageio import write_image  # noqa: E402
 from usdrelight.neural.model import hole_fill  # noqa: E402
+from usdrelight.neural.residual import DEFAULT_RESIDUAL  # noqa: E402
 from usdrelight.relight.contact_sheet import tonemapped, write_contact_sheet  # noqa: E402
 from usdrelight.relight.session import RelightSession  # noqa: E402
 from usdrelight.stage.build import BuildOptions, build  # noqa: E402
 
 log = logging.getLogger("bench_generalisation")
+RESIDUAL = ("residual",) if DEFAULT_RESIDUAL.is_file() else ()
+"""The ``residual`` mode (transfer x the residual network's bounded gain) when its model is shipped."""
 LUM = np.array([0.2126, 0.7152, 0.0722])
 KINDS = ("add", "dim", "replace", "recolour")
-OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "transfer", "auto", "photo")
+OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "transfer", "residual", "auto", "photo")
 
 
 def psnr_ssim(img, truth, valid):
@@ -103,13 +106,13 @@ def detail_corr(relit, ref, valid):
     return float(np.corrcoef(a, b)[0, 1])
 
 
-def photo_stage(family, seed, args, work):
-    """Path trace a family scene's photo, build its stage from exact depth/intrinsics/albedo and fit it:
-    (scene, stage path, photo, ground-truth valid mask, the row's fit fields)."""
-    sc = make_family_scene(family, seed, args.width, args.height)
+def fitted_stage(sc, work: Path, spp: int):
+    """Path trace ``sc``'s photo (``spp``), build its stage in ``work/NAME`` from exact depth, intrinsics and
+    albedo and fit it (the fast fit, at most 8 lights, no verification render): (stage path, photo, ground-truth
+    valid mask, fit report, fit seconds). Also what scripts/make_transfer_pairs.py makes training stages with."""
     d = work / sc.name
     d.mkdir(parents=True, exist_ok=True)
-    photo = render(sc, [], 1.0, spp=args.spp)
+    photo = render(sc, [], 1.0, spp=spp)
     depth, albedo, gt_valid = ground_truth_maps(sc)
     write_image(d / "photo.exr", photo, "float")
     write_image(d / "depth.exr", depth, "float")
@@ -119,9 +122,17 @@ def photo_stage(family, seed, args, work):
     build(d / "photo.exr", d / "stage", BuildOptions(depth=d / "depth.exr", intrinsics=d / "intrinsics.json",
                                                    albedo=d / "albedo.exr"))
     t_fit = time.perf_counter()
-    rep = fit(stage, FitSettings(lights=8, max_side=max(args.width, args.height), verify_spp=0))
+    rep = fit(stage, FitSettings(lights=8, max_side=max(sc.width, sc.height), verify_spp=0))
+    return stage, photo, gt_valid, rep, time.perf_counter() - t_fit
+
+
+def photo_stage(family, seed, args, work):
+    """Path trace a family scene's photo, build its stage from exact depth/intrinsics/albedo and fit it:
+    (scene, stage path, photo, ground-truth valid mask, the row's fit fields)."""
+    sc = make_family_scene(family, seed, args.width, args.height)
+    stage, photo, gt_valid, rep, seconds = fitted_stage(sc, work, args.spp)
     row = {"family": family, "scene": sc.name, "photo_lights": sc.photo_lights, "hdri_sky": sc.hdri is not None,
-           "fit_psnr_db": rep.psnr_db, "fit_seconds": time.perf_counter() - t_fit, "kinds": {}}
+           "fit_psnr_db": rep.psnr_db, "fit_seconds": seconds, "kinds": {}}
     return sc, stage, photo, gt_valid, row
 
 
@@ -138,7 +149,7 @@ def scene_run(family, seed, args, work, sheets):
                                            fitted_scale=r["fitted_scale"], mode="auto")
         s = sessions[key]
         outs = {}
-        for mode in ("ratio", "neural", "render", "transfer") + (("add",) if kind == "add" else ()):
+        for mode in ("ratio", "neural", "render", "transfer") + RESIDUAL + (("add",) if kind == "add" else ()):
             fr = s.render(r["lights"], mode=mode)
             outs[mode] = fr.image
             if mode == "ratio":  # D~: the render under all the session's lights (mode add renders only the new)
@@ -213,7 +224,7 @@ def real_photo(args):
             with RelightSession(stage, max_side=args.real_side, with_fitted=wf, fitted_scale=k, mode="auto") as s:
                 photo = s.source_photo()
                 outs = {}
-                for mode in ("ratio", "neural", "render", "transfer") + (("add",) if kind == "add" else ()):
+                for mode in ("ratio", "neural", "render", "transfer") + RESIDUAL + (("add",) if kind == "add" else ()):
                     fr = s.render(lights, mode=mode)
                     outs[mode] = fr.image
                     if mode == "ratio":
@@ -315,7 +326,7 @@ def main():
             for kind, v in kinds.items():
                 print(f"{view:5s} {kind:8s} " + "  ".join(
                     f"{o}={v[o]['detail_photo']:.3f} ({v[o]['blacked_pct']:.3f}%)" for o in (
-                        "dtilde", "ratio", "add", "neural", "render", "transfer", "auto") if o in v)
+                        "dtilde", "ratio", "add", "neural", "render", "transfer", "residual", "auto") if o in v)
                       + f"  (auto={v['auto_is']})" + (f" identity exact {v['identity_bit_exact']}, darkened "
                                                       f"{v['darkened_pct']:.3f}%" if kind == "add" else ""))
     print(f"total {time.perf_counter() - t0:.0f} s")

@@ -10,14 +10,14 @@ import json
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "transfer")
+OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "transfer", "residual")
 KINDS = ("add", "dim", "replace", "recolour")
 
 
 def psnr_table(means_per_family: dict, means_over: dict, auto_is: dict) -> list[str]:
     """PSNR per family and kind, best bold, ``auto`` with the mode it resolved to, ``auto - render``."""
-    lines = ["| family | kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `auto` | photo | "
-             "`auto` - `render` |", "|---" * 11 + "|"]
+    lines = ["| family | kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `residual` | `auto` | "
+             "photo | `auto` - `render` |", "|---" * 12 + "|"]
     rows = [(f, means_per_family[f]) for f in sorted(means_per_family)] + [("**mean of families**", means_over)]
     for fam, per in rows:
         for kind in KINDS:
@@ -34,7 +34,8 @@ def psnr_table(means_per_family: dict, means_over: dict, auto_is: dict) -> list[
 
 def ssim_detail_table(means_over: dict) -> list[str]:
     """SSIM / detail correlation with the photo, mean of families."""
-    lines = ["| kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `auto` | photo |", "|---" * 9 + "|"]
+    lines = ["| kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `residual` | `auto` | photo |",
+             "|---" * 10 + "|"]
     for kind in KINDS:
         r = means_over[kind]
         cells = [f"{r[o]['ssim']:.3f} / {r[o]['detail_photo']:.2f}" if o in r else "-"
@@ -45,7 +46,8 @@ def ssim_detail_table(means_over: dict) -> list[str]:
 
 def real_photo_table(real: dict) -> list[str]:
     """Detail correlation (blacked-out %) per view, kind and output on the real photos."""
-    lines = ["| view | kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `auto` |", "|---" * 9 + "|"]
+    lines = ["| view | kind | D~ | `ratio` | `add` | `neural` | `render` | `transfer` | `residual` | `auto` |",
+             "|---" * 10 + "|"]
     for view in ("left", "right"):
         for kind, r in real.get(view, {}).items():
             if not isinstance(r, dict) or "auto" not in r:

@@ -219,7 +219,7 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
     assert kept["mode"] == "add"  # auto: the photo's light kept as it is, a light added
     off = cli.json("relight", fitted_stage, "--light", "point:0.5,1.0,-2.5:3,2,1", "--max-side", "48",
                    "-o", tmp_path / "off")
-    assert off["mode"] == "transfer"  # auto: the photo's light is switched off (and a fit exists)
+    assert off["mode"] == "residual"  # auto: the photo's light is switched off (and a fit exists)
     from usdrelight.neural.model import hole_fill
     from usdrelight.relight.session import RelightSession
     from usdrelight.stage.light_specs import parse_lights as s_lights
@@ -236,7 +236,7 @@ def test_relight_cli_default_mode_fitted_scale_and_contact_sheet(cli, fitted_sta
         lum = frame.image.mean(-1)
         for edge, inner in ((lum[0], lum[1]), (lum[-1], lum[-2]), (lum[:, 0], lum[:, 1]), (lum[:, -1], lum[:, -2])):
             assert edge.mean() == pytest.approx(inner.mean(), rel=0.1)
-    with RelightSession(fitted_stage, max_side=48, mode="transfer") as s:  # what the command wrote
+    with RelightSession(fitted_stage, max_side=48, mode="residual") as s:  # what the command wrote
         np.testing.assert_allclose(read_map(off["exr"], 3), s.render(["point:0.5,1.0,-2.5:3,2,1"]).image,
                                    rtol=1e-6, atol=1e-7)
     sheet = read_photo(rep["contact_sheet"])

@@ -203,7 +203,7 @@ def test_per_light_terms_are_reused_and_render_what_an_uncached_engine_renders(s
 # ---- safety -------------------------------------------------------------------------------------------
 def test_app_auto_mode_follows_relights_rule_per_frame(stage):
     """The app's default mode is auto, resolved per frame as `relight` resolves it (add with the photo's lighting
-    on at 1, transfer dimmed or off), on one shared session; each frame equals the fixed mode's frame."""
+    on at 1, transfer dimmed, residual off), on one shared session; each frame equals the fixed mode's frame."""
     from usdrelight.relight.session import RelightSession
     from usdrelight.serve.live import DEFAULT_MODE, LightSet, LiveRelight
 
@@ -211,7 +211,7 @@ def test_app_auto_mode_follows_relights_rule_per_frame(stage):
     live = LiveRelight(stage, max_side=SIDE)
     assert live.mode == "auto"
     key = (LightState("P", "point", color=(1.0, 0.8, 0.6), intensity=6.0, position=(0.3, 0.8, -2.0)),)
-    want = {(True, 1.0): "add", (True, 0.4): "transfer", (False, 1.0): "transfer", (True, 0.0): "transfer"}
+    want = {(True, 1.0): "add", (True, 0.4): "transfer", (False, 1.0): "residual", (True, 0.0): "residual"}
     for (on, dimmer), mode in want.items():
         auto = LightSet(key, fitted_on=on, dimmer=dimmer, mode="auto")
         assert live.resolve(auto) == mode
@@ -220,7 +220,7 @@ def test_app_auto_mode_follows_relights_rule_per_frame(stage):
         np.testing.assert_array_equal(got, fixed)
         assert np.all(np.isfinite(got)) and got.min() >= 0
     assert len(live._sessions) == 1  # one renderer for every mode
-    with RelightSession(stage, max_side=SIDE, stage_lights=False, mode="transfer") as s:  # as relight makes it
+    with RelightSession(stage, max_side=SIDE, stage_lights=False, mode="residual") as s:  # as relight makes it
         off = live.render(LightSet(key, fitted_on=False, mode="auto"))[0]
         np.testing.assert_allclose(off, s.render(live.lights(LightSet(key, fitted_on=False))).image, rtol=1e-6,
                                    atol=1e-7)

@@ -357,7 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--port", type=_port, default=8080, help="port (the next free one when taken; 0 = any)")
     sv.add_argument("--hdri", type=Path, action="append", metavar="FILE",
                     help="latlong HDRI (.exr/.hdr) offered to dome lights (repeatable)")
-    sv.add_argument("--mode", choices=["auto", "neural", "ratio", "add", "render", "transfer"],
+    sv.add_argument("--mode", choices=["auto", "neural", "ratio", "add", "render", "transfer", "residual"],
                     help="initial output mode (default: auto, resolved per frame as relight resolves it)")
     sv.add_argument("--max-side", type=_positive_int, default=512, help="longer side of the live frames, pixels")
     sv.set_defaults(func=cmd_serve)

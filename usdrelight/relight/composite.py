@@ -31,6 +31,9 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
   I' ~ exp(L(log N~) + w L(r) + H(log I)): the new light at coarse scales, the photo at fine ones.
   Everything is bounded: I' is finite and >= 0, never below e^-c of N~, and it is N~ where the photo adds nothing
   and the renders' fine shading does not change.
+* ``residual`` (run by :class:`usdrelight.relight.session.RelightSession`, not here): the ``transfer`` picture
+  times exp(g), g a network's log gain bounded to +-0.7 (:mod:`usdrelight.neural.residual`); an untrained
+  network returns ``transfer``.
 * ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
   Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
   is only ever added.
@@ -43,7 +46,7 @@ import numpy as np
 
 from ..neural.model import hole_fill
 
-MODES = ("neural", "ratio", "add", "render", "transfer")
+MODES = ("neural", "ratio", "add", "render", "transfer", "residual")
 TRANSFER_SIGMA = 4.0
 """``transfer``: the Gaussian (pixels at 512 px on the longer side; scaled with the image) that splits the log
 residual into low (L) and high (H) frequencies. Calibrated on the training generator's scenes only

@@ -8,7 +8,8 @@ The stage's user lights apply unless ``stage_lights=False``; its fitted lights (
 
 Modes (:mod:`usdrelight.relight.composite`): ``neural`` (the network on D~, albedo and mask), ``ratio`` (the photo
 times the new render over the fitted render), ``add`` (the photo plus the render of the added lights), ``render``
-(D~ as a photo shows it) and ``transfer`` (``render`` with the photo's own detail).
+(D~ as a photo shows it), ``transfer`` (``render`` with the photo's own detail) and ``residual`` (``transfer``
+times a network's bounded, smooth gain: :mod:`usdrelight.neural.residual`).
 
 Renderers (:func:`usdrelight.engine.open_renderer`): ``fast`` (default; light-independent work in the transport
 cache, ``STAGE_DIR/cache``) or ``mitsuba`` (path tracing, the reference). The fast renderer handles Lambertian
@@ -29,6 +30,7 @@ from ..engine.fast import content_key
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
 from ..neural.model import RelightModel, build_input, hole_fill
+from ..neural.residual import DEFAULT_RESIDUAL, ResidualModel, apply_gain, residual_input
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.light_specs import parse_lights
@@ -36,15 +38,16 @@ from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
-from .composite import (MODES, add_composite, ratio_apply, ratio_reference, render_photo, transfer_apply,
-                        transfer_reference)
+from .composite import (MODES, TRANSFER_CLIP, add_composite, ratio_apply, ratio_reference, render_photo,
+                        transfer_apply, transfer_reference)
 from .light_match import match_angles, match_weight, scene_centre
 
 log = logging.getLogger(__name__)
 DEFAULT_MODE = "auto"
 """The mode ``relight`` uses unless told otherwise: ``auto`` is ``add`` when the photo's own (fitted) lighting is
 kept as it is, ``transfer`` (the physics render with the photo's own detail) when it is scaled (dimmed or
-brightened) or switched off and the stage has fitted lights and its photo, and ``render`` (the physics render
+brightened), ``residual`` (``transfer`` corrected by the residual network) when it is switched off, both when the
+stage has fitted lights and its photo, and ``render`` (the physics render
 D~, holes filled) otherwise. Chosen by measurement: on the training generator's scenes
 (benchmarks/calibrate_transfer.py: dimmed -> transfer +1.4 dB over ratio) and on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
@@ -52,11 +55,17 @@ dimmed -> transfer ahead of ratio; replaced or recoloured -> transfer ahead of D
 average (replace: 1.1 dB behind the coverage-correct render in one family, recolour ahead in every one)."""
 
 
+OFF_MODE = "residual" if DEFAULT_RESIDUAL.is_file() else "transfer"
+"""``auto``'s mode when the photo's own lighting is switched off and the stage is fitted: ``residual`` (transfer
+corrected by the shipped residual network), ahead of ``transfer`` on average on the held-out families for replaced
+and recoloured lights (docs "Generalisation"); ``transfer`` when the network is not installed."""
+
+
 def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False,
                  fitted_known: bool = False) -> str:
     """The mode that runs: ``auto`` -> add when the fitted lights are kept unscaled and the photo is known,
-    transfer when they are kept scaled (``fitted_scaled``) or are off but exist (``fitted_known``) and the photo
-    is known, else render (:func:`usdrelight.relight.composite.render_photo`)."""
+    transfer when they are kept scaled (``fitted_scaled``), :data:`OFF_MODE` when they are off but exist
+    (``fitted_known``) and the photo is known, else render (:func:`usdrelight.relight.composite.render_photo`)."""
     if mode not in ("auto", *MODES):
         raise UsdRelightError(f"unknown mode {mode!r} (auto, {', '.join(MODES)})")
     if mode != "auto":
@@ -64,7 +73,7 @@ def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled:
     if not photo_known:
         return "render"
     if not fitted_kept:
-        return "transfer" if fitted_known else "render"
+        return OFF_MODE if fitted_known else "render"
     return "transfer" if fitted_scaled else "add"
 
 
@@ -142,12 +151,14 @@ class RelightSession:
                             fitted_scale != 1.0, bool(fitted))
         self.max_depth, self.mode = max_depth, mode
         self._model_path = model_path
-        self.model = self.photo = None
+        self.model = self.photo = self.residual_model = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
         self._transfer_reference = None  # the photo's residual over the fitted render, split: once
+        self._transfer_fitted = None  # the fitted render as a photo shows it (the residual's input): once
         self._centre = None  # the scene's centre (transfer's light matching): once
         self._shares = {}  # light content -> its direct light's sum (transfer's light matching)
         self._filled_albedo = None  # the albedo AOV hole-filled (neural input): once per session
+        self._residual_albedo = None  # the same, filled where no geometry is seen (residual input): once
         self.prepare_mode(mode)
         self.seconds = {"read": perf_counter() - t0}
         cache = cache if cache is not None else TransportCache.for_stage(self.stage_path)
@@ -204,10 +215,12 @@ class RelightSession:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
         if mode == "neural" and self.model is None:
             self.model = RelightModel(self._model_path)
-        if mode in ("ratio", "transfer") and not self.fitted_lights:
+        if mode in ("ratio", "transfer", "residual") and not self.fitted_lights:
             raise UsdRelightError(f"mode {mode} needs the fitted lights: run `usdrelight fit` first, "
                                   "or choose --mode render or --mode add")
-        if mode in ("ratio", "add", "transfer") and self.photo is None:
+        if mode == "residual" and self.residual_model is None:
+            self.residual_model = ResidualModel()
+        if mode in ("ratio", "add", "transfer", "residual") and self.photo is None:
             self.photo = self._photo()
 
     @property
@@ -293,14 +306,23 @@ class RelightSession:
                 self._ratio_reference = ratio_reference(self.photo, fitted, valid)
             image = ratio_apply(self.photo, beauty, valid, self._ratio_reference)
             sec["composite"] = perf_counter() - t
-        elif mode == "transfer":
+        elif mode in ("transfer", "residual"):
             if self._transfer_reference is None:
                 fitted = self.engine.render(list(self._photo_lights))
-                self._transfer_reference = transfer_reference(
-                    self.photo, render_photo(fitted.beauty, fitted.coverage), fitted.coverage > 0)
-            image = transfer_apply(render_photo(beauty, aovs.coverage), self._transfer_reference,
-                                   self.transfer_weight(all_lights))
+                self._transfer_fitted = render_photo(fitted.beauty, fitted.coverage)
+                self._transfer_reference = transfer_reference(self.photo, self._transfer_fitted, fitted.coverage > 0)
+            new, w = render_photo(beauty, aovs.coverage), self.transfer_weight(all_lights)
+            image = transfer_apply(new, self._transfer_reference, w)
             sec["composite"] = perf_counter() - t
+            if mode == "residual":  # the network's bounded gain on the transfer picture
+                t = perf_counter()
+                seen = aovs.coverage > 0
+                if self._residual_albedo is None:  # filled where nothing is seen, as in training
+                    self._residual_albedo = hole_fill(np.clip(albedo, 0.0, 1.0), seen)
+                x = residual_input(image, new, self._transfer_fitted, self.photo, self._transfer_reference.low,
+                                   albedo, seen, w, self._residual_albedo)
+                image = apply_gain(image, self.residual_model(x), np.exp(-TRANSFER_CLIP) * new)
+                sec["network"] = perf_counter() - t
         elif mode == "render":
             image = render_photo(beauty, aovs.coverage)
             sec["composite"] = perf_counter() - t

@@ -7,7 +7,7 @@ lighting, 1 = as fitted, 0 = off: day to night). Mode ``ratio`` divides by the r
 lighting, so dimming it darkens the photo itself; mode ``add`` keeps the photo's light, so the fitted lights
 are never added again there (the dimmer does not apply). Mode ``auto`` (the default, as ``relight``'s) picks per
 frame what :func:`usdrelight.relight.session.resolve_mode` picks: ``add`` while the photo's lighting is on at 1,
-``transfer`` while it is dimmed or off. When the stage animates lights (time samples), the
+``transfer`` while it is dimmed, ``residual`` while it is off. When the stage animates lights (time samples), the
 other lights are read at the light set's time code (the app's timeline frame).
 
 :class:`FrameLoop` is the update path: a GUI thread calls :meth:`FrameLoop.request` with the newest light set
@@ -208,7 +208,7 @@ class LiveRelight:
 
     def resolve(self, ls: LightSet) -> str:
         """The fixed mode that renders ``ls``: its own, or for ``auto`` add (the photo's lighting on at 1),
-        transfer (dimmed or off; render without a fit or a photo), as ``relight`` resolves it."""
+        transfer (dimmed), residual (off; render without a fit or a photo), as ``relight`` resolves it."""
         if ls.mode != "auto":
             return ls.mode
         kept = bool(self.fitted) and ls.fitted_on and ls.dimmer > 0

@@ -1,0 +1,106 @@
+"""The transfer residual: its input, its contract, an untrained network returns ``transfer`` exactly, the gain is
+bounded whatever the weights and the input."""
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from usdrelight.errors import UsdRelightError
+from usdrelight.neural.residual import BOUND, CHANNELS, ResidualModel, apply_gain, residual_input
+
+
+def _conv_model(path, weight: np.ndarray, bias: np.ndarray, name_out="log_gain", channels=CHANNELS):
+    """A one-layer residual of the contract: BOUND x tanh(conv3x3(input))."""
+    nodes = [helper.make_node("Conv", ["input", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
+             helper.make_node("Tanh", ["c"], ["t"]),
+             helper.make_node("Mul", ["t", "bound"], [name_out])]
+    inits = [numpy_helper.from_array(weight.astype(np.float32), "w"),
+             numpy_helper.from_array(bias.astype(np.float32), "b"),
+             numpy_helper.from_array(np.array(BOUND, np.float32), "bound")]
+    graph = helper.make_graph(nodes, "residual",
+                              [helper.make_tensor_value_info("input", TensorProto.FLOAT, [1, channels, "h", "w"])],
+                              [helper.make_tensor_value_info(name_out, TensorProto.FLOAT, [1, 3, "h", "w"])], inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), path)
+    return path
+
+
+def _images(h=21, w=30, seed=0):
+    rng = np.random.default_rng(seed)
+    t, n, f, p = (rng.uniform(0.01, 2.0, (h, w, 3)).astype(np.float32) for _ in range(4))
+    low = rng.normal(0, 0.3, (h, w, 3)).astype(np.float32)
+    alb = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    seen = rng.uniform(size=(h, w)) > 0.1
+    return t, n, f, p, low, alb, seen
+
+
+def test_residual_input_is_exposure_free_and_bounded():
+    t, n, f, p, low, alb, seen = _images()
+    x = residual_input(t, n, f, p, low, alb, seen, 0.4)
+    assert x.shape == (CHANNELS, 21, 30) and x.dtype == np.float32
+    # every image 10x brighter (the lights 10x stronger): the same input, the guard scaling with the render
+    y = residual_input(10 * t, 10 * n, 10 * f, 10 * p, low, alb, seen, 0.4)
+    np.testing.assert_allclose(x, y, atol=2e-5)
+    assert np.all(x[19] == np.float32(0.4)) and np.array_equal(x[18] == 1, ~seen)
+    # extreme inputs: zeros, huge values, NaN weight: finite and within [-8, 8]
+    for k in (0.0, 1e30):
+        z = residual_input(t * k, n, f * k, p * k, low * 1e6, alb, seen, float("nan"))
+        assert np.all(np.isfinite(z)) and np.abs(z).max() <= 8.0
+
+
+def test_an_untrained_residual_returns_transfer_exactly(tmp_path):
+    path = _conv_model(tmp_path / "zero.onnx", np.zeros((3, CHANNELS, 3, 3)), np.zeros(3))
+    model = ResidualModel(path)
+    t, n, f, p, low, alb, seen = _images()  # 21 x 30: padded to multiples of 8 and cropped back
+    g = model(residual_input(t, n, f, p, low, alb, seen, 0.0))
+    assert g.shape == (21, 30, 3)
+    assert np.array_equal(apply_gain(t, g), t)
+
+
+def test_the_gain_is_bounded_whatever_the_weights(tmp_path):
+    rng = np.random.default_rng(1)
+    path = _conv_model(tmp_path / "wild.onnx", rng.normal(0, 50, (3, CHANNELS, 3, 3)), rng.normal(0, 50, 3))
+    model = ResidualModel(path)
+    t, n, f, p, low, alb, seen = _images(seed=2)
+    out = apply_gain(t, model(residual_input(t, n, f, p, low, alb, seen, 1.0)))
+    assert np.all(np.isfinite(out)) and out.min() >= 0
+    ratio = out / t
+    assert ratio.min() >= np.exp(-BOUND) * (1 - 1e-5) and ratio.max() <= np.exp(BOUND) * (1 + 1e-5)
+    assert ratio.min() < 0.9 and ratio.max() > 1.1  # the weights do act
+    # a gain from anywhere is clipped to the bound, NaN gives 1
+    g = np.full(t.shape, 50.0, np.float32)
+    g[0, 0] = np.nan
+    o = apply_gain(t, g)
+    np.testing.assert_allclose(o[1:], t[1:] * np.exp(BOUND), rtol=1e-6)
+    assert o[0, 0, 0] == t[0, 0, 0]
+
+
+def test_a_model_that_breaks_the_contract_is_rejected(tmp_path):
+    with pytest.raises(UsdRelightError, match="residual contract"):
+        ResidualModel(_conv_model(tmp_path / "named.onnx", np.zeros((3, CHANNELS, 3, 3)), np.zeros(3),
+                                  name_out="output"))
+    with pytest.raises(UsdRelightError, match="residual contract"):
+        ResidualModel(_conv_model(tmp_path / "seven.onnx", np.zeros((3, 7, 3, 3)), np.zeros(3), channels=7))
+
+
+def test_the_shipped_residual_and_its_card_match_the_benchmark_json():
+    import json
+    from pathlib import Path
+
+    from usdrelight.neural.residual import DEFAULT_RESIDUAL
+
+    root = Path(__file__).resolve().parents[1]
+    card = DEFAULT_RESIDUAL.with_name("TRANSFER_RESIDUAL_CARD.md").read_text()
+    meta = json.loads(DEFAULT_RESIDUAL.with_suffix(".json").read_text())
+    v = meta["validation_gain_db"]
+    assert f"{v['mean']:+.2f} dB" in card and f"{v['worst']:+.2f} dB" in card and f"{meta['pairs']:,} pairs" in card
+    over = json.loads((root / "benchmarks" / "results" / "generalisation.json").read_text())["means_over_families"]
+    for kind in ("replace", "recolour", "dim"):
+        row = next(line for line in card.splitlines() if line.startswith(f"| {kind} "))
+        cells = [c.strip() for c in row.strip("|").split("|")[1:]]
+        assert cells == [f"{over[kind][o]['psnr_db']:.2f} dB" for o in ("render", "transfer", "residual")], kind
+    # the shipped network: its gain within the bound on any input, the picture finite and >= 0
+    model = ResidualModel()
+    t, n, f, p, low, alb, seen = _images(h=40, w=52, seed=4)
+    for scale in (1.0, 1e-6, 1e6):
+        g = model(residual_input(t * scale, n, f, p * scale, low, alb, seen, 0.5))
+        assert g.shape == (40, 52, 3) and np.all(np.isfinite(g)) and np.abs(g).max() <= BOUND + 1e-6
