@@ -8,7 +8,9 @@ shipped fast fit, at most 8 lights), and each of its relights (fitted lights off
 (mode ``transfer``, the shipped constants) and path traced in the full-3D scene. One .npz per relight holds
 everything the network input is built from (usdrelight.neural.residual.residual_input) and the truth.
 
-    .venv/bin/python scripts/make_transfer_pairs.py OUT --generator gallery --scenes 0:40 [--relights 8]
+    .venv/bin/python scripts/make_transfer_pairs.py OUT --generator gallery --scenes 0:40 [--relights 12]
+
+The shipped residual was trained on --generator gallery --scenes 0:60, plinth 0:40 and procedural 0:40, 12 relights each.
 """
 from __future__ import annotations
 
@@ -65,7 +67,7 @@ def main():
     ap.add_argument("out", type=Path)
     ap.add_argument("--generator", choices=sorted(MAKERS), required=True)
     ap.add_argument("--scenes", default="0:10", help="seed range A:B")
-    ap.add_argument("--relights", type=int, default=8)
+    ap.add_argument("--relights", type=int, default=12)
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)

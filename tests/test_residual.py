@@ -72,6 +72,13 @@ def test_the_gain_is_bounded_whatever_the_weights(tmp_path):
     o = apply_gain(t, g)
     np.testing.assert_allclose(o[1:], t[1:] * np.exp(BOUND), rtol=1e-6)
     assert o[0, 0, 0] == t[0, 0, 0]
+    # the floor (transfer's own, e^-c x the new render): a gain may not take a pixel below it; where transfer itself
+    # is below it (it never is: transfer keeps that floor), the gain may not darken the pixel, nor does the floor lift it
+    floor = 0.8 * t
+    floor[0, 1] = 2.0 * t[0, 1]
+    o = apply_gain(t, np.full(t.shape, -50.0, np.float32), floor)
+    np.testing.assert_allclose(o[1:], 0.8 * t[1:], rtol=1e-6)  # e^-0.7 = 0.497 would be below the floor
+    np.testing.assert_array_equal(o[0, 1], t[0, 1])  # floor above T: T itself
 
 
 def test_a_model_that_breaks_the_contract_is_rejected(tmp_path):

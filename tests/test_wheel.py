@@ -53,6 +53,7 @@ def test_every_module_and_data_file_is_in_the_wheel(wheel):
     missing = sorted(_expected_files() - names)
     assert not missing, f"not in the wheel (add the package to pyproject.toml): {missing}"
     assert "usdrelight/engine/fast.py" in names and "usdrelight/models/relight_unet.onnx" in names
+    assert "usdrelight/models/transfer_residual.onnx" in names
     assert not any(n.startswith(("converters/", "schemas/", "tests/")) for n in names)
 
 
@@ -103,5 +104,8 @@ def test_wheel_in_a_fresh_venv_builds_fits_and_relights_from_outside_the_checkou
     rel = json.loads(run(exe, "relight", "stage/scene.usda", "--with-fitted", "--max-side", "64",
                          "--light", "point:0.5,1,-2.5:3,3,3", "-o", "relit", "--json"))
     assert rel["renderer"] == "fast" and rel["mode"] == "add"
+    off = json.loads(run(exe, "relight", "stage/scene.usda", "--max-side", "64", "--light", "point:0.5,1,-2.5:3,3,3",
+                         "-o", "relit_off", "--json"))
+    assert off["mode"] == "residual"  # the photo's light off: the shipped residual network, from the wheel
     assert (work / "relit" / "relit.png").is_file() and (work / "stage" / "cache").is_dir()
     assert not (ROOT / "stage").exists()  # nothing was written into the checkout

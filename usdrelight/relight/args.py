@@ -38,8 +38,8 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
                     help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
     rl.add_argument("--mode", choices=["auto", "neural", "ratio", "add", "render", "transfer", "residual"], default="auto",
-                    help="auto (default): add when the fitted lighting is kept (--with-fitted), else transfer "
-                         "(scaled by --fitted-scale or off; render without a fit); ratio: photo x new render / "
+                    help="auto (default): add when the fitted lighting is kept (--with-fitted), transfer when it is "
+                         "scaled by --fitted-scale, residual when it is off (render without a fit); ratio: photo x new render / "
                          "fitted render (needs `usdrelight fit`); add: photo + render of the added lights; transfer: "
                          "the physics render with the photo's own detail (needs the fit); render: the physics "
                          "render D~, holes filled; residual: transfer corrected by a network's bounded gain; neural: the "

@@ -51,8 +51,8 @@ stage has fitted lights and its photo, and ``render`` (the physics render
 D~, holes filled) otherwise. Chosen by measurement: on the training generator's scenes
 (benchmarks/calibrate_transfer.py: dimmed -> transfer +1.4 dB over ratio) and on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
-dimmed -> transfer ahead of ratio; replaced or recoloured -> transfer ahead of D~, ratio and the network on
-average (replace: 1.1 dB behind the coverage-correct render in one family, recolour ahead in every one)."""
+dimmed -> transfer ahead of ratio; switched off -> residual ahead of transfer and the coverage-correct render on
+average for replaced and recoloured lights (``ratio`` is ahead for recolour alone, far behind for replace)."""
 
 
 OFF_MODE = "residual" if DEFAULT_RESIDUAL.is_file() else "transfer"
