@@ -296,6 +296,8 @@ def main():
     ap.add_argument("--real-side", type=int, default=512, help="longer side of the motorcycle relights")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--work", type=Path, help="keep the photos and stages here (default: a temporary folder)")
+    ap.add_argument("--tag", help="write results/generalisation_TAG.json and no contact sheets (a side run, e.g. "
+                                  "--families procedural --tag calibration_family: the training generator's scenes)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
@@ -318,8 +320,9 @@ def main():
               "scenes": rows, "means_per_family": means, "means_over_families": over, "real_photo": real,
               "seconds": time.perf_counter() - t0}
     (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "generalisation.json").write_text(json.dumps(result, indent=2, default=str) + "\n")
-    for fam, panels in sheets.items():
+    name = f"generalisation_{args.tag}.json" if args.tag else "generalisation.json"
+    (HERE / "results" / name).write_text(json.dumps(result, indent=2, default=str) + "\n")
+    for fam, panels in ({} if args.tag else sheets).items():
         write_contact_sheet(ROOT / "docs" / "manual" / "images" / f"generalisation_{fam}.png", panels, panels[0][1],
                             columns=6, fontsize=7)
     print_table(means, over)
