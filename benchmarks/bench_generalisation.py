@@ -80,13 +80,21 @@ KINDS = ("add", "dim", "replace", "recolour")
 OUTPUTS = ("dtilde", "ratio", "add", "neural", "render", "transfer", "residual", "auto", "photo")
 
 
+def _psnr_tonemapped(a, b, valid) -> float:
+    return float(10 * np.log10(1.0 / max(float(np.mean((a - b)[valid] ** 2)), 1e-12)))
+
+
+def psnr(img, truth, valid) -> float:
+    """PSNR (dB) over ``valid`` of ``img`` and ``truth`` tone-mapped with the truth's exposure."""
+    return _psnr_tonemapped(tonemapped(img, truth), tonemapped(truth, truth), valid)
+
+
 def psnr_ssim(img, truth, valid):
     from skimage.metrics import structural_similarity
 
     a, b = tonemapped(img, truth), tonemapped(truth, truth)
-    mse = float(np.mean((a - b)[valid] ** 2))
     _, smap = structural_similarity(a, b, channel_axis=2, data_range=1.0, full=True)
-    return float(10 * np.log10(1.0 / max(mse, 1e-12))), float(smap.mean(2)[valid].mean())
+    return _psnr_tonemapped(a, b, valid), float(smap.mean(2)[valid].mean())
 
 
 def _highpass(img):

@@ -36,7 +36,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from bench_generalisation import photo_stage, psnr_ssim  # noqa: E402
+from bench_generalisation import photo_stage, psnr, psnr_ssim  # noqa: E402
 from families import CALIBRATION, render  # noqa: E402
 from usdrelight.relight.composite import render_photo, transfer_apply, transfer_reference  # noqa: E402
 from usdrelight.relight.light_match import match_weight  # noqa: E402
@@ -50,14 +50,6 @@ SIGMAS = (2.0, 4.0, 8.0, 16.0, 32.0)
 CLIPS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 2.9)
 ANGLES = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 90.0)
 RENDER_DETAILS = (0.0, 0.25, 0.5, 0.75, 1.0)
-
-
-def psnr(img, truth, valid) -> float:
-    """psnr_ssim's PSNR alone (dB; the grid does not need SSIM)."""
-    from usdrelight.relight.contact_sheet import tonemapped
-
-    a, b = tonemapped(img, truth), tonemapped(truth, truth)
-    return float(10 * np.log10(1.0 / max(float(np.mean((a - b)[valid] ** 2)), 1e-12)))
 
 
 def collect(args, work):

@@ -44,8 +44,6 @@ def scene_pairs(generator: str, seed: int, out: Path, args) -> int:
         stage, photo, gt_valid, rep, _ = fitted_stage(sc, Path(td), 2 * args.spp)
         n = 0
         with RelightSession(stage, max_side=None, with_fitted=False, fitted_scale=0.0, mode="transfer") as s:
-            fitted = s.engine.render(list(s._photo_lights))
-            f_photo = render_photo(fitted.beauty, fitted.coverage)
             for i, (kind, lights) in enumerate(relights(sc, centre, seed * 100 + sorted(MAKERS).index(generator),
                                                         args.relights)):
                 truth = render(sc, lights, 0.0, spp=args.spp, seed=1 + i)
@@ -55,7 +53,7 @@ def scene_pairs(generator: str, seed: int, out: Path, args) -> int:
                 new = render_photo(fr.diffuse, fr.coverage)
                 w = s.transfer_weight(list(s.base_lights) + list(lights))
                 np.savez_compressed(out / f"{sc.name}_{i}.npz", photo=photo, truth=truth, transfer=fr.image,
-                                    new=new, fitted=f_photo, low=s._transfer_reference.low.astype(np.float32),
+                                    new=new, fitted=s._transfer_fitted, low=s._transfer_reference.low.astype(np.float32),
                                     albedo=fr.albedo, seen=fr.coverage > 0, gt_valid=gt_valid, weight=w,
                                     kind=kind, fit_psnr_db=rep.psnr_db)
                 n += 1

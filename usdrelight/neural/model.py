@@ -128,15 +128,20 @@ def build_input(dtilde: np.ndarray, albedo: np.ndarray, valid: np.ndarray,
     return x
 
 
+def open_frame_session(path: Path):
+    """An onnxruntime session for a network that runs on every frame (this one, the transfer residual): a thread
+    per usable core, not pinned (a worker pinned to the core the caller runs on halves the speed) and not
+    spin-waiting (spinning threads take the cores from the renderer between frames)."""
+    threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return open_session(path, {"session.intra_op.allow_spinning": "0"}, threads)
+
+
 class RelightModel:
     """An onnxruntime session checked against the model contract."""
 
     def __init__(self, path=None):
         self.path = Path(path) if path is not None else DEFAULT_MODEL
-        # a thread per usable core, not pinned (a worker pinned to the core the caller runs on halves the speed)
-        # and not spin-waiting (spinning threads take the cores from the renderer between frames)
-        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        self.session = open_session(self.path, {"session.intra_op.allow_spinning": "0"}, threads)
+        self.session = open_frame_session(self.path)
         ins, outs = self.session.get_inputs(), self.session.get_outputs()
         if len(ins) != 1 or ins[0].name != "input" or (isinstance(ins[0].shape[1], int) and ins[0].shape[1] != 7):
             raise UsdRelightError(f"model {self.path.name} breaks the contract: expected one input 'input' "

@@ -24,14 +24,13 @@ every channel clipped to [-8, 8].
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..onnx_runtime import first_line, open_session
-from .model import MODEL_DIR, hole_fill
+from ..onnx_runtime import first_line
+from .model import MODEL_DIR, hole_fill, open_frame_session
 
 DEFAULT_RESIDUAL = MODEL_DIR / "transfer_residual.onnx"
 CHANNELS = 20
@@ -80,8 +79,7 @@ class ResidualModel:
 
     def __init__(self, path=None):
         self.path = Path(path) if path is not None else DEFAULT_RESIDUAL
-        threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-        self.session = open_session(self.path, {"session.intra_op.allow_spinning": "0"}, threads)
+        self.session = open_frame_session(self.path)
         ins, outs = self.session.get_inputs(), self.session.get_outputs()
         if len(ins) != 1 or ins[0].name != "input" or (isinstance(ins[0].shape[1], int)
                                                         and ins[0].shape[1] != CHANNELS):

@@ -38,8 +38,8 @@ from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
-from .composite import (MODES, TRANSFER_CLIP, add_composite, ratio_apply, ratio_reference, render_photo,
-                        transfer_apply, transfer_reference)
+from .composite import (MODES, add_composite, ratio_apply, ratio_reference, render_photo, transfer_apply,
+                        transfer_reference)
 from .light_match import match_angles, match_weight, scene_centre
 
 log = logging.getLogger(__name__)
@@ -321,7 +321,7 @@ class RelightSession:
                     self._residual_albedo = hole_fill(np.clip(albedo, 0.0, 1.0), seen)
                 x = residual_input(image, new, self._transfer_fitted, self.photo, self._transfer_reference.low,
                                    albedo, seen, w, self._residual_albedo)
-                image = apply_gain(image, self.residual_model(x), np.exp(-TRANSFER_CLIP) * new)
+                image = apply_gain(image, self.residual_model(x), np.exp(-self._transfer_reference.clip) * new)
                 sec["network"] = perf_counter() - t
         elif mode == "render":
             image = render_photo(beauty, aovs.coverage)
