@@ -35,6 +35,9 @@ from usdrelight.relight.composite import render_photo  # noqa: E402
 from usdrelight.relight.session import RelightSession  # noqa: E402
 
 log = logging.getLogger("make_transfer_pairs")
+RELIGHT_STREAM = {"gallery": 0, "plinth": 1, "procedural": 2, "courtyard": 3, "alcove": 4}
+"""Per generator, the offset of its scenes' relight seeds (seed x 100 + offset): fixed, so adding a generator
+does not change the relights of the others."""
 
 
 def scene_pairs(generator: str, seed: int, out: Path, args) -> int:
@@ -44,7 +47,7 @@ def scene_pairs(generator: str, seed: int, out: Path, args) -> int:
         stage, photo, gt_valid, rep, _ = fitted_stage(sc, Path(td), 2 * args.spp)
         n = 0
         with RelightSession(stage, max_side=None, with_fitted=False, fitted_scale=0.0, mode="transfer") as s:
-            for i, (kind, lights) in enumerate(relights(sc, centre, seed * 100 + sorted(MAKERS).index(generator),
+            for i, (kind, lights) in enumerate(relights(sc, centre, seed * 100 + RELIGHT_STREAM[generator],
                                                         args.relights)):
                 truth = render(sc, lights, 0.0, spp=args.spp, seed=1 + i)
                 if not np.isfinite(truth).all() or truth.max() <= 0:

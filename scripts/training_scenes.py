@@ -32,7 +32,7 @@ from families import (FamilyScene, _Builder, _csv, _rx, _ry, _s, _t, diffuse,  #
                       textured)
 
 HDRI = HERE.parents[1] / "shared" / "testdata" / "hdri" / "interior.exr"
-GENERATORS = ("procedural", "gallery", "plinth")
+GENERATORS = ("procedural", "gallery", "plinth", "courtyard", "alcove")
 
 
 def _material(rng):
@@ -141,7 +141,100 @@ def _plinth(seed, w, h):
         b.pos([0.0, ph, -2.5])
 
 
-MAKERS = {"procedural": _procedural, "gallery": _gallery, "plinth": _plinth}
+def _ground_image(rng):
+    from skimage import data
+
+    name = str(rng.choice(["grass", "gravel", "clock", "colorwheel", "immunohistochemistry", "cat"]))
+    return np.asarray(getattr(data, name)(), np.float32)
+
+
+def _courtyard(seed, w, h):
+    """Open air: a textured ground, one to three low walls, crates, posts and balls under a sun (sharp or soft)
+    and the interior HDRI as sky; in three scenes of five an overhead lattice of beams above the camera's view
+    casts the sun's shadow into the picture (a caster the photo never shows)."""
+    rng = np.random.default_rng(11000 + seed)
+    b = _Builder(cam_height=rng.uniform(1.4, 2.4), pitch_deg=rng.uniform(26, 40))
+    tint = rng.uniform(0.6, 1.0, 3)
+    b.floor(0.0, 0, -20, 30.0, 30.0, textured(_ground_image(rng), rng.uniform(0.4, 0.8), tint,
+                                             uv_scale=float(rng.uniform(4, 12))))
+    for k in range(int(rng.integers(1, 4))):
+        x, z, yaw = rng.uniform(-3, 3), rng.uniform(-7, -3), rng.uniform(-60, 60) + 90 * k
+        b.box([x, 0.5, z], [rng.uniform(1.0, 2.5), 0.5, 0.1], yaw, diffuse(rng.uniform(0.3, 0.8, 3)))
+    for _ in range(int(rng.integers(2, 6))):
+        x, z = rng.uniform(-2.5, 2.5), rng.uniform(-5.5, -1.5)
+        u = rng.uniform()
+        if u < 0.45:
+            hs = rng.uniform(0.15, 0.45, 3)
+            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
+        elif u < 0.7:
+            b.cylinder([x, 0.0, z], rng.uniform(0.04, 0.2), rng.uniform(0.4, 1.6), _material(rng))
+        else:
+            r = rng.uniform(0.1, 0.4)
+            b.sphere([x, r, z], r, _material(rng))
+    elev, azim = math.radians(rng.uniform(35, 75)), math.radians(rng.uniform(-150, 150))
+    d = -np.array([math.cos(elev) * math.sin(azim), math.sin(elev), math.cos(elev) * math.cos(azim)])
+    if rng.uniform() < 0.6:  # the lattice: parallel beams (and maybe cross beams) above the view
+        top, gap, yaw = rng.uniform(3.2, 4.5), rng.uniform(0.35, 0.9), rng.uniform(0, 180)
+        width = gap * rng.uniform(0.2, 0.5)
+        m = _t([0.0, top, -4.0]) @ _ry(yaw)
+        for j in range(-14, 15):
+            b.add("cube", m @ _t([j * gap, 0.0, 0.0]) @ _s(width / 2, 0.08, 9.0), diffuse([0.4, 0.35, 0.3]))
+        if rng.uniform() < 0.4:
+            for j in range(-6, 7):
+                b.add("cube", m @ _t([0.0, -0.17, j * 3 * gap]) @ _s(9.0, 0.08, width / 2), diffuse([0.4, 0.35, 0.3]))
+    sun = f"{b.sun(d, rng.uniform(2.0, 5.0) * rng.uniform(0.8, 1.0, 3))}"
+    if rng.uniform() < 0.4:
+        sun += f":{rng.uniform(1.0, 6.0):.2f}"  # a wide sun: soft shadows
+    sc = FamilyScene("courtyard", f"courtyard{seed}", w, h, rng.uniform(45, 65), b.shapes, [sun],
+                     _hdri_sky(b, rng, rng.uniform(0.1, 0.5)))
+    if sc.hdri is None:
+        sc.photo_lights.append("dome:0.15,0.18,0.25")
+    return sc, b, b.pos([0.0, 0.3, -4.0])
+
+
+def _alcove(seed, w, h):
+    """Indoors, closed on all six sides (the wall behind the camera too): a textured floor, walls of mixed colour,
+    a shelf board near the ceiling out of view, furniture-sized boxes and objects in diffuse, plastic and metal,
+    lit by a hanging lamp, wall spots and a dim fill."""
+    rng = np.random.default_rng(12000 + seed)
+    W, D, H = rng.uniform(1.8, 3.0), rng.uniform(4.0, 7.0), rng.uniform(2.4, 3.2)
+    b = _Builder(cam_height=rng.uniform(1.0, 1.7), pitch_deg=rng.uniform(8, 25), cam_z=-0.3)
+    b.floor(0.0, 0, -D / 2 + 0.5, W, D / 2 + 0.5, textured(_ground_image(rng), rng.uniform(0.3, 0.7),
+                                                         rng.uniform(0.6, 1.0, 3), uv_scale=float(rng.uniform(1, 3))))
+    b.plane(_t([0, H, -D / 2 + 0.5]) @ _rx(90) @ _s(W, D / 2 + 0.5, 1), diffuse(rng.uniform(0.6, 0.9, 3)))
+    cols = [rng.uniform(0.25, 0.9, 3) for _ in range(4)]
+    b.plane(_t([0, H / 2, -D]) @ _s(W, H / 2, 1), diffuse(cols[0]))
+    b.plane(_t([0, H / 2, 1.0]) @ _ry(180) @ _s(W, H / 2, 1), diffuse(cols[1]))
+    b.plane(_t([-W, H / 2, -D / 2 + 0.5]) @ _ry(90) @ _s(D / 2 + 0.5, H / 2, 1), diffuse(cols[2]))
+    b.plane(_t([W, H / 2, -D / 2 + 0.5]) @ _ry(-90) @ _s(D / 2 + 0.5, H / 2, 1), diffuse(cols[3]))
+    if rng.uniform() < 0.6:  # a shelf board along a side wall, above the top of the view
+        side = rng.choice([-1.0, 1.0])
+        b.box([side * (W - 0.3), H - rng.uniform(0.3, 0.6), -D / 2], [0.3, 0.03, D / 3], 0.0,
+              diffuse(rng.uniform(0.3, 0.7, 3)))
+    for _ in range(int(rng.integers(2, 5))):
+        x, z = rng.uniform(-W + 0.4, W - 0.4), rng.uniform(-D + 0.6, -1.5)
+        u = rng.uniform()
+        if u < 0.5:
+            hs = rng.uniform([0.15, 0.2, 0.15], [0.6, 0.5, 0.4])
+            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
+        elif u < 0.75:
+            b.cylinder([x, 0.0, z], rng.uniform(0.08, 0.25), rng.uniform(0.3, 1.0), _material(rng))
+        else:
+            r = rng.uniform(0.1, 0.35)
+            b.sphere([x, r, z], r, _material(rng))
+    lamp = [rng.uniform(-W / 2, W / 2), H - rng.uniform(0.4, 0.9), rng.uniform(-D + 1, -1.5)]
+    photo = [b.point(lamp, rng.uniform(2.0, 6.0) * rng.uniform(0.7, 1.0, 3))]
+    if rng.uniform() < 0.7:
+        p = [rng.choice([-1, 1]) * (W - 0.2), H - 0.3, rng.uniform(-D + 1, -1)]
+        photo.append(b.spot(p, [rng.uniform(-W / 2, W / 2), 0.0, rng.uniform(-D + 1, -1)],
+                            rng.uniform(6.0, 16.0) * rng.uniform(0.7, 1.0, 3), rng.uniform(20, 45)))
+    photo.append(f"dome:{_csv(rng.uniform(0.0, 0.02, 3))}")
+    return FamilyScene("alcove", f"alcove{seed}", w, h, rng.uniform(55, 75), b.shapes, photo), b, \
+        b.pos([0.0, 0.5, -D / 2])
+
+
+MAKERS = {"procedural": _procedural, "gallery": _gallery, "plinth": _plinth, "courtyard": _courtyard,
+          "alcove": _alcove}
 
 
 def _rotate_about(p, centre, axis_deg, rng):

@@ -126,6 +126,23 @@ def test_fast_matches_mitsuba_on_the_procedural_scene(proc_renderer, kind):
     assert rel < 0.08, rel  # 512-spp noise included
 
 
+def test_longer_paths_add_the_bounces_mitsuba_adds(proc_renderer):
+    """max_depth 5 against 3: the two further bounces add what Mitsuba's longer paths add (same sampler seed, so
+    Mitsuba's difference is its extra bounces only), within the 2.5D gather's error; at 3 nothing is added."""
+    rec, fr = proc_renderer
+    lights = [parse_light("point:0.5,1.0,-2.5:3,2.5,2")]
+    camera = rec.camera.limited(128)
+    fast = {d: fr.render(lights, max_depth=d) for d in (3, 5)}
+    ref = {d: render_record(rec.with_lights(lights).with_camera(camera), {"beauty"}, spp=512, max_depth=d,
+                            hide_emitters=True, seed=0)["beauty"] for d in (3, 5)}
+    valid = fast[3].valid
+    added, added_ref = (fast[5].beauty - fast[3].beauty)[valid], (ref[5] - ref[3])[valid]
+    assert added_ref.mean() > 0.005 * ref[3][valid].mean()
+    assert 0.8 < added.mean() / added_ref.mean() < 1.25, (added.mean(), added_ref.mean())
+    assert (added >= 0).all()
+    np.testing.assert_array_equal(fr.render(lights, max_depth=3).beauty, fast[3].beauty)
+
+
 def test_textured_dome_matches_mitsuba(proc_renderer, tmp_path):
     from usd_scenes import asymmetric_latlong
 

@@ -3,7 +3,7 @@ cached by content) plus lights, each light set in a fraction of a second.
 
 Per light set: e = E / pi of every light (:mod:`usdrelight.engine.lights`) at the surface seen through each
 pixel centre, then the render of a diffuse scene with one indirect bounce (Mitsuba's max_depth 3):
-D~ = a_px * (e + F @ P @ (a * e)), where F averages the gathered bounce over like neighbours (the transport's
+D~ = a_px * (e + F @ P @ (a * e)) (each max_depth above 3 adds one more bounce, b_k+1 = F @ P @ (a * b_k)), where F averages the gathered bounce over like neighbours (the transport's
 bounce filter), a is the albedo at the pixel centre and a_px the albedo averaged over the pixel's area with
 misses as 0 (what a box pixel filter sees of a textured or partly covered pixel). Emitters are never seen by
 camera rays; pixels whose centre sees no geometry are 0.
@@ -53,7 +53,8 @@ class EngineSettings:
     area_samples: int = 16
     """Shadow rays per pixel for sphere, disk, rect and wide distant lights."""
     max_depth: int = 3
-    """2: direct light only; 3: plus one indirect bounce (as Mitsuba's path tracer)."""
+    """Mitsuba's path length: 2 direct light only, 3 plus one indirect bounce, each more one more bounce over the
+    visible 2.5D surface (what the gather matrix reaches)."""
     seed: int = 0
     """Seed of the stratified sample shifts (renders are deterministic for a seed)."""
     direct_terms: int = 24
@@ -225,7 +226,10 @@ class FastRenderer:
         t = time.perf_counter()
         # the surface seen at the pixel centre reflects e (+ the bounce); the pixel averages albedo and coverage
         # over its area, as a box pixel filter does
-        light_out = e + prep.smooth @ (self.transport.P @ (surf.albedo * e)) if depth >= 3 else e
+        light_out, bounce = e, e
+        for _ in range(max(depth - 2, 0)):  # each further path vertex: one more bounce over the visible surface
+            bounce = prep.smooth @ (self.transport.P @ (surf.albedo * bounce))
+            light_out = light_out + bounce
         beauty = np.zeros((surf.height * surf.width, 3), np.float32)
         beauty[self._flat] = nonnegative(prep.pixel_albedo * light_out)
         fr = prep.fringe  # partly covered pixels whose centre misses: shaded from their nearest hit, box-filtered
