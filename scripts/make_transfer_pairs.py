@@ -10,7 +10,9 @@ everything the network input is built from (usdrelight.neural.residual.residual_
 
     .venv/bin/python scripts/make_transfer_pairs.py OUT --generator gallery --scenes 0:40 [--relights 12]
 
-The shipped residual was trained on --generator gallery --scenes 0:60, plinth 0:40 and procedural 0:40, 12 relights each.
+The shipped residual was trained on --generator gallery --scenes 0:60, plinth 0:40 and procedural 0:40, 12 relights
+each; courtyard 0:40 and alcove 0:40 were added for the five-generator run that was not shipped
+(benchmarks/results/generalisation_residual_five_generators.json).
 """
 from __future__ import annotations
 

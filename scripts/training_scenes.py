@@ -10,7 +10,12 @@ None of these is a held-out family of benchmarks/bench_generalisation.py (``room
   scikit-image photographs the held-out families do not use (camera, coins, moon, page, horse, text), plinths,
   cylinders and spheres in diffuse, plastic and metal, lit by spots from above and the ``interior`` HDRI;
 * ``plinth``: objects on a pedestal before a backdrop (no walls), glossy and metallic, lit by a key and a fill
-  point light and a constant sky.
+  point light and a constant sky;
+* ``courtyard``: a textured ground 30 m across, low walls and objects under a sun (sharp or wide) and the
+  ``interior`` HDRI as sky; in 3 scenes of 5 an overhead beam lattice, out of view, casts the sun's shadow
+  across the ground (an unseen caster, as the held-out ``occluder`` has, built by other code);
+* ``alcove``: a room closed on all six sides, textured floor, a shelf board out of view (60%), a hanging point
+  lamp, a wall spot (70%) and a dim dome.
 
 The relights drawn for each scene (fitted lights off, as ``auto`` gives to ``transfer``): ``replace`` (1 or 2
 new point, spot or sun lights anywhere above the scene and a constant dome), ``recolour`` (the photo's own light
