@@ -14,9 +14,13 @@ against the truth). They are then written into composite.py by hand. The held-ou
 families of bench_generalisation.py are never looked at here: that is the protocol that lets their numbers
 measure generalisation.
 
-    .venv/bin/python benchmarks/calibrate_transfer.py [--scenes 6]
+    .venv/bin/python benchmarks/calibrate_transfer.py [--scenes 6] [--generators courtyard --tag unseen_casters]
 
-Writes benchmarks/results/calibrate_transfer.json and prints the grid's best rows.
+Writes benchmarks/results/calibrate_transfer.json (``--tag T``: calibrate_transfer_T.json, a side run) and prints
+the grid's best rows. ``--generators`` adds scenes of training generators (scripts/training_scenes.py, seeds 100
+and up: never in the training pairs, which use 0-59) with their first four relights: replace, recolour, moved
+(the photo's lights moved by 5 to 60 degrees, counted as replace: the photo's light off, new lights elsewhere)
+and replace; dim is the photo's lights x 0.3.
 """
 from __future__ import annotations
 
@@ -36,43 +40,64 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
 
-from bench_generalisation import photo_stage, psnr, psnr_ssim  # noqa: E402
-from families import CALIBRATION, render  # noqa: E402
+from bench_generalisation import fitted_stage, photo_stage, psnr, psnr_ssim  # noqa: E402
+from families import CALIBRATION, _kinds, render  # noqa: E402
 from usdrelight.relight.composite import render_photo, transfer_apply, transfer_reference  # noqa: E402
 from usdrelight.relight.light_match import match_weight  # noqa: E402
 from usdrelight.relight.session import RelightSession  # noqa: E402
 
 log = logging.getLogger("calibrate_transfer")
 KINDS = ("dim", "replace", "recolour")
+ALL_KINDS = KINDS + ("moved",)
 SIGMAS = (2.0, 4.0, 8.0, 16.0, 32.0)
 # the bound stays below log(20): the photo's detail alone never takes a pixel below 5% of the physics render
 # (issue 21: no blacked-out pixels)
 CLIPS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 2.9)
 ANGLES = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 90.0)
 RENDER_DETAILS = (0.0, 0.25, 0.5, 0.75, 1.0)
+BUCKET = {"moved": "replace"}
+"""A generator scene's relight kind -> the kind its gain counts under."""
+
+
+def generator_scene(generator: str, seed: int, args, work):
+    """A training generator's scene (seed 100 + ``seed``) as photo_stage gives a family's, its relights in the
+    families' form plus ``moved`` (kind replace)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from training_scenes import MAKERS, relights
+
+    sc, _, centre = MAKERS[generator](100 + seed, args.width, args.height)
+    rel = dict(relights(sc, centre, 7000 + seed, n=3))
+    sc.relights = _kinds([], rel["replace"], rel["recolour"])
+    sc.relights["moved"] = sc.relights["replace"] | {"lights": rel["moved"], "truth": rel["moved"]}
+    stage, photo, gt_valid, _, _ = fitted_stage(sc, work, args.spp)
+    return sc, stage, photo, gt_valid
 
 
 def collect(args, work):
     """Per scene and kind: photo, truth, N~, F~, coverage mask and the truth's valid mask."""
     cases = []
-    for fam in CALIBRATION:
-        for seed in range(args.scenes):
+    todo = [(fam, seed) for fam in CALIBRATION for seed in range(args.scenes)]
+    todo += [(g, seed) for g in args.generators for seed in range(args.scenes)]
+    for fam, seed in todo:
+        if fam in CALIBRATION:
             sc, stage, photo, gt_valid, _ = photo_stage(fam, seed, args, work)
-            with RelightSession(stage, max_side=None, with_fitted=True, fitted_scale=1.0, mode="render") as s:
-                fr = s.render([])
-                f_cc = render_photo(fr.diffuse, fr.coverage)
-            for kind in KINDS:
-                r = sc.relights[kind]
-                truth = render(sc, r["truth"], r["truth_photo_scale"], spp=args.spp, seed=1 + KINDS.index(kind))
-                with RelightSession(stage, max_side=None, with_fitted=r["with_fitted"],
-                                    fitted_scale=r["fitted_scale"], mode="render") as s:
-                    fr = s.render(r["lights"])
-                    angles, shares = s.transfer_match(list(s.base_lights) + list(r["lights"]))
-                    ratio = s.render(r["lights"], mode="ratio").image if kind == "dim" else None
-                cases.append({"scene": sc.name, "kind": kind, "photo": photo, "truth": truth, "f": f_cc,
-                              "n": fr.image, "seen": fr.coverage > 0, "gt_valid": gt_valid, "angles": angles,
-                              "shares": shares, "ratio": ratio})
-            log.info("%s collected", sc.name)
+        else:
+            sc, stage, photo, gt_valid = generator_scene(fam, seed, args, work)
+        with RelightSession(stage, max_side=None, with_fitted=True, fitted_scale=1.0, mode="render") as s:
+            fr = s.render([])
+            f_cc = render_photo(fr.diffuse, fr.coverage)
+        for kind in (k for k in ALL_KINDS if k in sc.relights):
+            r = sc.relights[kind]
+            truth = render(sc, r["truth"], r["truth_photo_scale"], spp=args.spp, seed=1 + ALL_KINDS.index(kind))
+            with RelightSession(stage, max_side=None, with_fitted=r["with_fitted"],
+                                fitted_scale=r["fitted_scale"], mode="render") as s:
+                fr = s.render(r["lights"])
+                angles, shares = s.transfer_match(list(s.base_lights) + list(r["lights"]))
+                ratio = s.render(r["lights"], mode="ratio").image if kind == "dim" else None
+            cases.append({"scene": sc.name, "kind": kind, "photo": photo, "truth": truth, "f": f_cc,
+                          "n": fr.image, "seen": fr.coverage > 0, "gt_valid": gt_valid, "angles": angles,
+                          "shares": shares, "ratio": ratio})
+        log.info("%s collected", sc.name)
     return cases
 
 
@@ -87,7 +112,7 @@ def grid(cases):
             for c, ref, b in zip(cases, refs, base):
                 out = transfer_apply(c["n"], ref, match_weight(c["angles"], c["shares"], a0), floor=-clip,
                                      render_detail=rd)
-                gains[c["kind"]].append(psnr(out, c["truth"], c["gt_valid"]) - b)
+                gains[BUCKET.get(c["kind"], c["kind"])].append(psnr(out, c["truth"], c["gt_valid"]) - b)
             per_kind = {k: float(np.mean(v)) for k, v in gains.items()}
             rows.append({"sigma_512": sigma, "clip": clip, "match_angle_deg": a0, "render_detail": rd,
                          "gain_db": per_kind,
@@ -128,6 +153,8 @@ def main():
     ap.add_argument("--spp", type=int, default=512)
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
+    ap.add_argument("--generators", nargs="*", default=[], help="training generators whose scenes join")
+    ap.add_argument("--tag", default="", help="write calibrate_transfer_TAG.json (a side run) instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
@@ -155,7 +182,8 @@ def main():
            "scenes": sorted({c["scene"] for c in cases}), "best": rows[:20], "best_per_case": per_case, "grid": rows,
            "seconds": time.perf_counter() - t0}
     (HERE / "results").mkdir(exist_ok=True)
-    (HERE / "results" / "calibrate_transfer.json").write_text(dumps(out))
+    name = f"calibrate_transfer_{args.tag}.json" if args.tag else "calibrate_transfer.json"
+    (HERE / "results" / name).write_text(dumps(out))
     print("sigma@512 | clip | angle | b | gain dim / replace / recolour (dB) | worst | mean")
     for r in rows[:15]:
         g = r["gain_db"]

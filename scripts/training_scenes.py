@@ -85,6 +85,23 @@ def _procedural(seed, w, h):
         np.array([0.0, -0.5, -3.0])
 
 
+def _scatter(b, rng, count, xs, zs, shares, box_half, cyl_radius, cyl_height, ball_radius):
+    """``count`` objects standing on the ground (y = 0) at x in ``xs``, z in ``zs`` (metres, camera frame): a box
+    below ``shares[0]`` of a uniform draw, a cylinder below ``shares[1]``, else a ball; each size a (low, high)
+    range (a box's three half sizes from ``box_half``); materials from ``_material``."""
+    for _ in range(count):
+        x, z = rng.uniform(*xs), rng.uniform(*zs)
+        u = rng.uniform()
+        if u < shares[0]:
+            hs = rng.uniform(*box_half, 3)
+            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
+        elif u < shares[1]:
+            b.cylinder([x, 0.0, z], rng.uniform(*cyl_radius), rng.uniform(*cyl_height), _material(rng))
+        else:
+            r = rng.uniform(*ball_radius)
+            b.sphere([x, r, z], r, _material(rng))
+
+
 def _gallery(seed, w, h):
     rng = np.random.default_rng(7000 + seed)
     b = _Builder(cam_height=rng.uniform(1.2, 1.8), pitch_deg=rng.uniform(5, 20))
@@ -98,17 +115,8 @@ def _gallery(seed, w, h):
         x = rng.uniform(-half + 0.6, half - 0.6)
         b.plane(_t([x, rng.uniform(1.0, 2.0), -depth + 0.01]) @ _s(rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.5), 1),
                 textured(_image(rng), rng.uniform(0.6, 0.9)))
-    for _ in range(int(rng.integers(2, 5))):
-        x, z = rng.uniform(-half + 0.5, half - 0.5), rng.uniform(-depth + 1.0, -1.5)
-        u = rng.uniform()
-        if u < 0.4:
-            hs = rng.uniform(0.15, 0.5, 3)
-            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
-        elif u < 0.7:
-            b.cylinder([x, 0.0, z], rng.uniform(0.1, 0.3), rng.uniform(0.3, 1.2), _material(rng))
-        else:
-            r = rng.uniform(0.15, 0.45)
-            b.sphere([x, r, z], r, _material(rng))
+    _scatter(b, rng, int(rng.integers(2, 5)), (-half + 0.5, half - 0.5), (-depth + 1.0, -1.5), (0.4, 0.7),
+             (0.15, 0.5), (0.1, 0.3), (0.3, 1.2), (0.15, 0.45))
     photo = []
     for _ in range(int(rng.integers(1, 3))):
         p = [rng.uniform(-half + 0.3, half - 0.3), rng.uniform(2.5, 4.0), rng.uniform(-depth + 1, -0.5)]
@@ -165,17 +173,8 @@ def _courtyard(seed, w, h):
     for k in range(int(rng.integers(1, 4))):
         x, z, yaw = rng.uniform(-3, 3), rng.uniform(-7, -3), rng.uniform(-60, 60) + 90 * k
         b.box([x, 0.5, z], [rng.uniform(1.0, 2.5), 0.5, 0.1], yaw, diffuse(rng.uniform(0.3, 0.8, 3)))
-    for _ in range(int(rng.integers(2, 6))):
-        x, z = rng.uniform(-2.5, 2.5), rng.uniform(-5.5, -1.5)
-        u = rng.uniform()
-        if u < 0.45:
-            hs = rng.uniform(0.15, 0.45, 3)
-            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
-        elif u < 0.7:
-            b.cylinder([x, 0.0, z], rng.uniform(0.04, 0.2), rng.uniform(0.4, 1.6), _material(rng))
-        else:
-            r = rng.uniform(0.1, 0.4)
-            b.sphere([x, r, z], r, _material(rng))
+    _scatter(b, rng, int(rng.integers(2, 6)), (-2.5, 2.5), (-5.5, -1.5), (0.45, 0.7), (0.15, 0.45), (0.04, 0.2),
+             (0.4, 1.6), (0.1, 0.4))
     elev, azim = math.radians(rng.uniform(35, 75)), math.radians(rng.uniform(-150, 150))
     d = -np.array([math.cos(elev) * math.sin(azim), math.sin(elev), math.cos(elev) * math.cos(azim)])
     if rng.uniform() < 0.6:  # the lattice: parallel beams (and maybe cross beams) above the view
@@ -216,17 +215,8 @@ def _alcove(seed, w, h):
         side = rng.choice([-1.0, 1.0])
         b.box([side * (W - 0.3), H - rng.uniform(0.3, 0.6), -D / 2], [0.3, 0.03, D / 3], 0.0,
               diffuse(rng.uniform(0.3, 0.7, 3)))
-    for _ in range(int(rng.integers(2, 5))):
-        x, z = rng.uniform(-W + 0.4, W - 0.4), rng.uniform(-D + 0.6, -1.5)
-        u = rng.uniform()
-        if u < 0.5:
-            hs = rng.uniform([0.15, 0.2, 0.15], [0.6, 0.5, 0.4])
-            b.box([x, hs[1], z], hs, rng.uniform(0, 90), _material(rng))
-        elif u < 0.75:
-            b.cylinder([x, 0.0, z], rng.uniform(0.08, 0.25), rng.uniform(0.3, 1.0), _material(rng))
-        else:
-            r = rng.uniform(0.1, 0.35)
-            b.sphere([x, r, z], r, _material(rng))
+    _scatter(b, rng, int(rng.integers(2, 5)), (-W + 0.4, W - 0.4), (-D + 0.6, -1.5), (0.5, 0.75),
+             ([0.15, 0.2, 0.15], [0.6, 0.5, 0.4]), (0.08, 0.25), (0.3, 1.0), (0.1, 0.35))
     lamp = [rng.uniform(-W / 2, W / 2), H - rng.uniform(0.4, 0.9), rng.uniform(-D + 1, -1.5)]
     photo = [b.point(lamp, rng.uniform(2.0, 6.0) * rng.uniform(0.7, 1.0, 3))]
     if rng.uniform() < 0.7:
