@@ -314,11 +314,16 @@ def test_hdri_named_outside_the_stage_is_copied_in(stage, tmp_path):
     assert Path(dome.texture.path).resolve() == path
 
 
-def test_serve_command_prints_url_and_stops_on_ctrl_c(stage):
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_serve_command_prints_url_and_stops_on_ctrl_c(stage, sig):
+    """Ctrl-C (SIGINT) and kill (SIGTERM) stop the app with exit 0, SIGINT also when the parent ignores it (as a
+    shell does for a background job: the child inherits the ignored disposition)."""
     pytest.importorskip("viser")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sig == "SIGINT" else None
     proc = subprocess.Popen([sys.executable, "-m", "usdrelight", "serve", str(stage), "--port", "0", "--max-side",
-                             str(SIDE), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+                             str(SIDE), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
+                            preexec_fn=ignore)
     try:
         text, summary = "", None
         while summary is None:  # the --json summary is printed once the app serves
@@ -333,9 +338,13 @@ def test_serve_command_prints_url_and_stops_on_ctrl_c(stage):
         with urllib.request.urlopen(summary["url"], timeout=10) as r:
             assert r.status == 200
     finally:
-        proc.send_signal(signal.SIGINT)
-        rc = proc.wait(timeout=30)
-    assert rc == 0, proc.stderr.read()
+        proc.send_signal(getattr(signal, sig))
+        try:
+            _, err = proc.communicate(timeout=60)  # drains both pipes: a full stderr pipe must not hold the exit
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    assert proc.returncode == 0, err
 
 
 def test_stage_without_camera_or_mesh_is_one_clear_error(tmp_path, cli):
