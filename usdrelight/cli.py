@@ -221,19 +221,10 @@ def cmd_convert(args) -> int:
     return 0
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def cmd_serve(args) -> int:
-    import signal
+    from .serve.app import ServeApp, stop_on_signals
 
-    from .serve.app import ServeApp
-
-    # Ctrl-C and a plain kill stop the app cleanly, also when the shell started it with SIGINT ignored (in the
-    # background of a script, under nohup)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _interrupt)
+    stop_on_signals()
     app = ServeApp(args.stage, host=args.host, port=args.port, hdris=args.hdri or (), max_side=args.max_side,
                    mode=args.mode)
     try:
