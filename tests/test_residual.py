@@ -45,6 +45,15 @@ def test_residual_input_is_exposure_free_and_bounded():
     for k in (0.0, 1e30):
         z = residual_input(t * k, n, f * k, p * k, low * 1e6, alb, seen, float("nan"))
         assert np.all(np.isfinite(z)) and np.abs(z).max() <= 8.0
+    # NaN and infinite pixels: NaN -> 0, +-inf -> +-8, the other pixels as they were
+    p2, low2 = p.copy(), low.copy()
+    p2[0, 0], p2[0, 1], low2[1, 1] = np.nan, np.inf, -np.inf
+    z = residual_input(t, n, f, p2, low2, alb, seen, 0.4)
+    assert np.all(np.isfinite(z)) and np.abs(z).max() <= 8.0
+    assert np.all(z[9:12, 0, 0] == 0.0) and np.all(z[9:12, 0, 1] == 8.0) and np.all(z[12:15, 1, 1] == -8.0)
+    rest = np.ones(seen.shape, bool)
+    rest[0, :2], rest[1, 1] = False, False
+    np.testing.assert_array_equal(z[:, rest], x[:, rest])
 
 
 def test_an_untrained_residual_returns_transfer_exactly(tmp_path):

