@@ -51,6 +51,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import tempfile
 import time
@@ -135,6 +136,13 @@ def fitted_stage(sc, work: Path, spp: int):
     t_fit = time.perf_counter()
     rep = fit(stage, FitSettings(lights=8, max_side=max(sc.width, sc.height), verify_spp=0))
     return stage, photo, gt_valid, rep, time.perf_counter() - t_fit
+
+
+def result_tag(text: str) -> str:
+    """argparse type of ``--tag``: a side run's name, part of a file name under benchmarks/results."""
+    if re.fullmatch(r"[A-Za-z0-9_-]{1,64}", text):
+        return text
+    raise argparse.ArgumentTypeError("a tag is 1 to 64 letters, digits, '_' or '-'")
 
 
 def photo_stage(family, seed, args, work):
@@ -304,7 +312,7 @@ def main():
     ap.add_argument("--real-side", type=int, default=512, help="longer side of the motorcycle relights")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--work", type=Path, help="keep the photos and stages here (default: a temporary folder)")
-    ap.add_argument("--tag", help="write results/generalisation_TAG.json and no contact sheets (a side run, e.g. "
+    ap.add_argument("--tag", type=result_tag, help="write results/generalisation_TAG.json and no contact sheets (a side run, e.g. "
                                   "--families procedural --tag calibration_family: the training generator's scenes)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")

@@ -18,9 +18,9 @@ measure generalisation.
 
 Writes benchmarks/results/calibrate_transfer.json (``--tag T``: calibrate_transfer_T.json, a side run) and prints
 the grid's best rows. ``--generators`` adds scenes of training generators (scripts/training_scenes.py, seeds 100
-and up: never in the training pairs, which use 0-59) with their first four relights: replace, recolour, moved
-(the photo's lights moved by 5 to 60 degrees, counted as replace: the photo's light off, new lights elsewhere)
-and replace; dim is the photo's lights x 0.3.
+and up: never in the training pairs, which use 0-59) with their first three relights: replace, recolour and moved
+(the photo's lights moved by 5 to 60 degrees, counted as replace: the photo's light off, new lights elsewhere);
+dim is the photo's lights x 0.3.
 """
 from __future__ import annotations
 
@@ -39,9 +39,11 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(ROOT / "scripts"))
 
-from bench_generalisation import fitted_stage, photo_stage, psnr, psnr_ssim  # noqa: E402
+from bench_generalisation import fitted_stage, photo_stage, psnr, psnr_ssim, result_tag  # noqa: E402
 from families import CALIBRATION, _kinds, render  # noqa: E402
+from training_scenes import MAKERS as TRAINING_MAKERS, relights  # noqa: E402
 from usdrelight.relight.composite import render_photo, transfer_apply, transfer_reference  # noqa: E402
 from usdrelight.relight.light_match import match_weight  # noqa: E402
 from usdrelight.relight.session import RelightSession  # noqa: E402
@@ -55,6 +57,8 @@ SIGMAS = (2.0, 4.0, 8.0, 16.0, 32.0)
 CLIPS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 2.9)
 ANGLES = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 45.0, 90.0)
 RENDER_DETAILS = (0.0, 0.25, 0.5, 0.75, 1.0)
+GENERATORS = tuple(g for g in TRAINING_MAKERS if g not in CALIBRATION)
+"""scripts/training_scenes.py's generators but the calibration family's own (procedural: already in)."""
 BUCKET = {"moved": "replace"}
 """A generator scene's relight kind -> the kind its gain counts under."""
 
@@ -62,10 +66,7 @@ BUCKET = {"moved": "replace"}
 def generator_scene(generator: str, seed: int, args, work):
     """A training generator's scene (seed 100 + ``seed``) as photo_stage gives a family's, its relights in the
     families' form plus ``moved`` (kind replace)."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    from training_scenes import MAKERS, relights
-
-    sc, _, centre = MAKERS[generator](100 + seed, args.width, args.height)
+    sc, _, centre = TRAINING_MAKERS[generator](100 + seed, args.width, args.height)
     rel = dict(relights(sc, centre, 7000 + seed, n=3))
     sc.relights = _kinds([], rel["replace"], rel["recolour"])
     sc.relights["moved"] = sc.relights["replace"] | {"lights": rel["moved"], "truth": rel["moved"]}
@@ -153,8 +154,9 @@ def main():
     ap.add_argument("--spp", type=int, default=512)
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
-    ap.add_argument("--generators", nargs="*", default=[], help="training generators whose scenes join")
-    ap.add_argument("--tag", default="", help="write calibrate_transfer_TAG.json (a side run) instead")
+    ap.add_argument("--generators", nargs="*", default=[], choices=GENERATORS,
+                    help="training generators (scripts/training_scenes.py) whose scenes join")
+    ap.add_argument("--tag", type=result_tag, default="", help="write calibrate_transfer_TAG.json (a side run) instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
