@@ -54,6 +54,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--spp", type=int, default=1024, help="Mitsuba's samples per pixel (references too)")
     args = ap.parse_args()
+    if args.spp < 1 or (args.spp > 256 and args.spp % 256):
+        ap.error("--spp is at most 256 or a multiple of 256 (Mitsuba renders in passes of 256)")
     ex = ROOT / "examples" / "procedural"
     with tempfile.TemporaryDirectory() as td:
         build(ex / "photo.exr", Path(td) / "proc", BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",

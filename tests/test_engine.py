@@ -140,7 +140,7 @@ def test_longer_paths_add_the_bounces_mitsuba_adds(proc_renderer):
     assert added_ref.mean() > 0.005 * ref[3][valid].mean()
     assert 0.8 < added.mean() / added_ref.mean() < 1.25, (added.mean(), added_ref.mean())
     assert (added >= 0).all()
-    np.testing.assert_array_equal(fr.render(lights, max_depth=3).beauty, fast[3].beauty)
+    np.testing.assert_array_equal(fr.render(lights).beauty, fast[3].beauty)  # the default is 3: nothing added
 
 
 def test_textured_dome_matches_mitsuba(proc_renderer, tmp_path):

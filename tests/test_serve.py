@@ -314,16 +314,29 @@ def test_hdri_named_outside_the_stage_is_copied_in(stage, tmp_path):
     assert Path(dome.texture.path).resolve() == path
 
 
+def test_stop_on_signals_puts_the_handlers_back():
+    from usdrelight.serve.signals import stop_on_signals
+
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with stop_on_signals():
+        assert all(signal.getsignal(s) is signal.default_int_handler for s in before)
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGTERM)
+    assert {s: signal.getsignal(s) for s in before} == before
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_serve_command_prints_url_and_stops_on_ctrl_c(stage, sig):
     """Ctrl-C (SIGINT) and kill (SIGTERM) stop the app with exit 0, SIGINT also when the parent ignores it (as a
     shell does for a background job: the child inherits the ignored disposition)."""
     pytest.importorskip("viser")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sig == "SIGINT" else None
-    proc = subprocess.Popen([sys.executable, "-m", "usdrelight", "serve", str(stage), "--port", "0", "--max-side",
-                             str(SIDE), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
-                            preexec_fn=ignore)
+    # SIGINT ignored in the child as a shell's background job has it (a trap before exec, not preexec_fn: this
+    # process has threads)
+    ignore = ["sh", "-c", 'trap "" INT; exec "$@"', "sh"] if sig == "SIGINT" else []
+    proc = subprocess.Popen(ignore + [sys.executable, "-m", "usdrelight", "serve", str(stage), "--port", "0",
+                                      "--max-side", str(SIDE), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
     try:
         text, summary = "", None
         while summary is None:  # the --json summary is printed once the app serves

@@ -222,23 +222,24 @@ def cmd_convert(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from .serve.app import ServeApp, stop_on_signals
+    from .serve.app import ServeApp
+    from .serve.signals import stop_on_signals
 
-    stop_on_signals()
-    app = ServeApp(args.stage, host=args.host, port=args.port, hdris=args.hdri or (), max_side=args.max_side,
-                   mode=args.mode)
-    try:
-        summary = {"url": app.url, "host": app.host, "port": app.port, "mode": app.mode,
-                   "resolution": list(app.live.resolution), "lights": len(app.states),
-                   "seconds": {k: round(v, 4) for k, v in app.seconds.items()}}
-        _emit(args, summary, f"usdrelight serve: open {app.url} ({app.seconds['start']:.1f} s to start; "
-                             f"Ctrl-C stops)")
-        sys.stdout.flush()
-        app.wait_forever()
-    except KeyboardInterrupt:
-        log.info("serve: stopping")
-    finally:
-        app.stop()
+    with stop_on_signals():
+        app = ServeApp(args.stage, host=args.host, port=args.port, hdris=args.hdri or (), max_side=args.max_side,
+                       mode=args.mode)
+        try:
+            summary = {"url": app.url, "host": app.host, "port": app.port, "mode": app.mode,
+                       "resolution": list(app.live.resolution), "lights": len(app.states),
+                       "seconds": {k: round(v, 4) for k, v in app.seconds.items()}}
+            _emit(args, summary, f"usdrelight serve: open {app.url} ({app.seconds['start']:.1f} s to start; "
+                                 f"Ctrl-C stops)")
+            sys.stdout.flush()
+            app.wait_forever()
+        except KeyboardInterrupt:
+            log.info("serve: stopping")
+        finally:
+            app.stop()
     return 0
 
 

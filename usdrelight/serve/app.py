@@ -20,7 +20,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import logging
-import signal
 import sys
 import threading
 import time
@@ -385,11 +384,3 @@ class ServeApp:
                     raise TimeoutError(f"frame {request} not shown within {timeout} s")
                 self._shown_cond.wait(left)
             return self.shown
-
-
-def stop_on_signals() -> None:
-    """Make Ctrl-C (SIGINT) and a plain kill (SIGTERM) raise KeyboardInterrupt in the main thread, so that
-    :meth:`ServeApp.wait_forever` returns to a caller that stops the app cleanly; also when the process was started
-    with SIGINT ignored (a shell's background job, nohup), where Python installs no handler of its own."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.default_int_handler)
