@@ -312,8 +312,9 @@ def main():
     ap.add_argument("--real-side", type=int, default=512, help="longer side of the motorcycle relights")
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--work", type=Path, help="keep the photos and stages here (default: a temporary folder)")
-    ap.add_argument("--tag", type=result_tag, help="write results/generalisation_TAG.json and no contact sheets (a side run, e.g. "
-                                  "--families procedural --tag calibration_family: the training generator's scenes)")
+    ap.add_argument("--tag", type=result_tag,
+                    help="write results/generalisation_TAG.json and no contact sheets (a side run, e.g. "
+                         "--families procedural --tag calibration_family: the training generator's scenes)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()

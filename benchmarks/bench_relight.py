@@ -49,14 +49,25 @@ def rel_rmse(img, ref, valid) -> float:
     return float(np.sqrt(np.mean((img[valid] - ref[valid]) ** 2)) / np.sqrt(np.mean(ref[valid] ** 2)))
 
 
-class Mitsuba:
-    """The stage loaded once into Mitsuba (path tracer, max_depth 3, emitters hidden from camera rays)."""
+def procedural_record(work: Path):
+    """The procedural ground-truth example (examples/procedural) built into a stage under ``work`` with its true
+    depth, intrinsics and albedo, read back as a scene record."""
+    ex = ROOT / "examples" / "procedural"
+    build(ex / "photo.exr", work / "proc", BuildOptions(depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json",
+                                                        albedo=ex / "albedo.exr"))
+    return read_scene(open_stage(work / "proc" / "scene.usda"))
 
-    def __init__(self, rec):
+
+class Mitsuba:
+    """The stage loaded once into Mitsuba (path tracer, ``max_depth`` 3 by default: one bounce; emitters hidden
+    from camera rays)."""
+
+    def __init__(self, rec, max_depth: int = 3):
         t = time.perf_counter()
         self.mi = load_mitsuba()
-        integrator = {"type": "path", "max_depth": 3, "hide_emitters": True}
-        self.scene = self.mi.load_dict(to_mitsuba(scene_dict(rec, spp=1, max_depth=3, integrator=integrator), self.mi))
+        integrator = {"type": "path", "max_depth": max_depth, "hide_emitters": True}
+        self.scene = self.mi.load_dict(to_mitsuba(scene_dict(rec, spp=1, max_depth=max_depth, integrator=integrator),
+                                                  self.mi))
         np.array(self.mi.render(self.scene, spp=1))  # kernel compilation
         self.load_seconds = time.perf_counter() - t
 
@@ -174,11 +185,7 @@ def main() -> None:
         out["error_vs_time"] = json.loads((RESULTS / "relight.json").read_text()).get("error_vs_time", [])
     if not args.frames_only:
         with tempfile.TemporaryDirectory() as td:
-            ex = ROOT / "examples" / "procedural"
-            build(ex / "photo.exr", Path(td) / "proc", BuildOptions(depth=ex / "depth.exr",
-                                                                    intrinsics=ex / "intrinsics.json",
-                                                                    albedo=ex / "albedo.exr"))
-            rec = read_scene(open_stage(Path(td) / "proc" / "scene.usda"))
+            rec = procedural_record(Path(td))
             lights = parse_lights(["point:0.5,1.0,-2.5:3,2.5,2", "spot:0,1.5,-2:0.2,-1,-0.5:8,8,8:30:0.4",
                                    "point:-0.8,0.8,-3:1,1.5,2", "dome:0.2,0.25,0.3"])
             out["error_vs_time"].append(error_vs_time("procedural", rec, lights, None, spps, ref_passes))

@@ -156,7 +156,8 @@ def main():
     ap.add_argument("--height", type=int, default=96)
     ap.add_argument("--generators", nargs="*", default=[], choices=GENERATORS,
                     help="training generators (scripts/training_scenes.py) whose scenes join")
-    ap.add_argument("--tag", type=result_tag, default=None, help="write calibrate_transfer_TAG.json (a side run) instead")
+    ap.add_argument("--tag", type=result_tag, default=None,
+                    help="write calibrate_transfer_TAG.json (a side run) instead")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
