@@ -46,7 +46,9 @@ def load_pairs(folder: Path):
     return np.stack(xs), np.stack(ts), np.stack(ys), np.stack(ms), names
 
 
-def build_net(width: int = 24):
+def build_net(width: int = 24, global_branch: bool = False):
+    """The U-Net; ``global_branch``: plus a per-image log gain per channel from the mean of the deepest features
+    (a scene-wide correction, such as light the 2.5D stage cannot bounce), zero at initialisation too."""
     import torch
     from torch import nn
 
@@ -65,6 +67,12 @@ def build_net(width: int = 24):
             self.head = nn.Conv2d(width, 3, 1)
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
+            self.glob = None
+            if global_branch:
+                self.glob = nn.Sequential(nn.Conv2d(width * 2, width * 2, 1), nn.ReLU(inplace=True),
+                                          nn.Conv2d(width * 2, 3, 1))
+                nn.init.zeros_(self.glob[2].weight)
+                nn.init.zeros_(self.glob[2].bias)
 
         def forward(self, x):
             f = nn.functional
@@ -77,6 +85,8 @@ def build_net(width: int = 24):
             d1 = self.d1(torch.cat([f.interpolate(d2, scale_factor=2.0, mode="bilinear", align_corners=False),
                                     e1], 1))
             g = f.interpolate(self.head(d1), scale_factor=2.0, mode="bilinear", align_corners=False)
+            if self.glob is not None:
+                g = g + self.glob(e3.mean((2, 3), keepdim=True))
             return BOUND * torch.tanh(g)
 
     return Residual()
@@ -108,6 +118,8 @@ def main():
     ap.add_argument("--width", type=int, default=24)
     ap.add_argument("--out", type=Path, default=HERE.parent / "usdrelight" / "models")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--global-branch", action="store_true",
+                    help="add a per-image gain from the mean of the deepest features")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.manual_seed(0)
@@ -121,7 +133,7 @@ def main():
     log.info("%d pairs (%d validation) from %s", len(names), val.sum(), gens)
     X, T, Y, M = (torch.from_numpy(a) for a in (x, t, y, m))
     tr, va = np.nonzero(~val)[0], np.nonzero(val)[0]
-    net = build_net(args.width)
+    net = build_net(args.width, args.global_branch)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.steps)
 
@@ -167,6 +179,7 @@ def main():
                       opset_version=17, dynamo=False)
     meta = {"pairs": len(names), "validation_pairs": int(val.sum()), "generators": gens, "steps": args.steps,
             "batch": args.batch, "lr": args.lr, "harm": args.harm, "width": args.width,
+            "global_branch": args.global_branch,
             "validation_gain_db": {"mean": best[0], "worst": best[1], "share_below_minus_0.2_db": best[2]},
             "curve": curve, "seconds": time.perf_counter() - t0}
     (args.out / "transfer_residual.json").write_text(json.dumps(meta, indent=1) + "\n")

@@ -120,3 +120,35 @@ def test_the_shipped_residual_and_its_card_match_the_benchmark_json():
     for scale in (1.0, 1e-6, 1e6):
         g = model(residual_input(t * scale, n, f, p * scale, low, alb, seen, 0.5))
         assert g.shape == (40, 52, 3) and np.all(np.isfinite(g)) and np.abs(g).max() <= BOUND + 1e-6
+
+
+@pytest.mark.parametrize("global_branch", [False, True])
+def test_the_training_scripts_network_exports_to_the_contract(tmp_path, global_branch):
+    """scripts/train_transfer_residual.py's network, through the ONNX file a user's model takes: untrained, it
+    returns ``transfer`` exactly; its global branch adds one gain per channel for the whole image."""
+    torch = pytest.importorskip("torch")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from train_transfer_residual import build_net
+
+    torch.manual_seed(0)
+    net = build_net(4, global_branch).eval()
+    path = tmp_path / "net.onnx"
+
+    def export():
+        torch.onnx.export(net, torch.zeros(1, CHANNELS, 32, 48), str(path), input_names=["input"],
+                          output_names=["log_gain"], dynamic_axes={"input": {2: "h", 3: "w"},
+                                                                   "log_gain": {2: "h", 3: "w"}},
+                          opset_version=17, dynamo=False)
+        return ResidualModel(path)
+
+    t, n, f, p, low, alb, seen = _images(h=40, w=50)
+    x = residual_input(t, n, f, p, low, alb, seen, 0.5)
+    assert np.array_equal(apply_gain(t, export()(x)), t)
+    if global_branch:  # only the global branch's last layer set: a per-image gain, the same at every pixel
+        with torch.no_grad():
+            net.glob[2].bias.copy_(torch.tensor([0.1, -0.2, 0.3]))
+        g = export()(x)
+        np.testing.assert_allclose(g, np.broadcast_to(BOUND * np.tanh([0.1, -0.2, 0.3]), g.shape), rtol=1e-5)
