@@ -74,8 +74,9 @@ def generator_scene(generator: str, seed: int, args, work):
     return sc, stage, photo, gt_valid
 
 
-def collect(args, work):
-    """Per scene and kind: photo, truth, N~, F~, coverage mask and the truth's valid mask."""
+def collect(args, work, extra=None):
+    """Per scene and kind: photo, truth, N~, F~, coverage mask and the truth's valid mask; ``extra(stage, kind,
+    relight)``, when given, returns more entries for the case (while the stage still exists)."""
     cases = []
     todo = [(fam, seed) for fam in CALIBRATION for seed in range(args.scenes)]
     todo += [(g, seed) for g in args.generators for seed in range(args.scenes)]
@@ -97,7 +98,7 @@ def collect(args, work):
                 ratio = s.render(r["lights"], mode="ratio").image if kind == "dim" else None
             cases.append({"scene": sc.name, "kind": kind, "photo": photo, "truth": truth, "f": f_cc,
                           "n": fr.image, "seen": fr.coverage > 0, "gt_valid": gt_valid, "angles": angles,
-                          "shares": shares, "ratio": ratio})
+                          "shares": shares, "ratio": ratio} | (extra(stage, kind, r) if extra else {}))
         log.info("%s collected", sc.name)
     return cases
 

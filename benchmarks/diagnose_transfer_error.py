@@ -10,6 +10,12 @@ never in the training pairs, which use 0-59), collected as benchmarks/calibrate_
 * ``render_best_scale`` / ``transfer_best_scale``: the same picture times the one scalar (per image, all channels,
   exp of -1.5..1.5 in steps of 0.05) that fits the truth best: an oracle, not a mode. What it gains is the share
   of the error that is global brightness, such as light bounced by walls the 2.5D stage does not hold;
+* ``render_closure_fit`` / ``render_closure_best``: a closed room's missing bounce as an ambient term,
+  N~ + alpha A L, with A the albedo and L the mean radiance of the visible surfaces under the new lights (domes
+  left out): the light that walls out of view, as bright on average as the walls in view, would send back.
+  ``_fit`` takes alpha from the photo (the fitted dome's render, least squares against A times the fitted
+  non-dome lights' mean radiance: the ambient the fit needed per unit of its lights, if it were all bounce);
+  ``_best`` is the oracle alpha (0..3 in steps of 0.05). Whether the fit alone can tell a room's bounce from a sky;
 * ``transfer_median_K``: ``transfer`` with the split of r = log((I + k) / (F~ + k)) into low and high frequencies
   made by a K x K median instead of the Gaussian (a median keeps a step, so an old shadow's edge goes with the
   low frequencies instead of staying behind as an outline). A variant measured, not shipped.
@@ -36,6 +42,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from calibrate_transfer import BUCKET, GENERATORS, collect  # noqa: E402
+from usdrelight.relight.composite import render_photo  # noqa: E402
+from usdrelight.relight.session import RelightSession  # noqa: E402
 from bench_generalisation import psnr  # noqa: E402
 from usdrelight.neural.model import hole_fill  # noqa: E402
 from usdrelight.relight.composite import TransferReference, transfer_apply, transfer_reference  # noqa: E402
@@ -44,6 +52,8 @@ from usdrelight.relight.light_match import match_weight  # noqa: E402
 log = logging.getLogger("diagnose_transfer_error")
 SCALES = np.arange(-1.5, 1.5001, 0.05)
 """The oracle's log scales."""
+ALPHAS = np.arange(0.0, 3.0001, 0.05)
+"""The closure oracle's alphas."""
 MEDIANS = (3, 5)
 """The median windows tried (pixels, at the 128 x 96 of these scenes: the Gaussian's sigma is 1 px there)."""
 
@@ -62,6 +72,44 @@ def median_reference(ref: TransferReference, r: np.ndarray, size: int) -> Transf
     return ref._replace(low=low, high=np.clip(r - low, -ref.clip, ref.clip))
 
 
+def _is_dome(light) -> bool:
+    return (light.kind if hasattr(light, "kind") else str(light).split(":")[0]) == "dome"
+
+
+def split_renders(stage, kind, relight) -> dict:
+    """For :func:`calibrate_transfer.collect`: the albedo, the renders (as a photo shows them) of the fitted dome,
+    of the fitted lights but the dome and of the new lights but domes (None where a set is empty)."""
+    frames = []
+
+    def photo_render(s, lights):
+        if not lights:
+            return None
+        frames.append(s.render(lights))
+        return render_photo(frames[-1].diffuse, frames[-1].coverage)
+
+    with RelightSession(stage, max_side=None, with_fitted=False, fitted_scale=1.0, mode="render") as s:
+        fitted = list(s.fitted_lights)
+        out = {"f_dome": photo_render(s, [lt for lt in fitted if _is_dome(lt)]),
+               "f_lights": photo_render(s, [lt for lt in fitted if not _is_dome(lt)]),
+               "n_lights": photo_render(s, [lt for lt in relight["lights"] if not _is_dome(lt)])}
+        if not frames:
+            frames.append(s.render(relight["lights"]))
+    out["albedo"] = hole_fill(np.clip(frames[0].albedo, 0.0, 1.0), frames[0].coverage > 0)
+    return out
+
+
+def closure_db(c: dict, base: float) -> tuple[float, float]:
+    """(gain with alpha from the fit, the oracle's gain) of N~ + alpha A L over ``render`` (module docstring)."""
+    if c["f_dome"] is None or c["f_lights"] is None or c["n_lights"] is None:
+        return 0.0, 0.0
+    seen, a = c["seen"], c["albedo"]
+    basis = a * c["f_lights"][seen].mean(0)
+    alpha = float((c["f_dome"][seen] * basis[seen]).sum() / max(float((basis[seen] ** 2).sum()), 1e-12))
+    ambient = a * c["n_lights"][seen].mean(0)
+    best = max(psnr(c["n"] + al * ambient, c["truth"], c["gt_valid"]) for al in ALPHAS)
+    return psnr(c["n"] + alpha * ambient, c["truth"], c["gt_valid"]) - base, best - base
+
+
 def best_scale_db(img, truth, valid) -> float:
     return max(psnr(img * np.exp(s), truth, valid) for s in SCALES)
 
@@ -76,6 +124,7 @@ def diagnose(c: dict) -> dict:
     out = {"render_db": base, "transfer": psnr(tr, truth, valid) - base,
            "render_best_scale": best_scale_db(c["n"], truth, valid) - base,
            "transfer_best_scale": best_scale_db(tr, truth, valid) - base}
+    out["render_closure_fit"], out["render_closure_best"] = closure_db(c, base)
     for k in MEDIANS:
         out[f"transfer_median_{k}"] = psnr(transfer_apply(c["n"], median_reference(ref, r, k), w),
                                            truth, valid) - base
@@ -93,7 +142,7 @@ def main():
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as td:
-        cases = collect(args, Path(td))
+        cases = collect(args, Path(td), split_renders)
     rows = []
     for c in cases:
         if c["kind"] == "dim":
