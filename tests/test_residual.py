@@ -123,14 +123,13 @@ def test_the_shipped_residual_and_its_card_match_the_benchmark_json():
 
 
 @pytest.mark.parametrize("global_branch", [False, True])
-def test_the_training_scripts_network_exports_to_the_contract(tmp_path, global_branch):
+def test_the_training_scripts_network_exports_to_the_contract(tmp_path, monkeypatch, global_branch):
     """scripts/train_transfer_residual.py's network, through the ONNX file a user's model takes: untrained, it
     returns ``transfer`` exactly; its global branch adds one gain per channel for the whole image."""
     torch = pytest.importorskip("torch")
-    import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
     from train_transfer_residual import build_net
 
     torch.manual_seed(0)
