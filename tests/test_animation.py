@@ -197,3 +197,40 @@ def test_bad_time_input_is_one_line(animated_stage, tmp_path, cli, args, message
     rc, stdout, err = cli("relight", animated_stage, "--with-fitted", "-o", out, *args)
     assert rc == 2 and message in err and err.count("\n") == 1, err
     assert not out.exists()
+
+
+def test_area_lights_of_a_sequence_survive_the_saved_layer(tmp_path):
+    """rect, disk and sphere --light specs (sizes, positions and directions changing per frame) written as a
+    time-sampled layer and read back at each frame's time code: the same records (float32 attributes: to
+    rounding), normalize off, and the fast engine renders them alike."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    from usdrelight.stage.animated_lights import write_sequence_layer
+    from usdrelight.stage.light_specs import parse_lights
+    from usdrelight.stage.read import read_lights
+
+    specs = [[f"rect:{0.3 + 0.1 * i},1.6,-3.0:{0.1 * i},-1,0.2:6,{6 - i},6:{0.5 + 0.25 * i},0.5",
+              f"disk:-0.6,1.5,-2.5:0.3,-1,{0.1 * i}:4,4,4:{0.25 * (i + 1)}",
+              f"sphere:-0.5,{1.0 + 0.2 * i},-2.0:20,20,20:{0.125 * (i + 1)}"] for i in range(3)]
+    frames = [parse_lights(f) for f in specs]
+    layer = write_sequence_layer(tmp_path / "area.usda", frames)
+    root = Sdf.Layer.CreateNew(str(tmp_path / "root.usda"))
+    root.subLayerPaths.append("./area.usda")
+    stage = Usd.Stage.Open(root)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.DefinePrim("/Scene", "Xform")
+    assert "RectLight" in layer.read_text() and "DiskLight" in layer.read_text()
+    for i, want in enumerate(frames):
+        got = sorted(read_lights(stage, 1.0 + i), key=lambda l: l.path)
+        assert [g.kind for g in got] == ["rect", "disk", "sphere"]
+        for g, w in zip(got, want):
+            assert g.path == w.path and not g.normalize and not g.treat_as_point
+            assert (g.radius, g.width, g.height) == (w.radius, w.width, w.height)  # exact in float32
+            np.testing.assert_allclose(g.to_world, w.to_world, atol=1e-6)
+            np.testing.assert_allclose(g.radiance, w.radiance, rtol=1e-6)
+    # the kinds stay apart in a sequence: a rect may not turn into a disk
+    from usdrelight.errors import UsdRelightError
+
+    with pytest.raises(UsdRelightError, match="changes kind"):
+        write_sequence_layer(tmp_path / "bad.usda", [frames[0][:1], parse_lights([specs[0][1]])])
+    assert not (tmp_path / "bad.usda").exists()

@@ -101,10 +101,31 @@ SCENE_LIGHTS = {
     "sun": ["sun:0.4,-1,-0.3:2,2,2"],
     "sun_wide": ["sun:0.4,-1,-0.3:2,2,2:10"],
     "dome": ["dome:0.5,0.6,0.8"],
-    "sphere": [LightRecord("/sp", "sphere", _at([-0.5, 1.0, -2.0]), np.full(3, 20.0), radius=0.15)],
-    "rect": [LightRecord("/r", "rect", _at([0.3, 1.6, -3.0], [0, -1, 0.2]), np.full(3, 6.0), width=0.8, height=0.5)],
-    "disk": [LightRecord("/d", "disk", _at([-0.6, 1.5, -2.5], [0.3, -1, 0]), np.full(3, 6.0), radius=0.3)],
+    "sphere": ["sphere:-0.5,1.0,-2.0:20,20,20:0.15"],
+    "rect": ["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"],
+    "disk": ["disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3"],
 }
+AREA_RECORDS = {
+    "sphere": LightRecord("/sp", "sphere", _at([-0.5, 1.0, -2.0]), np.full(3, 20.0), radius=0.15),
+    "rect": LightRecord("/r", "rect", _at([0.3, 1.6, -3.0], [0, -1, 0.2]), np.full(3, 6.0), width=0.8, height=0.5),
+    "disk": LightRecord("/d", "disk", _at([-0.6, 1.5, -2.5], [0.3, -1, 0]), np.full(3, 6.0), radius=0.3),
+}
+"""The area lights of SCENE_LIGHTS built by hand (UsdLux: local -Z along the direction, normalize off)."""
+
+
+@pytest.mark.parametrize("kind", sorted(AREA_RECORDS))
+def test_area_light_specs_are_the_records_they_name(kind, cli, procedural):
+    """The --light spec of each area light is that UsdLux light (so the Mitsuba comparison below checks the specs);
+    bad sizes are one line and exit 2."""
+    got, want = parse_light(SCENE_LIGHTS[kind][0]), AREA_RECORDS[kind]
+    assert (got.kind, got.radius, got.width, got.height, got.normalize) == \
+        (want.kind, want.radius, want.width, want.height, want.normalize)
+    np.testing.assert_array_equal(got.to_world, want.to_world)
+    np.testing.assert_array_equal(got.radiance, want.radiance)
+    size = SCENE_LIGHTS[kind][0].rsplit(":", 1)[0]
+    for bad in ("0", "-1", "nan", "1e9") if kind != "rect" else ("0,1", "1,-1", "1", "1,1e9"):
+        rc, _, err = cli("relight", procedural, "--light", f"{size}:{bad}")
+        assert rc == 2 and "bad --light" in err and len(err.strip().splitlines()) == 1, (bad, err)
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from ..argtypes import add_frames_argument, add_time_argument, positive_int as _positive_int
+from ..stage.light_syntax import SYNTAX as LIGHT_SYNTAX
 
 DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
                "time code of --frames) and --light, rendered, then composited (ratio, add) or through the network "
@@ -18,8 +19,7 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
                         description=DESCRIPTION)
     rl.add_argument("stage", type=Path)
     rl.add_argument("--light", action="append", metavar="SPEC",
-                    help="point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
-                         "dome:R,G,B (repeatable; applies to every frame)")
+                    help=f"{LIGHT_SYNTAX} (repeatable; applies to every frame)")
     frames = rl.add_mutually_exclusive_group()
     frames.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
                         help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "

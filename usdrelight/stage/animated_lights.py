@@ -9,10 +9,11 @@ stage animated in usdview, Blender or Houdini lead to the same file: the n-th li
   so a light moves and turns smoothly when a renderer asks for a time between two frames;
 * ``inputs:intensity`` and ``inputs:color`` (intensity * color = the light's RGB, as
   :func:`usdrelight.stage.lux.set_light_rgb` splits it), ``inputs:shaping:cone:angle`` / ``softness`` for spots,
-  ``inputs:angle`` for suns;
+  ``inputs:angle`` for suns, ``inputs:radius`` for sphere and disk lights, ``inputs:width`` / ``height`` for rect
+  lights (metres; area lights with ``normalize`` false, as ``--light`` makes them);
 * ``visibility``: ``invisible`` at the frames where the light is absent (a frame with fewer lights).
 
-The n-th light must keep its kind (point, spot, sun, dome) through the sequence. The layer's start/end time
+The n-th light must keep its kind (point, spot, sun, dome, sphere, disk, rect) through the sequence. The layer's start/end time
 codes and framesPerSecond are authored, so the stage that sublayers it knows the clip's range. The layer is a
 new file: an existing file is never overwritten.
 """
@@ -34,7 +35,10 @@ def _kind(light: LightRecord) -> str:
         return "spot" if light.cone_angle_deg is not None else "point"
     if light.kind in ("distant", "dome") and light.texture is None:
         return "sun" if light.kind == "distant" else "dome"
-    raise UsdRelightError(f"a light sequence holds point, spot, sun and untextured dome lights, not {light.kind}")
+    if light.kind in ("sphere", "disk", "rect") and not light.normalize and light.cone_angle_deg is None:
+        return light.kind
+    raise UsdRelightError(f"a light sequence holds point, spot, sun, untextured dome and unshaped, unnormalized "
+                          f"sphere, disk and rect lights, not this {light.kind} light")
 
 
 def _rotation_quat(m: np.ndarray):
@@ -50,6 +54,7 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
     (frame i at time code ``start + i``); see the module docstring. Returns ``path``."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
+    area_types = {"sphere": UsdLux.SphereLight, "disk": UsdLux.DiskLight, "rect": UsdLux.RectLight}
     path = Path(path)
     if path.suffix.lower() not in (".usda", ".usd", ".usdc"):
         raise UsdRelightError(f"the lights layer must be a .usda, .usd or .usdc file, got {path.name}")
@@ -81,9 +86,11 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
             light = UsdLux.SphereLight.Define(stage, prim_path)
             light.CreateTreatAsPointAttr(True)
             light.CreateRadiusAttr(0.0)
-            light.CreateNormalizeAttr(False)
         else:
-            light = (UsdLux.DistantLight if kind == "sun" else UsdLux.DomeLight).Define(stage, prim_path)
+            light = area_types[kind].Define(stage, prim_path) if kind in area_types else \
+                (UsdLux.DistantLight if kind == "sun" else UsdLux.DomeLight).Define(stage, prim_path)
+        if kind in ("point", "spot") or kind in area_types:
+            light.CreateNormalizeAttr(False)
         xf = UsdGeom.Xformable(light)
         translate, orient = xf.AddTranslateOp(), xf.AddOrientOp()
         shaping = UsdLux.ShapingAPI.Apply(light.GetPrim()) if kind == "spot" else None
@@ -105,6 +112,11 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
                 shaping.CreateShapingConeSoftnessAttr().Set(float(rec.cone_softness), t)
             if kind == "sun":
                 light.CreateAngleAttr().Set(float(rec.angle_deg), t)
+            elif kind in ("sphere", "disk"):
+                light.CreateRadiusAttr().Set(float(rec.radius), t)
+            elif kind == "rect":
+                light.CreateWidthAttr().Set(float(rec.width), t)
+                light.CreateHeightAttr().Set(float(rec.height), t)
     layer.GetPrimAtPath(ROOT).specifier = Sdf.SpecifierOver  # /Scene is defined by the stage's scene.usda
     text = layer.ExportToString()
     with atomic_path(path) as tmp:

@@ -7,9 +7,14 @@ read scaled to metres, as :func:`usdrelight.stage.read.read_scene` does) and Usd
     sun:DX,DY,DZ:R,G,B[:ANGLE]                DistantLight travelling along D: irradiance W/m^2; angular
                                               diameter ANGLE in degrees (default 0: sharp)
     dome:R,G,B                                untextured DomeLight: radiance
+    sphere:X,Y,Z:R,G,B:RADIUS                 SphereLight of RADIUS metres: radiance W/(m^2 sr)
+    disk:X,Y,Z:DX,DY,DZ:R,G,B:RADIUS          DiskLight of RADIUS metres facing along D: radiance
+    rect:X,Y,Z:DX,DY,DZ:R,G,B:W,H             RectLight W x H metres (W along the light's local X, H along its
+                                              local Y) facing along D: radiance
 
 For `build` stages the frame is the camera's: camera at the origin looking down -Z, +Y up, metres. Colours
-are linear RGB, finite and >= 0; directions non-zero.
+are linear RGB, finite and >= 0; directions non-zero; sizes in (0, MAX_SIZE]. Area lights are not normalized
+(UsdLux ``normalize`` false): their power grows with their area, as in USD by default.
 """
 from __future__ import annotations
 
@@ -17,11 +22,10 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from .layout import RELIGHT_LIGHTS_SCOPE
+from .light_syntax import MAX_SIZE, SYNTAX
 from .lux import frame_pointing_along
 from .records import LightRecord
 
-SYNTAX = ("point:X,Y,Z:R,G,B | spot:X,Y,Z:DX,DY,DZ:R,G,B:CONE[:SOFT] | sun:DX,DY,DZ:R,G,B[:ANGLE] | "
-          "dome:R,G,B")
 
 
 def _floats(text: str, n: int, what: str, spec: str) -> np.ndarray:
@@ -55,6 +59,20 @@ def _angle(text: str, spec: str, what: str, lo: float, hi: float) -> float:
     return v
 
 
+def _sizes(text: str, n: int, spec: str, what: str) -> np.ndarray:
+    v = _floats(text, n, what, spec)
+    if np.any(v <= 0) or np.any(v > MAX_SIZE):
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be > 0 and <= {MAX_SIZE:g} m")
+    return v
+
+
+def _facing(position: str, direction: str, spec: str) -> np.ndarray:
+    """The frame of a light at ``position`` whose local -Z points along ``direction``."""
+    m = frame_pointing_along(_direction(direction, spec))
+    m[:3, 3] = _floats(position, 3, "the position", spec)
+    return m
+
+
 def parse_light(spec: str, index: int = 0) -> LightRecord:
     """One ``--light`` string as a light record (path ``/Scene/Lights/Relight/Light<index>``)."""
     parts = str(spec).split(":")
@@ -65,8 +83,7 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
         m[:3, 3] = _floats(parts[1], 3, "the position", spec)
         return LightRecord(path, "sphere", m, _colour(parts[2], spec), treat_as_point=True)
     if kind == "spot" and len(parts) in (5, 6):
-        m = frame_pointing_along(_direction(parts[2], spec))
-        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        m = _facing(parts[1], parts[2], spec)
         soft = _angle(parts[5], spec, "the softness", 0.0, 1.0) if len(parts) == 6 else 0.0
         return LightRecord(path, "sphere", m, _colour(parts[3], spec), treat_as_point=True,
                            cone_angle_deg=_angle(parts[4], spec, "the cone angle", 0.0, 180.0), cone_softness=soft)
@@ -76,6 +93,18 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
                            angle_deg=angle)
     if kind == "dome" and len(parts) == 2:
         return LightRecord(path, "dome", np.eye(4), _colour(parts[1], spec))
+    if kind == "sphere" and len(parts) == 4:
+        m = np.eye(4)
+        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        return LightRecord(path, "sphere", m, _colour(parts[2], spec),
+                           radius=float(_sizes(parts[3], 1, spec, "the radius")[0]))
+    if kind == "disk" and len(parts) == 5:
+        return LightRecord(path, "disk", _facing(parts[1], parts[2], spec), _colour(parts[3], spec),
+                           radius=float(_sizes(parts[4], 1, spec, "the radius")[0]))
+    if kind == "rect" and len(parts) == 5:
+        w, h = _sizes(parts[4], 2, spec, "the width and height")
+        return LightRecord(path, "rect", _facing(parts[1], parts[2], spec), _colour(parts[3], spec),
+                           width=float(w), height=float(h))
     raise UsdRelightError(f"bad --light {spec!r}: use {SYNTAX}")
 
 
