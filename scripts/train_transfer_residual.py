@@ -48,7 +48,8 @@ def load_pairs(folder: Path):
 
 def build_net(width: int = 24, global_branch: bool = False):
     """The U-Net; ``global_branch``: plus a per-image log gain per channel from the mean of the deepest features
-    (a scene-wide correction, such as light the 2.5D stage cannot bounce), zero at initialisation too."""
+    (a scene-wide correction, such as light the 2.5D stage cannot bounce), zero at initialisation too. The mean is
+    over the whole input, so it includes the edge replication the runner pads an image with to a multiple of 8."""
     import torch
     from torch import nn
 

@@ -142,6 +142,16 @@ def _split_high(log_img: np.ndarray, sigma: float) -> np.ndarray:
     return log_img - gaussian_filter(log_img, (s, s, 0), mode="nearest")
 
 
+def log_ratio(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray):
+    """(r, log(F~ + k), k): r = log((I + k) / (F~ + k)) within +-7, F~ hole-filled from the ``valid`` pixels, the
+    guard k (3,) = 1% of F~'s mean over them per channel; float64, natural logs of linear RGB."""
+    f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
+    sel = valid if valid.any() else np.ones(valid.shape, bool)
+    k = np.maximum(0.01 * f[sel].mean(0), 1e-8)
+    log_f = np.log(f + k)
+    return np.clip(np.log(np.maximum(photo, 0.0) + k) - log_f, -7.0, 7.0), log_f, k
+
+
 def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray, sigma: float | None = None,
                        clip: float = TRANSFER_CLIP) -> TransferReference:
     """What ``transfer`` needs of the photo and the fitted render F~ (as a photo shows it), the same for every
@@ -150,11 +160,7 @@ def transfer_reference(photo: np.ndarray, fitted: np.ndarray, valid: np.ndarray,
     longer side)."""
     if sigma is None:
         sigma = TRANSFER_SIGMA * max(photo.shape[:2]) / 512.0
-    f = hole_fill(np.maximum(fitted, 0.0), valid).astype(np.float64)
-    sel = valid if valid.any() else np.ones(valid.shape, bool)
-    k = np.maximum(0.01 * f[sel].mean(0), 1e-8)
-    log_f = np.log(f + k)
-    r = np.clip(np.log(np.maximum(photo, 0.0) + k) - log_f, -7.0, 7.0)
+    r, log_f, k = log_ratio(photo, fitted, valid)
     high = _split_high(r, sigma)
     return TransferReference(r - high, np.clip(high, -clip, clip), _split_high(log_f, sigma), k, float(sigma),
                              float(clip))
