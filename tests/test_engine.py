@@ -115,16 +115,29 @@ AREA_RECORDS = {
 
 @pytest.mark.parametrize("kind", sorted(AREA_RECORDS))
 def test_area_light_specs_are_the_records_they_name(kind, cli, procedural):
-    """The --light spec of each area light is that UsdLux light (so the Mitsuba comparison below checks the specs);
-    bad sizes are one line and exit 2."""
-    got, want = parse_light(SCENE_LIGHTS[kind][0]), AREA_RECORDS[kind]
+    """The --light spec of each area light is that UsdLux light (so the Mitsuba comparison below checks the specs):
+    where it is, which way it faces (local -Z along D), where a rect's W lies; bad values are one line and exit 2."""
+    spec = SCENE_LIGHTS[kind][0]
+    got, want = parse_light(spec), AREA_RECORDS[kind]
     assert (got.kind, got.radius, got.width, got.height, got.normalize) == \
         (want.kind, want.radius, want.width, want.height, want.normalize)
     np.testing.assert_array_equal(got.to_world, want.to_world)
     np.testing.assert_array_equal(got.radiance, want.radiance)
-    size = SCENE_LIGHTS[kind][0].rsplit(":", 1)[0]
-    for bad in ("0", "-1", "nan", "1e9") if kind != "rect" else ("0,1", "1,-1", "1", "1,1e9"):
-        rc, _, err = cli("relight", procedural, "--light", f"{size}:{bad}")
+    parts = spec.split(":")
+    np.testing.assert_allclose(got.to_world[:3, 3], [float(x) for x in parts[1].split(",")])
+    if kind != "sphere":
+        d = np.array([float(x) for x in parts[2].split(",")])
+        np.testing.assert_allclose(-got.to_world[:3, 2], d / np.linalg.norm(d), atol=1e-12)
+    if kind == "rect":  # D (0, -1, 0.2) is within 25.8 degrees of -Y: W lies along +X x (-D)
+        np.testing.assert_allclose(got.to_world[:3, 0], [0.0, 0.2, 1.0] / np.linalg.norm([0.0, 0.2, 1.0]), atol=1e-12)
+    head = spec.rsplit(":", 1)[0]
+    sizes = ("0", "-1", "5e-5", "1e9", "inf") if kind != "rect" else ("0,1", "1,-1", "1e-9,1", "1,1e9", "inf,1")
+    for bad in sizes:
+        rc, _, err = cli("relight", procedural, "--light", f"{head}:{bad}")
+        assert rc == 2 and len(err.strip().splitlines()) == 1, (bad, err)
+        assert ("must be in [0.0001, 10000] m" in err) or ("finite numbers" in err), (bad, err)
+    for bad in (head, f"{spec}:1", spec.replace(parts[1], "1e7,0,0")):  # a part missing or too many; far away
+        rc, _, err = cli("relight", procedural, "--light", bad)
         assert rc == 2 and "bad --light" in err and len(err.strip().splitlines()) == 1, (bad, err)
 
 

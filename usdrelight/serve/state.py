@@ -28,16 +28,12 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb, srgb_to_linear
 from ..stage.layout import USER_LIGHTS_SCOPE
+from ..stage.light_syntax import MAX_RADIANCE, POSITION_LIMIT  # noqa: F401 (the web app's limits)
 from ..stage.lux import frame_pointing_along
 from ..stage.records import LightRecord, TextureRecord
 
 KINDS = ("point", "spot", "sun", "dome")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
-MAX_RADIANCE = 1e30
-"""Largest intensity x 2^exposure x colour a light may have (far beyond any real light, far below float32's
-3.4e38, so no renderer sum or USD float overflows)."""
-POSITION_LIMIT = 1e6
-"""Largest |coordinate| of a light position a client may set (stage units)."""
 
 
 def _f32(x) -> float:

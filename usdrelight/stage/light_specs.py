@@ -13,8 +13,11 @@ read scaled to metres, as :func:`usdrelight.stage.read.read_scene` does) and Usd
                                               local Y) facing along D: radiance
 
 For `build` stages the frame is the camera's: camera at the origin looking down -Z, +Y up, metres. Colours
-are linear RGB, finite and >= 0; directions non-zero; sizes in (0, MAX_SIZE]. Area lights are not normalized
-(UsdLux ``normalize`` false): their power grows with their area, as in USD by default.
+are linear RGB, finite, >= 0 and <= MAX_RADIANCE; positions within +-POSITION_LIMIT; directions non-zero; sizes in
+[MIN_SIZE, MAX_SIZE] (:mod:`usdrelight.stage.light_syntax`). Area lights are not normalized (UsdLux ``normalize``
+false): their power grows with their area, as in USD by default. A disk or rect light's frame is
+:func:`usdrelight.stage.lux.frame_pointing_along` D: its local X (a rect's W) is the unit vector along
+helper x (-D), helper = +Y, or +X where D is within 25.8 degrees of +-Y (|D.y| >= 0.9 |D|).
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from .layout import RELIGHT_LIGHTS_SCOPE
-from .light_syntax import MAX_SIZE, SYNTAX
+from .light_syntax import MAX_RADIANCE, MAX_SIZE, MIN_SIZE, POSITION_LIMIT, SYNTAX
 from .lux import frame_pointing_along
 from .records import LightRecord
 
@@ -42,14 +45,24 @@ def _colour(text: str, spec: str) -> np.ndarray:
     rgb = _floats(text, 3, "the colour", spec)
     if np.any(rgb < 0):
         raise UsdRelightError(f"bad --light {spec!r}: colours must be >= 0 (a light cannot remove light)")
+    if np.any(rgb > MAX_RADIANCE):
+        raise UsdRelightError(f"bad --light {spec!r}: colours must be <= {MAX_RADIANCE:g}")
     return rgb
+
+
+def _position(text: str, spec: str) -> np.ndarray:
+    p = _floats(text, 3, "the position", spec)
+    if np.any(np.abs(p) > POSITION_LIMIT):
+        raise UsdRelightError(f"bad --light {spec!r}: a position's coordinates must be within +-{POSITION_LIMIT:g}")
+    return p
 
 
 def _direction(text: str, spec: str) -> np.ndarray:
     d = _floats(text, 3, "the direction", spec)
-    if np.linalg.norm(d) == 0:
+    big = np.abs(d).max()
+    if big == 0:
         raise UsdRelightError(f"bad --light {spec!r}: the direction must not be zero")
-    return d
+    return d if np.isfinite(np.linalg.norm(d)) else d / big  # the same direction, its norm finite
 
 
 def _angle(text: str, spec: str, what: str, lo: float, hi: float) -> float:
@@ -61,15 +74,15 @@ def _angle(text: str, spec: str, what: str, lo: float, hi: float) -> float:
 
 def _sizes(text: str, n: int, spec: str, what: str) -> np.ndarray:
     v = _floats(text, n, what, spec)
-    if np.any(v <= 0) or np.any(v > MAX_SIZE):
-        raise UsdRelightError(f"bad --light {spec!r}: {what} must be > 0 and <= {MAX_SIZE:g} m")
+    if np.any(v < MIN_SIZE) or np.any(v > MAX_SIZE):
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be in [{MIN_SIZE:g}, {MAX_SIZE:g}] m")
     return v
 
 
 def _facing(position: str, direction: str, spec: str) -> np.ndarray:
     """The frame of a light at ``position`` whose local -Z points along ``direction``."""
     m = frame_pointing_along(_direction(direction, spec))
-    m[:3, 3] = _floats(position, 3, "the position", spec)
+    m[:3, 3] = _position(position, spec)
     return m
 
 
@@ -80,7 +93,7 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
     path = f"{RELIGHT_LIGHTS_SCOPE}/Light{index}"
     if kind == "point" and len(parts) == 3:
         m = np.eye(4)
-        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        m[:3, 3] = _position(parts[1], spec)
         return LightRecord(path, "sphere", m, _colour(parts[2], spec), treat_as_point=True)
     if kind == "spot" and len(parts) in (5, 6):
         m = _facing(parts[1], parts[2], spec)
@@ -95,7 +108,7 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
         return LightRecord(path, "dome", np.eye(4), _colour(parts[1], spec))
     if kind == "sphere" and len(parts) == 4:
         m = np.eye(4)
-        m[:3, 3] = _floats(parts[1], 3, "the position", spec)
+        m[:3, 3] = _position(parts[1], spec)
         return LightRecord(path, "sphere", m, _colour(parts[2], spec),
                            radius=float(_sizes(parts[3], 1, spec, "the radius")[0]))
     if kind == "disk" and len(parts) == 5:
