@@ -149,14 +149,20 @@ def rank(rows: list[dict], tol: float = TIE_DB) -> list[dict]:
     return first + sorted((r for r in rows if id(r) not in chosen), key=lambda r: -r["mean_gain_db"])
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", type=int, default=6)
+def scene_arguments(ap: argparse.ArgumentParser, scenes: int, generators: list[str]) -> None:
+    """The options :func:`collect` reads: scenes per family or generator, samples per pixel, image size, the
+    training generators whose scenes join."""
+    ap.add_argument("--scenes", type=int, default=scenes)
     ap.add_argument("--spp", type=int, default=512)
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
-    ap.add_argument("--generators", nargs="*", default=[], choices=GENERATORS,
+    ap.add_argument("--generators", nargs="*", default=generators, choices=GENERATORS,
                     help="training generators (scripts/training_scenes.py) whose scenes join")
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    scene_arguments(ap, 6, [])
     ap.add_argument("--tag", type=result_tag, default=None,
                     help="write calibrate_transfer_TAG.json (a side run) instead")
     args = ap.parse_args()

@@ -48,7 +48,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from bench_generalisation import psnr  # noqa: E402
-from calibrate_transfer import BUCKET, GENERATORS, collect  # noqa: E402
+from calibrate_transfer import BUCKET, GENERATORS, collect, scene_arguments  # noqa: E402
 from usdrelight.neural.model import hole_fill  # noqa: E402
 from usdrelight.relight.composite import (TransferReference, log_ratio, render_photo, transfer_apply,  # noqa: E402
                                           transfer_reference)
@@ -162,11 +162,7 @@ def _nan_to_none(x):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", type=int, default=4)
-    ap.add_argument("--spp", type=int, default=512)
-    ap.add_argument("--width", type=int, default=128)
-    ap.add_argument("--height", type=int, default=96)
-    ap.add_argument("--generators", nargs="*", default=list(GENERATORS), choices=GENERATORS)
+    scene_arguments(ap, 4, list(GENERATORS))
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
