@@ -76,13 +76,18 @@ def _all_kinds(hdri_label: str) -> list[LightState]:
         LightState("Dome1", "dome", color=(0.2, 0.3, 0.5), intensity=0.7),
         LightState("Sky", "dome", intensity=0.5, hdri=hdri_label, rotation=quat_pointing_along([1, 0, 0])),
         LightState("Off", "point", intensity=3.0, position=(0, 2, -1), enabled=False),
+        LightState("Ball", "sphere", intensity=30.0, position=(0.5, 1.2, -1.5), radius=0.125),
+        LightState("Round", "disk", color=(1.0, 0.75, 0.5), intensity=8.0, position=(-0.5, 1.5, -2.0),
+                   rotation=quat_pointing_along([0.3, -1.0, 0.1]), radius=0.3),
+        LightState("Panel2", "rect", intensity=6.0, position=(0.2, 1.6, -2.5),
+                   rotation=quat_pointing_along([0.0, -1.0, 0.2]), width=0.75, height=0.5),
     ]
 
 
 # ---- mappings ---------------------------------------------------------------------------------------
 def test_state_usd_state_round_trip_keeps_other_layers(stage):
     """state -> lights_user.usda -> state is exact for every kind; only lights_user.usda changes, and a light
-    the app cannot edit (a DiskLight a user put in the layer) stays as it was."""
+    the app cannot edit (a normalized DiskLight a user put in the layer) stays as it was."""
     from pxr import Sdf, Usd, UsdLux
 
     folder = stage.parent
@@ -90,7 +95,9 @@ def test_state_usd_state_round_trip_keeps_other_layers(stage):
     layer = Sdf.Layer.FindOrOpen(str(folder / USER_LIGHTS))
     s = Usd.Stage.Open(layer)
     s.OverridePrim("/Scene")
-    UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Panel").CreateRadiusAttr(0.25)
+    panel = UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Panel")
+    panel.CreateRadiusAttr(0.25)
+    panel.CreateNormalizeAttr(True)
     layer.Save()
     before = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file() and p.name != USER_LIGHTS}
     states = _all_kinds("sky")
@@ -117,6 +124,7 @@ def test_state_usd_state_round_trip_keeps_other_layers(stage):
         np.testing.assert_allclose(got.to_world, want.to_world, atol=1e-12)
         assert (got.kind, got.treat_as_point, got.cone_angle_deg, got.angle_deg) == \
                (want.kind, want.treat_as_point, want.cone_angle_deg, want.angle_deg)
+        assert (got.radius, got.width, got.height, got.normalize) == (want.radius, want.width, want.height, False)
         assert (got.texture.path if got.texture else None) == (str(hdri.resolve()) if st.hdri else None)
 
 
@@ -145,13 +153,23 @@ def test_state_matches_light_specs_and_records():
         (LightState("C", "sun", color=(0.5, 0.5, 1.0), intensity=4.0, rotation=quat_pointing_along([0.2, -1, 0.1]),
                     angle=0.5), "sun:0.2,-1,0.1:2,2,4:0.5"),
         (LightState("D", "dome", color=(0.25, 0.5, 1.0), intensity=0.5), "dome:0.125,0.25,0.5"),
+        (LightState("E", "sphere", intensity=20.0, position=(-0.5, 1, -2), radius=0.25),
+         "sphere:-0.5,1,-2:20,20,20:0.25"),
+        (LightState("F", "disk", intensity=6.0, position=(-0.6, 1.5, -2.5), rotation=quat_pointing_along([0.3, -1, 0]),
+                    radius=0.3), "disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3"),
+        (LightState("G", "rect", intensity=6.0, position=(0.3, 1.6, -3), rotation=quat_pointing_along([0, -1, 0.2]),
+                    width=0.75, height=0.5), "rect:0.3,1.6,-3:0,-1,0.2:6,6,6:0.75,0.5"),
     ]
     for state, spec in cases:
         rec, ref = to_record(state), parse_light(spec)
         np.testing.assert_allclose(rec.radiance, ref.radiance, rtol=1e-6)
-        if state.kind in ("point", "spot"):
+        if state.kind not in ("sun", "dome"):
             np.testing.assert_allclose(rec.to_world[:3, 3], ref.to_world[:3, 3])
-        if state.kind in ("spot", "sun"):
+        if state.kind == "rect":  # the same rect: W along the same axis
+            np.testing.assert_allclose(rec.to_world[:3, :3], ref.to_world[:3, :3], atol=1e-12)
+        assert (rec.radius, rec.width, rec.height) == pytest.approx((ref.radius, ref.width, ref.height), rel=1e-7)
+        assert rec.normalize == ref.normalize  # sizes: float32 in the app and in USD
+        if state.kind in ("spot", "sun", "disk", "rect"):
             np.testing.assert_allclose(rec.to_world[:3, :3] @ [0, 0, -1], ref.to_world[:3, :3] @ [0, 0, -1],
                                        atol=1e-12)
         assert (rec.kind, rec.treat_as_point, rec.cone_angle_deg, rec.cone_softness, rec.angle_deg) == \
@@ -167,7 +185,8 @@ def test_colour_picker_round_trip_and_validation():
         assert picker_from_color(color_from_picker((v, 255 - v, v // 2))) == (v, 255 - v, v // 2)
     assert color_from_picker((255, 255, 255)) == (1.0, 1.0, 1.0)
     for bad in ({"name": "../x"}, {"kind": "laser"}, {"intensity": -1.0}, {"color": (1, np.nan, 0)},
-                {"cone_angle": 0.0}, {"softness": 2.0}, {"rotation": (0, 0, 0, 0)}):
+                {"cone_angle": 0.0}, {"softness": 2.0}, {"rotation": (0, 0, 0, 0)}, {"radius": 0.0},
+                {"width": 1e-5}, {"height": 2e4}, {"radius": np.inf}):
         with pytest.raises(UsdRelightError):
             LightState(**{"name": "L", "kind": "spot", **bad})
 

@@ -121,8 +121,8 @@ def test_one_key_delete_key_and_a_stage_at_30_fps(stage):
 
 
 def test_animated_lights_the_app_does_not_edit_follow_the_frame(stage):
-    """A DiskLight in the user's layer (not editable here) moving over time codes 1..11 is rendered where it is
-    at the frame's time code."""
+    """A normalized DiskLight in the user's layer (not editable here) moving over time codes 1..11 is rendered
+    where it is at the frame's time code."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
     layer = Sdf.Layer.FindOrOpen(str(stage.parent / USER_LIGHTS))
@@ -130,6 +130,7 @@ def test_animated_lights_the_app_does_not_edit_follow_the_frame(stage):
     s.OverridePrim("/Scene")
     disk = UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Panel")
     disk.CreateRadiusAttr(0.2)
+    disk.CreateNormalizeAttr(True)
     op = UsdGeom.Xformable(disk).AddTranslateOp()
     op.Set(Gf.Vec3d(0, 1, -2), Usd.TimeCode(1))
     op.Set(Gf.Vec3d(1, 1, -2), Usd.TimeCode(11))
@@ -235,3 +236,44 @@ def test_browser_keys_a_light_at_two_frames_and_saves(stage):
     assert translate.GetTimeSamples() == [1.0, 48.0]
     assert translate.Get(48.0)[0] == 1.5 and tuple(translate.Get(48.0))[1:] == start.position[1:]
     assert translate.Get(1.0)[0] != 1.5
+
+
+def test_app_adds_keys_and_saves_an_area_light(stage):
+    """A rect light from the app: its editor has its size, direction and position; it lights the frame; its
+    width keyed at two frames is saved as time samples and read back as the same rect (with the sizes from
+    USD's interpolation in between); out-of-range sizes from a client are clamped by the slider."""
+    pytest.importorskip("viser")
+    from usdrelight.serve.app import ServeApp
+
+    from usdrelight.serve.live import LightSet
+
+    with ServeApp(stage, port=0, max_side=SIDE) as app:
+        name = app.add_light("rect")
+        s = app.states[name]
+        assert s.kind == "rect" and s.width == pytest.approx(1.5 * s.height)
+        fields = app.gui._fields
+        assert {"width", "height", "direction", "position"} <= set(fields) and "radius" not in fields
+        assert not app.wait_shown(app.update()).error
+        dark = app.live.render(LightSet((), fitted_on=True, mode="add"))[0]
+        lit = app.live.render(LightSet((s,), fitted_on=True, mode="add"))[0]
+        assert np.all(np.isfinite(lit)) and lit.mean() > 1.01 * dark.mean()  # the new rect adds light
+        tl, tg = app.timeline, app.timeline_gui
+        app.set_light(name, width=0.25)
+        tg.set_key.value = True
+        tg.frame.value = 11.0
+        app.set_light(name, width=0.75)
+        tg.set_key.value = True
+        tg.frame.value = 6.0
+        assert app.states[name].width == pytest.approx(0.5)  # linear, as USD reads the samples
+        fields = app.gui._fields
+        fields["height"].value = 1e9  # beyond the slider: clamped to its top
+        assert app.states[name].height == pytest.approx(app.gui._ranges["height"][1][1])
+        app.save()
+    layer = (stage.parent / USER_LIGHTS).read_text()
+    assert "RectLight" in layer and "float inputs:width.timeSamples" in layer
+    back, _ = read_user_states(open_stage(stage), {}, keys := {})
+    (rect,) = [b for b in back if b.name == name]
+    assert rect.kind == "rect" and sorted(keys[name]) == [1.0, 11.0]
+    assert keys[name][1.0].width == pytest.approx(0.25) and keys[name][11.0].width == pytest.approx(0.75)
+    rec = [l for l in read_lights(open_stage(stage), 6.0) if l.path.endswith(name)][0]
+    assert rec.kind == "rect" and rec.width == pytest.approx(0.5) and not rec.normalize

@@ -207,6 +207,11 @@ class ServeApp:
         if kind == "sun":
             return LightState(name, "sun", intensity=2.0, position=pos,
                               rotation=quat_pointing_along(cam[:3, :3] @ np.array([0.4, -1.0, -0.6])))
+        if kind in ("sphere", "disk", "rect"):  # as bright as a new point light: intensity / area (rect 1.5 r x r)
+            r = round(0.05 * d, 4)
+            area = 1.5 * r * r if kind == "rect" else np.pi * r * r
+            return LightState(name, kind, intensity=round(2.0 * float(to_centre @ to_centre) / area, 3), position=pos,
+                              rotation=quat_pointing_along(to_centre), radius=r, width=1.5 * r, height=r)
         return LightState(name, "dome", intensity=0.2, position=tuple(centre))
 
     def add_light(self, kind: str) -> str:

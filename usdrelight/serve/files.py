@@ -45,7 +45,7 @@ VIDEO = "relit.mp4"
 #: the attributes the app authors on a light: time samples on any other make the light read-only in the app
 KEYABLE = frozenset({"xformOp:translate", "xformOp:orient", "inputs:intensity", "inputs:exposure", "inputs:color",
                      "inputs:shaping:cone:angle", "inputs:shaping:cone:softness", "inputs:angle", "visibility",
-                     "inputs:texture:file"})
+                     "inputs:texture:file", "inputs:radius", "inputs:width", "inputs:height"})
 
 
 def hdri_label(text: str) -> str:
@@ -112,9 +112,9 @@ def _transform(prim, t) -> tuple[tuple, tuple]:
 
 def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState | None:
     """The editable state of a UsdLux prim at time code ``time`` (None: the default time; time samples
-    interpolated), or None when the app cannot edit it without changing it (area lights, colour temperature,
-    IES/focus shaping, an unreadable HDRI). ``hdri_names`` ({resolved path: label}) gains the HDRIs the layer
-    already uses."""
+    interpolated), or None when the app cannot edit it without changing it (normalized, shaped or textured area
+    lights, colour temperature, IES/focus shaping, an unreadable HDRI). ``hdri_names`` ({resolved path: label})
+    gains the HDRIs the layer already uses."""
     from pxr import Usd, UsdGeom, UsdLux
 
     t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
@@ -127,6 +127,16 @@ def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState 
               "enabled": UsdGeom.Imageable(prim).GetVisibilityAttr().Get(t) != UsdGeom.Tokens.invisible}
     common["position"], common["rotation"] = _transform(prim, t)
     try:
+        if _area_kind(prim, t):
+            if not _plain_area(prim, t):
+                return None
+            if typ == "RectLight":
+                r = UsdLux.RectLight(prim)
+                return LightState(kind="rect", width=float(r.GetWidthAttr().Get(t)),
+                                  height=float(r.GetHeightAttr().Get(t)), **common)
+            area = UsdLux.DiskLight if typ == "DiskLight" else UsdLux.SphereLight
+            radius = float(area(prim).GetRadiusAttr().Get(t))
+            return LightState(kind=_area_kind(prim, t), radius=radius, **common)
         if typ == "SphereLight":
             s = UsdLux.SphereLight(prim)
             if not (s.GetTreatAsPointAttr().Get(t) or float(s.GetRadiusAttr().Get(t)) == 0.0):
@@ -154,6 +164,28 @@ def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState 
     except UsdRelightError as exc:
         log.warning("light %s kept as it is (not editable here): %s", prim.GetPath(), exc)
     return None
+
+
+def _area_kind(prim, t) -> str | None:
+    """``disk``, ``rect`` or ``sphere`` (a SphereLight of radius > 0 not treated as a point) for an area light,
+    else None."""
+    from pxr import UsdLux
+
+    typ = prim.GetTypeName()
+    if typ == "SphereLight":
+        s = UsdLux.SphereLight(prim)
+        return "sphere" if not s.GetTreatAsPointAttr().Get(t) and float(s.GetRadiusAttr().Get(t)) > 0.0 else None
+    return {"DiskLight": "disk", "RectLight": "rect"}.get(typ)
+
+
+def _plain_area(prim, t) -> bool:
+    """An area light the app edits as it is: unnormalized, unshaped and (a RectLight) untextured."""
+    from pxr import UsdLux
+
+    if prim.HasAPI(UsdLux.ShapingAPI) or UsdLux.LightAPI(prim).GetNormalizeAttr().Get(t):
+        return False
+    tex = UsdLux.RectLight(prim).GetTextureFileAttr().Get(t) if prim.GetTypeName() == "RectLight" else None
+    return tex is None or not tex.path
 
 
 def _read_keys(prim, hdri_names: dict) -> dict | None:
@@ -224,6 +256,15 @@ def _author(stage, s: LightState, stage_dir: Path | None, hdri_paths: dict) -> N
     elif s.kind == "sun":
         light = UsdLux.DistantLight.Define(stage, s.path)
         light.CreateAngleAttr(s.angle)
+    elif s.kind in ("sphere", "disk"):
+        light = (UsdLux.SphereLight if s.kind == "sphere" else UsdLux.DiskLight).Define(stage, s.path)
+        light.CreateRadiusAttr(s.radius)
+        light.CreateNormalizeAttr(False)
+    elif s.kind == "rect":
+        light = UsdLux.RectLight.Define(stage, s.path)
+        light.CreateWidthAttr(s.width)
+        light.CreateHeightAttr(s.height)
+        light.CreateNormalizeAttr(False)
     else:
         light = UsdLux.DomeLight.Define(stage, s.path)
         if s.hdri:

@@ -36,7 +36,10 @@ DISPLAY_EXPOSURE = (-6.0, 6.0)
 #: light field -> (widget key, default range, step); the range grows to include the light's own value
 SLIDERS = {"intensity": ("intensity", (0.0, 10.0), 0.01), "exposure": ("exposure", (-10.0, 10.0), 0.1),
            "cone_angle": ("cone", (1.0, 90.0), 0.5), "softness": ("softness", (0.0, 1.0), 0.01),
-           "angle": ("angle", (0.0, 10.0), 0.05)}
+           "angle": ("angle", (0.0, 10.0), 0.05), "radius": ("radius", (0.01, 1.0), 0.01),
+           "width": ("width", (0.01, 2.0), 0.01), "height": ("height", (0.01, 2.0), 0.01)}
+SIZES = ("radius", "width", "height")
+"""Light sizes (scene units): their sliders never go below the smallest size a light may have."""
 
 
 def finite(value, what: str) -> float:
@@ -62,8 +65,8 @@ def slider_range(field: str, value: float) -> tuple[float, float, float]:
     if field == "intensity":
         hi = max(hi, round(4.0 * shown, 1))
     lo, hi = min(lo, math.floor(shown)), max(hi, math.ceil(shown))
-    if field == "cone_angle":
-        lo = min(SLIDERS[field][1][0], shown)  # a cone is > 0
+    if field == "cone_angle" or field in SIZES:
+        lo = min(SLIDERS[field][1][0], shown)  # a cone and a light's size are > 0
     return float(lo), float(hi), shown
 
 
@@ -254,20 +257,23 @@ class Gui:
         if s is None:
             return
         f = self._fields
-        hints = {"intensity": {"point": "W/sr", "spot": "W/sr", "sun": "W/m^2", "dome": "radiance"}[s.kind],
+        hints = {"intensity": {"point": "W/sr", "spot": "W/sr", "sun": "W/m^2"}.get(s.kind, "radiance"),
                  "exposure": "stops", "cone_angle": "half-angle, degrees",
-                 "angle": "angular diameter, degrees (the Sun: 0.53)"}
+                 "angle": "angular diameter, degrees (the Sun: 0.53)", "radius": "scene units",
+                 "width": "scene units, along the light's X", "height": "scene units, along the light's Y"}
         labels = {"intensity": "Intensity", "exposure": "Exposure", "cone_angle": "Cone angle",
-                  "softness": "Softness", "angle": "Angle"}
-        fields = ["intensity", "exposure"] + {"spot": ["cone_angle", "softness"], "sun": ["angle"]}.get(s.kind, [])
+                  "softness": "Softness", "angle": "Angle", "radius": "Radius", "width": "Width", "height": "Height"}
+        extra = {"spot": ["cone_angle", "softness"], "sun": ["angle"], "sphere": ["radius"], "disk": ["radius"],
+                 "rect": ["width", "height"]}
+        fields = ["intensity", "exposure"] + extra.get(s.kind, [])
         with self._editor:
             f["enabled"] = gui.add_checkbox("On", s.enabled)
             f["colour"] = gui.add_rgb("Colour", picker_from_color(s.color))
             for field in fields[:2]:
                 self._slider(field, labels[field], s, hints.get(field))
-            if s.kind in ("point", "spot"):
+            if s.kind in ("point", "spot", "sphere", "disk", "rect"):
                 f["position"] = gui.add_vector3("Position", tuple(round(v, 4) for v in s.position), step=0.01)
-            if s.kind in ("spot", "sun"):
+            if s.kind in ("spot", "sun", "disk", "rect"):
                 f["direction"] = gui.add_vector3("Direction", tuple(round(float(v), 4) for v in s.direction),
                                                  step=0.01)
             for field in fields[2:]:

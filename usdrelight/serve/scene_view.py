@@ -131,7 +131,7 @@ class SceneView:
         if s.name not in self.handles:
             gizmo = self.server.scene.add_transform_controls(
                 f"/user/{s.name}", scale=0.12 * self.distance, position=s.position, wxyz=s.rotation,
-                disable_rotations=s.kind == "point", depth_test=False)
+                disable_rotations=s.kind in ("point", "sphere"), depth_test=False)
 
             @gizmo.on_update
             def _(_, name=s.name, gizmo=gizmo):
@@ -150,7 +150,7 @@ class SceneView:
                     h.pop(n).remove()
             h["bulb"] = self.server.scene.add_icosphere(f"/user/{s.name}/bulb", radius=r, color=colour,
                                                         opacity=1.0 if s.enabled else 0.3)
-            if s.kind in ("spot", "sun"):
+            if s.kind in ("spot", "sun", "disk", "rect"):
                 seg = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -0.3 * self.distance]]])
                 h["ray"] = self.server.scene.add_line_segments(f"/user/{s.name}/ray", seg, colors=colour,
                                                                thickness=3.0, thickness_units="screen")

@@ -16,7 +16,10 @@ Conventions (the same as everywhere else in usdrelight):
 
 Kinds and their UsdLux prims: ``point`` (SphereLight, treatAsPoint, radius 0), ``spot`` (the same with
 ShapingAPI coneAngle = half-angle in degrees, coneSoftness in [0, 1]), ``sun`` (DistantLight, angle = angular
-diameter in degrees), ``dome`` (DomeLight, untextured or a latlong HDRI named by the user).
+diameter in degrees), ``dome`` (DomeLight, untextured or a latlong HDRI named by the user), and the area lights
+``sphere`` (SphereLight of ``radius``), ``disk`` (DiskLight of ``radius``) and ``rect`` (RectLight ``width`` x
+``height``, along the light frame's X and Y), unnormalized, their intensity a radiance (W/(m^2 sr)); disks and
+rects shine along local -Z, as ``--light`` makes them (:mod:`usdrelight.stage.light_specs`).
 """
 from __future__ import annotations
 
@@ -28,11 +31,12 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb, srgb_to_linear
 from ..stage.layout import USER_LIGHTS_SCOPE
-from ..stage.light_syntax import MAX_RADIANCE, POSITION_LIMIT  # noqa: F401 (the web app's limits)
+from ..stage.light_syntax import MAX_RADIANCE, MAX_SIZE, MIN_SIZE, POSITION_LIMIT
 from ..stage.lux import frame_pointing_along
 from ..stage.records import LightRecord, TextureRecord
 
-KINDS = ("point", "spot", "sun", "dome")
+KINDS = ("point", "spot", "sun", "dome", "sphere", "disk", "rect")
+AREA_KINDS = ("sphere", "disk", "rect")
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 
 
@@ -121,11 +125,11 @@ class LightState:
     name: str
     """Prim name under /Scene/Lights/User (a USD identifier)."""
     kind: str
-    """point | spot | sun | dome."""
+    """point | spot | sun | dome | sphere | disk | rect."""
     color: tuple = (1.0, 1.0, 1.0)
     """UsdLux color, linear RGB."""
     intensity: float = 1.0
-    """UsdLux intensity: W/sr (point, spot), W/m^2 (sun), radiance (dome)."""
+    """UsdLux intensity: W/sr (point, spot), W/m^2 (sun), radiance (dome, sphere, disk, rect)."""
     exposure: float = 0.0
     """UsdLux exposure in stops (L scales by 2^exposure)."""
     position: tuple = (0.0, 0.0, 0.0)
@@ -138,6 +142,12 @@ class LightState:
     """Spot: ShapingAPI coneSoftness in [0, 1]."""
     angle: float = 0.0
     """Sun: angular diameter in degrees, [0, 180]."""
+    radius: float = 0.1
+    """Sphere, disk: radius in scene units, [MIN_SIZE, MAX_SIZE] (:mod:`usdrelight.stage.light_syntax`)."""
+    width: float = 0.2
+    """Rect: width along the light frame's X, scene units, [MIN_SIZE, MAX_SIZE]."""
+    height: float = 0.2
+    """Rect: height along the light frame's Y, scene units, [MIN_SIZE, MAX_SIZE]."""
     hdri: str = ""
     """Dome: name of an HDRI the user named ('' = a constant dome of ``color``)."""
     enabled: bool = True
@@ -150,13 +160,15 @@ class LightState:
             raise UsdRelightError(f"unknown light kind {self.kind!r} ({', '.join(KINDS)})")
         color = tuple(_f32(c) for c in self.color)
         nums = [*color, self.intensity, self.exposure, *self.position, *self.rotation, self.cone_angle,
-                self.softness, self.angle]
+                self.softness, self.angle, self.radius, self.width, self.height]
         if len(color) != 3 or len(self.position) != 3 or len(self.rotation) != 4 or not np.all(np.isfinite(nums)):
             raise UsdRelightError(f"light {self.name}: colour, position and rotation must be finite 3/3/4-vectors")
         if min(color) < 0 or self.intensity < 0:
             raise UsdRelightError(f"light {self.name}: colour and intensity must be >= 0")
         if not (0 < self.cone_angle <= 180 and 0 <= self.softness <= 1 and 0 <= self.angle <= 180):
             raise UsdRelightError(f"light {self.name}: cone angle in (0, 180], softness in [0, 1], angle in [0, 180]")
+        if not all(MIN_SIZE <= _f32(v) <= MAX_SIZE for v in (self.radius, self.width, self.height)):
+            raise UsdRelightError(f"light {self.name}: radius, width and height in [{MIN_SIZE:g}, {MAX_SIZE:g}]")
         try:
             peak = _f32(self.intensity) * 2.0 ** _f32(self.exposure) * max(color)
         except OverflowError:
@@ -171,7 +183,7 @@ class LightState:
         set_(self, "position", tuple(float(v) for v in self.position))
         norm = float(np.linalg.norm(q))
         set_(self, "rotation", tuple(float(v) for v in (q if abs(norm - 1.0) < 1e-12 else q / norm)))  # idempotent
-        for name in ("intensity", "exposure", "cone_angle", "softness", "angle"):
+        for name in ("intensity", "exposure", "cone_angle", "softness", "angle", "radius", "width", "height"):
             set_(self, name, _f32(getattr(self, name)))
 
     @property
@@ -214,6 +226,10 @@ def to_record(state: LightState, hdris: dict | None = None) -> LightRecord | Non
                            cone_softness=cone[1])
     if state.kind == "sun":
         return LightRecord(state.path, "distant", m, state.radiance, angle_deg=state.angle)
+    if state.kind in AREA_KINDS:
+        return LightRecord(state.path, state.kind, m, state.radiance,
+                           **({"width": state.width, "height": state.height} if state.kind == "rect"
+                              else {"radius": state.radius}))
     tex = None
     if state.hdri:
         path = (hdris or {}).get(state.hdri)
@@ -224,9 +240,9 @@ def to_record(state: LightState, hdris: dict | None = None) -> LightRecord | Non
 
 
 def from_record(rec: LightRecord, name: str, hdri_names: dict | None = None) -> LightState | None:
-    """An editable state for a light record, or None for what the app does not edit (area lights, a dome
-    with an HDRI that is not in ``hdri_names``: {resolved path: name}). Colour and intensity come from
-    :func:`usdrelight.stage.lux.split_rgb`-style splitting (largest channel 1), exposure 0."""
+    """An editable state for a light record, or None for what the app does not edit (normalized or shaped area
+    lights, mesh lights, a dome with an HDRI that is not in ``hdri_names``: {resolved path: name}). Colour and
+    intensity come from :func:`usdrelight.stage.lux.split_rgb`-style splitting (largest channel 1), exposure 0."""
     peak = float(np.max(rec.radiance))
     color = tuple(rec.radiance / peak) if peak > 0 else (1.0, 1.0, 1.0)
     common = {"name": name, "color": color, "intensity": peak, "position": tuple(rec.to_world[:3, 3]),
@@ -237,6 +253,9 @@ def from_record(rec: LightRecord, name: str, hdri_names: dict | None = None) -> 
         return LightState(kind="point", **common)
     if rec.kind == "distant":
         return LightState(kind="sun", angle=rec.angle_deg, **common)
+    if rec.kind in AREA_KINDS and not rec.normalize and rec.cone_angle_deg is None:
+        sizes = {"width": rec.width, "height": rec.height} if rec.kind == "rect" else {"radius": rec.radius}
+        return LightState(kind=rec.kind, **sizes, **common)
     if rec.kind == "dome":
         if rec.texture is None:
             return LightState(kind="dome", **common)
