@@ -467,3 +467,53 @@ def test_browser_adds_a_point_light_and_saves_it(stage):
     assert color_from_picker(picked)[1] == pytest.approx(0.2158605, abs=1e-6)  # sRGB 128 -> linear
     world = prim.GetAttribute("xformOp:translate").Get()
     assert Gf.IsClose(world, Gf.Vec3d(*position), 1e-9)
+
+
+def test_area_lights_the_app_must_not_take_over_and_the_edges_it_must_take(stage):
+    """A scaled DiskLight (its scale is its size), a sphere whose radius grows from 0 (point -> sphere), a rect
+    with ShapingAPI and a point light with an animated radius stay as the user wrote them; the smallest size a
+    slider offers (1e-4, float32 in USD) is a valid light; a rect turned to a new direction keeps its roll."""
+    from pxr import Gf, Usd, UsdGeom, UsdLux
+
+    layer_path = stage.parent / USER_LIGHTS
+    s = Usd.Stage.Open(str(layer_path))
+    s.OverridePrim("/Scene")
+    scaled = UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Scaled")
+    scaled.CreateRadiusAttr(0.2)
+    UsdGeom.Xformable(scaled).AddScaleOp().Set(Gf.Vec3f(3, 3, 3))
+    grows = UsdLux.SphereLight.Define(s, "/Scene/Lights/User/Grows")
+    grows.CreateRadiusAttr().Set(0.0, Usd.TimeCode(1))
+    grows.GetRadiusAttr().Set(0.3, Usd.TimeCode(11))
+    shaped = UsdLux.RectLight.Define(s, "/Scene/Lights/User/Shaped")
+    UsdLux.ShapingAPI.Apply(shaped.GetPrim()).CreateShapingConeAngleAttr(40.0)
+    pulse = UsdLux.SphereLight.Define(s, "/Scene/Lights/User/Pulse")
+    pulse.CreateTreatAsPointAttr(True)
+    pulse.CreateRadiusAttr().Set(0.1, Usd.TimeCode(1))
+    pulse.GetRadiusAttr().Set(0.2, Usd.TimeCode(11))
+    edge = UsdLux.DiskLight.Define(s, "/Scene/Lights/User/Edge")
+    edge.CreateRadiusAttr(1e-4)
+    s.GetRootLayer().Save()
+    keys: dict = {}
+    states, others = read_user_states(open_stage(stage), {}, keys)
+    assert sorted(others) == [f"/Scene/Lights/User/{n}" for n in ("Grows", "Pulse", "Scaled", "Shaped")]
+    (e,) = states
+    assert e.name == "Edge" and e.kind == "disk" and e.radius == np.float32(1e-4)
+    assert LightState("L", "rect", width=1e-4, height=1e4).width == np.float32(1e-4)
+    with pytest.raises(UsdRelightError):
+        LightState("L", "rect", width=9e-5)
+    # from a record too: a scaled frame is not the app's
+    rec = to_record(LightState("R", "rect", rotation=quat_pointing_along([0, -1, 0.2]), width=0.5, height=0.25))
+    big = rec.__class__(**{**rec.__dict__, "to_world": rec.to_world @ np.diag([2.0, 2.0, 2.0, 1.0])})
+    assert from_record(rec, "R") is not None and from_record(big, "R") is None
+    # a rect's new direction: the smallest turn, its width axis kept as near as it can be
+    from usdrelight.serve.state import quat_to_matrix, turned_towards
+
+    r0 = quat_pointing_along([0, -1, 0.2])
+    r1 = turned_towards(r0, [0, -1, 0.6])  # 20 degrees further from vertical, past quat_pointing_along's switch
+    m0, m1 = quat_to_matrix(r0), quat_to_matrix(r1)
+    d = np.array([0, -1, 0.6]) / np.linalg.norm([0, -1, 0.6])
+    np.testing.assert_allclose(m1 @ [0, 0, -1], d, atol=1e-9)
+    assert m0[:, 0] @ m1[:, 0] > 0.9  # the width axis turns with the light (cos 20 degrees)
+    assert abs(quat_to_matrix(quat_pointing_along(d))[:, 0] @ m0[:, 0]) < 0.1  # rebuilt: a quarter turn off
+    np.testing.assert_allclose(quat_to_matrix(turned_towards(r0, -(m0 @ [0, 0, -1]))) @ [0, 0, -1],
+                               -(m0 @ [0, 0, -1]), atol=1e-9)  # half a turn

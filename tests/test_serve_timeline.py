@@ -254,6 +254,12 @@ def test_app_adds_keys_and_saves_an_area_light(stage):
         fields = app.gui._fields
         assert {"width", "height", "direction", "position"} <= set(fields) and "radius" not in fields
         assert not app.wait_shown(app.update()).error
+        from usdrelight.serve.state import turned_towards
+
+        before = app.states[name].rotation
+        fields["direction"].value = (0.0, -1.0, 0.6)  # a client edits the direction: the rect keeps its roll
+        assert app.states[name].rotation == pytest.approx(turned_towards(before, (0.0, -1.0, 0.6)), abs=1e-6)
+        s = app.states[name]
         dark = app.live.render(LightSet((), fitted_on=True, mode="add"))[0]
         lit = app.live.render(LightSet((s,), fitted_on=True, mode="add"))[0]
         assert np.all(np.isfinite(lit)) and lit.mean() > 1.01 * dark.mean()  # the new rect adds light

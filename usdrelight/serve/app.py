@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..stage.light_syntax import MAX_SIZE, MIN_SIZE
 from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
 from .files import export_relit, read_user_states, store_upload, write_user_layer
@@ -208,7 +209,7 @@ class ServeApp:
             return LightState(name, "sun", intensity=2.0, position=pos,
                               rotation=quat_pointing_along(cam[:3, :3] @ np.array([0.4, -1.0, -0.6])))
         if kind in ("sphere", "disk", "rect"):  # as bright as a new point light: intensity / area (rect 1.5 r x r)
-            r = round(0.05 * d, 4)
+            r = min(max(round(0.05 * d, 4), 2 * MIN_SIZE), MAX_SIZE / 1.5)
             area = 1.5 * r * r if kind == "rect" else np.pi * r * r
             return LightState(name, kind, intensity=round(2.0 * float(to_centre @ to_centre) / area, 3), position=pos,
                               rotation=quat_pointing_along(to_centre), radius=r, width=1.5 * r, height=r)

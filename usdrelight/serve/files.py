@@ -46,6 +46,8 @@ VIDEO = "relit.mp4"
 KEYABLE = frozenset({"xformOp:translate", "xformOp:orient", "inputs:intensity", "inputs:exposure", "inputs:color",
                      "inputs:shaping:cone:angle", "inputs:shaping:cone:softness", "inputs:angle", "visibility",
                      "inputs:texture:file", "inputs:radius", "inputs:width", "inputs:height"})
+SIZES = frozenset({"inputs:radius", "inputs:width", "inputs:height"})
+"""An area light's size attributes (keyable on area lights only)."""
 
 
 def hdri_label(text: str) -> str:
@@ -167,8 +169,7 @@ def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState 
 
 
 def _area_kind(prim, t) -> str | None:
-    """``disk``, ``rect`` or ``sphere`` (a SphereLight of radius > 0 not treated as a point) for an area light,
-    else None."""
+    """``disk``, ``rect`` or ``sphere`` (a SphereLight of radius > 0 not treated as a point), else None."""
     from pxr import UsdLux
 
     typ = prim.GetTypeName()
@@ -179,10 +180,14 @@ def _area_kind(prim, t) -> str | None:
 
 
 def _plain_area(prim, t) -> bool:
-    """An area light the app edits as it is: unnormalized, unshaped and (a RectLight) untextured."""
-    from pxr import UsdLux
+    """An area light the app edits as it is: unnormalized, unshaped, (a RectLight) untextured and placed by a
+    rotation and a translation only (a scale would change its size, which the app's translate + orient drop)."""
+    from pxr import UsdGeom, UsdLux
 
     if prim.HasAPI(UsdLux.ShapingAPI) or UsdLux.LightAPI(prim).GetNormalizeAttr().Get(t):
+        return False
+    m = gf_to_np(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t))[:3, :3]
+    if not (np.allclose(m.T @ m, np.eye(3), atol=1e-6) and np.linalg.det(m) > 0):
         return False
     tex = UsdLux.RectLight(prim).GetTextureFileAttr().Get(t) if prim.GetTypeName() == "RectLight" else None
     return tex is None or not tex.path
@@ -194,15 +199,18 @@ def _read_keys(prim, hdri_names: dict) -> dict | None:
     times = set()
     for attr in prim.GetAttributes():
         samples = attr.GetTimeSamples()
-        if samples and attr.GetName() not in KEYABLE:
-            return None
+        point = prim.GetTypeName() == "SphereLight" and prim.GetAttribute("treatAsPoint").Get()
+        if samples and (attr.GetName() not in KEYABLE or (attr.GetName() in SIZES and point)):
+            return None  # an attribute the app does not write (a point light's radius: always 0 here)
         times.update(samples)
     try:
         keys = {float(t): read_state(prim, hdri_names, t) for t in sorted(times)}
     except (UsdRelightError, TypeError, ValueError) as exc:  # e.g. an op with samples and no value at some time
         log.warning("light %s kept as it is (its animation is not editable here): %s", prim.GetPath(), exc)
         return None
-    return None if any(s is None for s in keys.values()) else keys
+    if any(s is None for s in keys.values()) or len({s.kind for s in keys.values()}) > 1:
+        return None  # not editable at some time, or a light that changes kind (a sphere's radius from 0)
+    return keys
 
 
 def read_user_states(stage, hdri_names: dict, keys: dict | None = None) -> tuple[list[LightState], list[str]]:

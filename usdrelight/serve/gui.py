@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import UsdRelightError
 from .live import APP_MODES
 from .state import (KINDS, checked_direction, checked_vector, color_from_picker, picker_from_color,
-                    quat_pointing_along)
+                    quat_pointing_along, turned_towards)
 
 log = logging.getLogger(__name__)
 NONE = "(none)"
@@ -312,7 +312,9 @@ class Gui:
             elif key == "position":
                 changes = {"position": checked_vector(v, "a position")}
             elif key == "direction":
-                changes = {"rotation": quat_pointing_along(checked_direction(v))}
+                d, rot = checked_direction(v), app.states[name].rotation
+                changes = {"rotation": turned_towards(rot, d) if app.states[name].kind == "rect" else
+                           quat_pointing_along(d)}
             elif key == "hdri":
                 if v != COLOUR_ONLY and v not in app.hdris:
                     raise UsdRelightError(f"unknown HDRI {v!r}")

@@ -167,7 +167,7 @@ class LightState:
             raise UsdRelightError(f"light {self.name}: colour and intensity must be >= 0")
         if not (0 < self.cone_angle <= 180 and 0 <= self.softness <= 1 and 0 <= self.angle <= 180):
             raise UsdRelightError(f"light {self.name}: cone angle in (0, 180], softness in [0, 1], angle in [0, 180]")
-        if not all(MIN_SIZE <= _f32(v) <= MAX_SIZE for v in (self.radius, self.width, self.height)):
+        if not all(_f32(MIN_SIZE) <= _f32(v) <= MAX_SIZE for v in (self.radius, self.width, self.height)):
             raise UsdRelightError(f"light {self.name}: radius, width and height in [{MIN_SIZE:g}, {MAX_SIZE:g}]")
         try:
             peak = _f32(self.intensity) * 2.0 ** _f32(self.exposure) * max(color)
@@ -253,7 +253,9 @@ def from_record(rec: LightRecord, name: str, hdri_names: dict | None = None) -> 
         return LightState(kind="point", **common)
     if rec.kind == "distant":
         return LightState(kind="sun", angle=rec.angle_deg, **common)
-    if rec.kind in AREA_KINDS and not rec.normalize and rec.cone_angle_deg is None:
+    rot = np.asarray(rec.to_world, np.float64)[:3, :3]
+    rigid = np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0  # no scale: sizes as they are
+    if rec.kind in AREA_KINDS and not rec.normalize and rec.cone_angle_deg is None and rigid:
         sizes = {"width": rec.width, "height": rec.height} if rec.kind == "rect" else {"radius": rec.radius}
         return LightState(kind=rec.kind, **sizes, **common)
     if rec.kind == "dome":
@@ -262,6 +264,26 @@ def from_record(rec: LightRecord, name: str, hdri_names: dict | None = None) -> 
         name_of = (hdri_names or {}).get(rec.texture.path)
         return LightState(kind="dome", hdri=name_of, **common) if name_of else None
     return None
+
+
+def turned_towards(rotation, direction) -> tuple:
+    """``rotation`` (w, x, y, z) turned by the smallest rotation that takes its local -Z to ``direction``: a rect
+    keeps its roll (where its width lies) when only its direction is edited."""
+    m = quat_to_matrix(rotation)
+    a = m @ np.array([0.0, 0.0, -1.0])
+    b = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    axis, c = np.cross(a, b), float(np.clip(a @ b, -1.0, 1.0))
+    s = float(np.linalg.norm(axis))
+    if s < 1e-12:
+        if c > 0:
+            return tuple(rotation)
+        axis = m[:, 0]  # opposite: half a turn about the light's own X
+    else:
+        axis = axis / s
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = float(np.arctan2(s, c))
+    turn = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+    return matrix_to_quat(turn @ m)
 
 
 def unique_name(kind: str, taken) -> str:
