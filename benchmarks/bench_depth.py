@@ -13,7 +13,6 @@ surface. Writes benchmarks/results/depth.json and prints the table.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -27,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_relight import Mitsuba, procedural_record, rel_rmse  # noqa: E402
+from bench_relight import Mitsuba, procedural_record, reference_spp_args, rel_rmse  # noqa: E402
 from usdrelight.engine.fast import EngineSettings, FastRenderer  # noqa: E402
 from usdrelight.stage.light_specs import parse_lights  # noqa: E402
 
@@ -42,11 +41,7 @@ def mitsuba(rec, depth: int, spp: int) -> tuple[np.ndarray, float]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--spp", type=int, default=1024, help="Mitsuba's samples per pixel (references too)")
-    args = ap.parse_args()
-    if args.spp < 1 or (args.spp > 64 and args.spp % 64):
-        ap.error("--spp is at most 64 or a multiple of 64 (Mitsuba renders in passes of 64)")
+    args = reference_spp_args(__doc__)
     with tempfile.TemporaryDirectory() as td:
         rec = procedural_record(Path(td))
         lights = parse_lights(LIGHTS)

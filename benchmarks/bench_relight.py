@@ -49,6 +49,17 @@ def rel_rmse(img, ref, valid) -> float:
     return float(np.sqrt(np.mean((img[valid] - ref[valid]) ** 2)) / np.sqrt(np.mean(ref[valid] ** 2)))
 
 
+def reference_spp_args(doc: str) -> argparse.Namespace:
+    """The command line of a benchmark against Mitsuba references on the procedural example: ``--spp`` (default
+    1024; at most 64 or a multiple of 64, as :meth:`Mitsuba.render` renders in passes of 64)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--spp", type=int, default=1024, help="Mitsuba's samples per pixel (the references)")
+    args = ap.parse_args()
+    if args.spp < 1 or (args.spp > 64 and args.spp % 64):
+        ap.error("--spp is at most 64 or a multiple of 64 (Mitsuba renders in passes of 64)")
+    return args
+
+
 def procedural_record(work: Path):
     """The procedural ground-truth example (examples/procedural) built into a stage under ``work`` with its true
     depth, intrinsics and albedo, read back as a scene record."""
