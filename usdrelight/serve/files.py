@@ -34,7 +34,7 @@ from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
-from .state import LightState, matrix_to_quat
+from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
 from .uploads import MAX_HDRI_MEGAPIXELS, check_declared, check_hdri_header
 
 log = logging.getLogger(__name__)
@@ -129,16 +129,12 @@ def read_state(prim, hdri_names: dict, time: float | None = None) -> LightState 
               "enabled": UsdGeom.Imageable(prim).GetVisibilityAttr().Get(t) != UsdGeom.Tokens.invisible}
     common["position"], common["rotation"] = _transform(prim, t)
     try:
-        if _area_kind(prim, t):
+        kind = _area_kind(prim, t)
+        if kind:
             if not _plain_area(prim, t):
                 return None
-            if typ == "RectLight":
-                r = UsdLux.RectLight(prim)
-                return LightState(kind="rect", width=float(r.GetWidthAttr().Get(t)),
-                                  height=float(r.GetHeightAttr().Get(t)), **common)
-            area = UsdLux.DiskLight if typ == "DiskLight" else UsdLux.SphereLight
-            radius = float(area(prim).GetRadiusAttr().Get(t))
-            return LightState(kind=_area_kind(prim, t), radius=radius, **common)
+            sizes = {f: float(prim.GetAttribute(f"inputs:{f}").Get(t)) for f in SIZE_FIELDS[kind]}
+            return LightState(kind=kind, **sizes, **common)
         if typ == "SphereLight":
             s = UsdLux.SphereLight(prim)
             if not (s.GetTreatAsPointAttr().Get(t) or float(s.GetRadiusAttr().Get(t)) == 0.0):
@@ -186,8 +182,7 @@ def _plain_area(prim, t) -> bool:
 
     if prim.HasAPI(UsdLux.ShapingAPI) or UsdLux.LightAPI(prim).GetNormalizeAttr().Get(t):
         return False
-    m = gf_to_np(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t))[:3, :3]
-    if not (np.allclose(m.T @ m, np.eye(3), atol=1e-6) and np.linalg.det(m) > 0):
+    if not is_rigid(gf_to_np(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t))):
         return False
     tex = UsdLux.RectLight(prim).GetTextureFileAttr().Get(t) if prim.GetTypeName() == "RectLight" else None
     return tex is None or not tex.path
@@ -197,9 +192,9 @@ def _read_keys(prim, hdri_names: dict) -> dict | None:
     """{time code: state} of a light with time samples ({} when it has none); None when the app cannot key
     it (samples on an attribute it does not author, or a time at which it is not editable)."""
     times = set()
+    point = prim.GetTypeName() == "SphereLight" and prim.GetAttribute("treatAsPoint").Get()
     for attr in prim.GetAttributes():
         samples = attr.GetTimeSamples()
-        point = prim.GetTypeName() == "SphereLight" and prim.GetAttribute("treatAsPoint").Get()
         if samples and (attr.GetName() not in KEYABLE or (attr.GetName() in SIZES and point)):
             return None  # an attribute the app does not write (a point light's radius: always 0 here)
         times.update(samples)

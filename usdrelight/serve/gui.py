@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from .live import APP_MODES
-from .state import (KINDS, checked_direction, checked_vector, color_from_picker, picker_from_color,
+from .state import (KINDS, SIZE_FIELDS, checked_direction, checked_vector, color_from_picker, picker_from_color,
                     quat_pointing_along, turned_towards)
 
 log = logging.getLogger(__name__)
@@ -263,9 +263,8 @@ class Gui:
                  "width": "scene units, along the light's X", "height": "scene units, along the light's Y"}
         labels = {"intensity": "Intensity", "exposure": "Exposure", "cone_angle": "Cone angle",
                   "softness": "Softness", "angle": "Angle", "radius": "Radius", "width": "Width", "height": "Height"}
-        extra = {"spot": ["cone_angle", "softness"], "sun": ["angle"], "sphere": ["radius"], "disk": ["radius"],
-                 "rect": ["width", "height"]}
-        fields = ["intensity", "exposure"] + extra.get(s.kind, [])
+        extra = {"spot": ("cone_angle", "softness"), "sun": ("angle",), **SIZE_FIELDS}
+        fields = ["intensity", "exposure", *extra.get(s.kind, ())]
         with self._editor:
             f["enabled"] = gui.add_checkbox("On", s.enabled)
             f["colour"] = gui.add_rgb("Colour", picker_from_color(s.color))

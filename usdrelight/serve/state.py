@@ -36,7 +36,9 @@ from ..stage.lux import frame_pointing_along
 from ..stage.records import LightRecord, TextureRecord
 
 KINDS = ("point", "spot", "sun", "dome", "sphere", "disk", "rect")
-AREA_KINDS = ("sphere", "disk", "rect")
+SIZE_FIELDS = {"sphere": ("radius",), "disk": ("radius",), "rect": ("width", "height")}
+"""The area kinds and their size fields (the same names on LightState, LightRecord and the UsdLux ``inputs:``)."""
+AREA_KINDS = tuple(SIZE_FIELDS)
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 
 
@@ -228,8 +230,7 @@ def to_record(state: LightState, hdris: dict | None = None) -> LightRecord | Non
         return LightRecord(state.path, "distant", m, state.radiance, angle_deg=state.angle)
     if state.kind in AREA_KINDS:
         return LightRecord(state.path, state.kind, m, state.radiance,
-                           **({"width": state.width, "height": state.height} if state.kind == "rect"
-                              else {"radius": state.radius}))
+                           **{f: getattr(state, f) for f in SIZE_FIELDS[state.kind]})
     tex = None
     if state.hdri:
         path = (hdris or {}).get(state.hdri)
@@ -253,17 +254,21 @@ def from_record(rec: LightRecord, name: str, hdri_names: dict | None = None) -> 
         return LightState(kind="point", **common)
     if rec.kind == "distant":
         return LightState(kind="sun", angle=rec.angle_deg, **common)
-    rot = np.asarray(rec.to_world, np.float64)[:3, :3]
-    rigid = np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0  # no scale: sizes as they are
-    if rec.kind in AREA_KINDS and not rec.normalize and rec.cone_angle_deg is None and rigid:
-        sizes = {"width": rec.width, "height": rec.height} if rec.kind == "rect" else {"radius": rec.radius}
-        return LightState(kind=rec.kind, **sizes, **common)
+    if rec.kind in AREA_KINDS and not rec.normalize and rec.cone_angle_deg is None and is_rigid(rec.to_world):
+        return LightState(kind=rec.kind, **{f: getattr(rec, f) for f in SIZE_FIELDS[rec.kind]}, **common)
     if rec.kind == "dome":
         if rec.texture is None:
             return LightState(kind="dome", **common)
         name_of = (hdri_names or {}).get(rec.texture.path)
         return LightState(kind="dome", hdri=name_of, **common) if name_of else None
     return None
+
+
+def is_rigid(m) -> bool:
+    """Whether a 3x3 (or the 3x3 of a 4x4) is a rotation: no scale, shear or mirror, so an area light placed by it
+    keeps the size its attributes give."""
+    r = np.asarray(m, np.float64)[:3, :3]
+    return bool(np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0)
 
 
 def turned_towards(rotation, direction) -> tuple:

@@ -79,9 +79,9 @@ def _sizes(text: str, n: int, spec: str, what: str) -> np.ndarray:
     return v
 
 
-def _facing(position: str, direction: str, spec: str) -> np.ndarray:
-    """The frame of a light at ``position`` whose local -Z points along ``direction``."""
-    m = frame_pointing_along(_direction(direction, spec))
+def _facing(position: str, direction: str | None, spec: str) -> np.ndarray:
+    """The frame of a light at ``position`` whose local -Z points along ``direction`` (None: unturned)."""
+    m = np.eye(4) if direction is None else frame_pointing_along(_direction(direction, spec))
     m[:3, 3] = _position(position, spec)
     return m
 
@@ -92,9 +92,7 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
     kind = parts[0].strip().lower()
     path = f"{RELIGHT_LIGHTS_SCOPE}/Light{index}"
     if kind == "point" and len(parts) == 3:
-        m = np.eye(4)
-        m[:3, 3] = _position(parts[1], spec)
-        return LightRecord(path, "sphere", m, _colour(parts[2], spec), treat_as_point=True)
+        return LightRecord(path, "sphere", _facing(parts[1], None, spec), _colour(parts[2], spec), treat_as_point=True)
     if kind == "spot" and len(parts) in (5, 6):
         m = _facing(parts[1], parts[2], spec)
         soft = _angle(parts[5], spec, "the softness", 0.0, 1.0) if len(parts) == 6 else 0.0
@@ -107,9 +105,7 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
     if kind == "dome" and len(parts) == 2:
         return LightRecord(path, "dome", np.eye(4), _colour(parts[1], spec))
     if kind == "sphere" and len(parts) == 4:
-        m = np.eye(4)
-        m[:3, 3] = _position(parts[1], spec)
-        return LightRecord(path, "sphere", m, _colour(parts[2], spec),
+        return LightRecord(path, "sphere", _facing(parts[1], None, spec), _colour(parts[2], spec),
                            radius=float(_sizes(parts[3], 1, spec, "the radius")[0]))
     if kind == "disk" and len(parts) == 5:
         return LightRecord(path, "disk", _facing(parts[1], parts[2], spec), _colour(parts[3], spec),
