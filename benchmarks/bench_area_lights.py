@@ -29,7 +29,7 @@ from bench_relight import Mitsuba, procedural_record, reference_spp_args, rel_rm
 from usdrelight.engine.fast import EngineSettings, FastRenderer  # noqa: E402
 from usdrelight.stage.light_specs import parse_lights  # noqa: E402
 
-SAMPLES = (1, 4, 16, 64)
+SAMPLES = (1, 2, 4, 16, 64)
 """Shadow rays per pixel tried (16 is the default, :class:`usdrelight.engine.fast.EngineSettings`)."""
 AREA = ["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5", "disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3",
         "sphere:-0.5,1.0,-2.0:20,20,20:0.15", "dome:0.05,0.05,0.06"]

@@ -10,7 +10,10 @@ added, then for each output mode:
 * colour: its colour picker changes (``set_light(color=...)``, the widget's callback);
 * dimmer: the fitted lighting's dimmer changes (day to night);
 * drag: gizmo events at 30 Hz for 4 s, as a mouse drag sends them; latency of every frame shown (the loop
-  renders only the newest request) and frames shown per second.
+  renders only the newest request) and frames shown per second;
+* area-light drag (mode auto): the same drag of a rect light, with the app's previews (PREVIEW_SAMPLES shadow rays
+  while it moves, the full count once it rests) and without (every frame at the full count); also the seconds
+  from the last gizmo event to the full-quality frame.
 
 Writes benchmarks/results/serve.json and prints a table.
 
@@ -34,6 +37,7 @@ sys.path.insert(0, str(ROOT))
 import usdrelight  # noqa: E402,F401
 from usdrelight.relight.composite import MODES  # noqa: E402
 from usdrelight.serve.app import ServeApp  # noqa: E402
+from usdrelight.serve.live import PREVIEW_SAMPLES  # noqa: E402
 from usdrelight.serve.state import color_from_picker  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -84,10 +88,27 @@ def _drag(app: ServeApp, name: str, seconds: float = 4.0, hz: float = 30.0) -> d
             seen = shown.request
             latencies.append(shown.latency)
         time.sleep(max(0.0, t0 + i / hz - time.perf_counter()))
-    last = app.loop._requests
+    last, t_end = app.loop._requests, time.perf_counter()
     app.wait_shown(last, timeout=120)
     frames = len(latencies)
-    return {**_stats(latencies), "events": i, "frames_per_second": frames / seconds}
+    return {**_stats(latencies), "events": i, "frames_per_second": frames / seconds,
+            "last_event_to_full_frame": time.perf_counter() - t_end}
+
+
+def _area_drag(app: ServeApp) -> dict:
+    """:func:`_drag` of a new rect light in mode auto, with the app's previews and without."""
+    app.set_mode("auto")
+    name = app.add_light("rect")
+    app.wait_shown(app.loop._requests, timeout=300)
+    out = {"preview_samples": PREVIEW_SAMPLES, "settle_seconds": app.loop.settle}
+    try:
+        for label, samples in (("with_previews", PREVIEW_SAMPLES), ("full_count_only", None)):
+            app.loop.preview_samples = samples
+            out[label] = _drag(app, name)
+    finally:
+        app.loop.preview_samples = PREVIEW_SAMPLES
+        app.remove_light(name)
+    return out
 
 
 def main(argv=None) -> int:
@@ -131,6 +152,7 @@ def main(argv=None) -> int:
             r["drag"] = _drag(app, name)
             r["frame_seconds"] = {k: round(v, 4) for k, v in app.shown.seconds.items()}
             results["modes"][mode] = r
+        results["area_light_drag"] = _area_drag(app)
     finally:
         app.stop()
         if tmp is not None:
@@ -148,6 +170,12 @@ def main(argv=None) -> int:
         for what in ("move", "colour", "dimmer", "drag"):
             extra = f" ({r[what]['frames_per_second']:.1f} frames/s)" if what == "drag" else ""
             print(f"| {mode} | {what}{extra} | {r[what]['median']:.3f} | {r[what]['p90']:.3f} | {r[what]['n']} |")
+    area = results["area_light_drag"]
+    for label in ("with_previews", "full_count_only"):
+        r = area[label]
+        print(f"| auto | rect drag, {label.replace('_', ' ')} ({r['frames_per_second']:.1f} frames/s; full frame "
+              f"{r['last_event_to_full_frame']:.2f} s after the last event) | {r['median']:.3f} | {r['p90']:.3f} | "
+              f"{r['n']} |")
     return 0
 
 

@@ -307,3 +307,33 @@ def test_sequence_frames_written_in_the_background_equal_single_relights(cli, pr
                  "-o", tmp_path / f"one{i}")
         np.testing.assert_array_equal(read_map(tmp_path / "seq" / f"relit_{i:04d}.exr", 3),
                                       read_map(tmp_path / f"one{i}" / "relit.exr", 3))
+
+
+def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_one(procedural):
+    """render(area_samples=n) (the web app's preview of a moving area light) is bit for bit the frame of a renderer
+    whose count is n; its terms are kept apart, so the full frame after it is the one a fresh renderer makes, and
+    lights that do not sample (point, dome) are the same at any count."""
+    from dataclasses import replace
+
+    from usdrelight.errors import UsdRelightError
+    from usdrelight.relight.session import RelightSession
+
+    rec = read_scene(open_stage(procedural))
+    settings = EngineSettings(max_side=64)
+    kept = FastRenderer(rec, settings)
+    lights = [AREA_RECORDS["rect"], AREA_RECORDS["sphere"], parse_light("point:0.5,1,-2.5:3,3,3"),
+              parse_light("dome:0.05,0.05,0.06")]
+    assert kept.missing_sampled_terms(lights) == lights[:2]
+    preview = kept.render(lights, area_samples=2).beauty
+    np.testing.assert_array_equal(preview, FastRenderer(rec, replace(settings, area_samples=2,
+                                                                       direct_terms=0)).render(lights).beauty)
+    assert kept.missing_sampled_terms(lights) == lights[:2]  # the preview's terms are not the full ones
+    full = kept.render(lights).beauty
+    np.testing.assert_array_equal(full, FastRenderer(rec, replace(settings, direct_terms=0)).render(lights).beauty)
+    assert kept.missing_sampled_terms(lights) == [] and not np.array_equal(preview, full)
+    rel = float(np.abs(preview - full).sum() / full.sum())
+    assert 0 < rel < 0.25, rel  # two shadow rays instead of 16: near, not equal
+    np.testing.assert_array_equal(kept.render(lights[2:], area_samples=2).beauty, kept.render(lights[2:]).beauty)
+    with RelightSession(procedural, max_side=32, renderer="mitsuba", spp=4) as s:
+        with pytest.raises(UsdRelightError, match="area_samples is a setting of the fast renderer"):
+            s.render(["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"], mode="render", area_samples=2)

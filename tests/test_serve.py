@@ -14,6 +14,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -216,6 +217,61 @@ def test_per_light_terms_are_reused_and_render_what_an_uncached_engine_renders(s
         assert engine.terms_kept == 5 + step and fresh.terms_kept == 0  # 4 lights + the fitted one, + 1 per move
         states[0] = states[0].with_(position=(0.3 + 0.1 * (step + 1), 0.8, -2.0))
         states[1] = states[1].with_(color=color_from_picker((255, 60 * step, 0)), intensity=9.0 + step)
+    live.close()
+
+
+def test_a_moved_area_light_is_previewed_then_shown_at_the_full_count(stage):
+    """The frame loop shows a moved rect light first with PREVIEW_SAMPLES shadow rays, then, after the settle
+    time, the full frame, equal to `relight`'s; a colour change (its term kept) is one full frame; a newer request
+    during the settle time supersedes the older request's full frame."""
+    from usdrelight.relight.session import RelightSession
+    from usdrelight.serve.live import PREVIEW_SAMPLES, FrameLoop, LightSet, LiveRelight
+
+    live = LiveRelight(stage, max_side=SIDE)
+    frames: list = []
+    got = threading.Condition()
+
+    def on_frame(frame):
+        with got:
+            frames.append(frame)
+            got.notify_all()
+
+    def wait_for(test):
+        with got:
+            assert got.wait_for(lambda: test(frames), timeout=120), [(f.request, f.preview) for f in frames]
+
+    rect = LightState("Panel", "rect", intensity=6.0, position=(0.2, 1.6, -2.5),
+                      rotation=quat_pointing_along([0.0, -1.0, 0.2]), width=0.75, height=0.5)
+    ls = LightSet((rect,), fitted_on=False)
+    loop = FrameLoop(live, on_frame, settle=0.05)
+    try:
+        n = loop.request(ls)
+        wait_for(lambda fs: any(f.request == n and not f.preview for f in fs))
+        assert [(f.request, f.preview) for f in frames] == [(n, True), (n, False)]
+        assert frames[0].mode == frames[1].mode == "residual" and not frames[1].error
+        with RelightSession(stage, max_side=SIDE, stage_lights=False, mode="residual") as s:
+            np.testing.assert_array_equal(frames[1].image, s.render(live.lights(ls)).image)
+            preview = s.render(live.lights(ls), area_samples=PREVIEW_SAMPLES).image
+        np.testing.assert_array_equal(frames[0].image, preview)
+        assert not np.array_equal(frames[0].image, frames[1].image)
+        n2 = loop.request(LightSet((rect.with_(color=(1.0, 0.5, 0.2)),), fitted_on=False))
+        wait_for(lambda fs: any(f.request == n2 for f in fs))
+        time.sleep(0.3)
+        assert [(f.request, f.preview) for f in frames[2:]] == [(n2, False)]
+    finally:
+        loop.stop()
+    frames.clear()
+    loop = FrameLoop(live, on_frame, settle=30.0)
+    try:
+        moved = LightSet((rect.with_(position=(0.4, 1.6, -2.5)),), fitted_on=False)
+        n3 = loop.request(moved)
+        wait_for(lambda fs: bool(fs))
+        n4 = loop.request(LightSet((LightState("P", "point", intensity=6.0, position=(0.3, 0.8, -2.0)),),
+                                   fitted_on=False))
+        wait_for(lambda fs: any(f.request == n4 for f in fs))
+        assert [(f.request, f.preview) for f in frames] == [(n3, True), (n4, False)]
+    finally:
+        loop.stop()
     live.close()
 
 

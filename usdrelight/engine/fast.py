@@ -78,9 +78,26 @@ def light_key(light: LightRecord) -> bytes:
     return repr(values).encode() + np.asarray(light.to_world, np.float64).tobytes()
 
 
-def content_key(light: LightRecord) -> bytes:
-    """:func:`light_key` and the radiance: two lights with the same content key light the stage the same."""
-    return light_key(light) + np.asarray(light.radiance, np.float64).tobytes()
+def samples_light(light: LightRecord) -> bool:
+    """True when ``light``'s direct term depends on ``area_samples`` (sphere, disk and rect lights, a sun with an
+    angular diameter); point, spot and dome lights are exact whatever the count."""
+    if light.kind == "sphere":
+        return not light.treat_as_point
+    return light.kind in ("disk", "rect") or (light.kind == "distant" and light.angle_deg > 0)
+
+
+def term_key(light: LightRecord, samples: int, default: int) -> bytes:
+    """:func:`light_key`, marked with the sample count when a sampling light is rendered with other than the
+    ``default`` count (a preview's term never stands in for the full-quality one)."""
+    key = light_key(light)
+    return key if samples == default or not samples_light(light) else key + b"|samples=%d" % samples
+
+
+def content_key(light: LightRecord, samples: int | None = None, default: int | None = None) -> bytes:
+    """:func:`light_key` (:func:`term_key` when the counts are given) and the radiance: two lights with the same
+    content key light the stage the same."""
+    key = light_key(light) if samples is None else term_key(light, samples, default)
+    return key + np.asarray(light.radiance, np.float64).tobytes()
 
 
 def _opaque_lambertian(m) -> bool:
@@ -131,14 +148,20 @@ class FastRenderer:
         """Per-light direct terms kept for the next frames (at most ``settings.direct_terms``)."""
         return len(self._terms)
 
+    def missing_sampled_terms(self, lights) -> list:
+        """The lights of ``lights`` that sample (:func:`samples_light`) and whose full-quality term (at the
+        settings' count) is not kept: what makes the next :meth:`render` of them slow."""
+        return [l for l in lights if samples_light(l) and light_key(l) not in self._terms]
+
     def close(self) -> None:
         """Release the lease on the cache entry (it may be evicted from now on)."""
         if self._lease is not None:
             self._lease.release()
 
-    def _direct_unit(self, light: LightRecord, rng) -> np.ndarray:
-        """(N, 3) E / pi of ``light`` at unit radiance at the valid pixels."""
-        s, tr = self.settings.area_samples, self.transport
+    def _direct_unit(self, light: LightRecord, rng, samples: int) -> np.ndarray:
+        """(N, 3) E / pi of ``light`` at unit radiance at the valid pixels, ``samples`` shadow rays per pixel for
+        the lights that sample."""
+        s, tr = samples, self.transport
         if light.kind == "sphere" and light.treat_as_point:
             return point_light(tr, light)
         if light.kind == "sphere":
@@ -151,26 +174,33 @@ class FastRenderer:
             return dome_light(tr, light, self.textures)
         raise UsdRelightError(f"the fast renderer cannot render a {light.kind} light ({light.path})")
 
-    def direct(self, light: LightRecord) -> np.ndarray:
-        """(N, 3) E / pi of one light at the valid pixels (its unit-radiance term kept between calls)."""
-        key = light_key(light)
+    def direct(self, light: LightRecord, area_samples: int | None = None) -> np.ndarray:
+        """(N, 3) E / pi of one light at the valid pixels (its unit-radiance term kept between calls);
+        ``area_samples``: the shadow rays of a sampling light (None: the settings')."""
+        samples = self._samples(area_samples)
+        key = term_key(light, samples, self.settings.area_samples)
         term = self._terms.pop(key, None)
         if term is None:
-            seed = int.from_bytes(hashlib.sha256(key).digest()[:8], "little") ^ self.settings.seed
-            term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed))
+            # seeded by the light alone: a preview at n rays is the frame of a renderer whose count is n
+            seed = int.from_bytes(hashlib.sha256(light_key(light)).digest()[:8], "little") ^ self.settings.seed
+            term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed), samples)
         self._terms[key] = term  # most recently used last
         while len(self._terms) > max(self.settings.direct_terms, 0):
             self._terms.pop(next(iter(self._terms)))
         return term * np.asarray(light.radiance, np.float64)[None, :]
 
-    def _light_sum(self, lights) -> np.ndarray:
+    def _samples(self, area_samples: int | None) -> int:
+        """The shadow rays per pixel of a render: ``area_samples`` (at least 1) or the settings'."""
+        return self.settings.area_samples if area_samples is None else max(int(area_samples), 1)
+
+    def _light_sum(self, lights, area_samples: int | None = None) -> np.ndarray:
         """(N, 3) float64 e = sum of E / pi of ``lights`` at the valid pixels, added in their order. The partial
         sum of the lights this call shares at its start with the call before is kept (``_sums``, by
         :func:`content_key`) and a later call starting with the same lights adds only the others;
         the same lights always give the same bits, whatever was rendered before."""
-        lights = list(lights)
-        term_keys = [light_key(l) for l in lights]
-        keys = tuple(content_key(l) for l in lights)
+        lights, samples, default = list(lights), self._samples(area_samples), self.settings.area_samples
+        term_keys = [term_key(l, samples, default) for l in lights]
+        keys = tuple(content_key(l, samples, default) for l in lights)
         keep = self.settings.direct_terms > 0
         start, e = 0, None
         for prefix, part in self._sums.items():
@@ -186,7 +216,7 @@ class FastRenderer:
         for i in range(start, len(lights)):
             if keep and i == shared and i > start:
                 self._keep_sum(keys[:i], e)
-            e += self.direct(lights[i])
+            e += self.direct(lights[i], samples)
         if keep and shared == len(keys) > start:
             self._keep_sum(keys, e)
         self._last = keys if keep else ()
@@ -215,13 +245,14 @@ class FastRenderer:
             self._static = (albedo, valid, cov.reshape(surf.height, surf.width))
         return self._static
 
-    def render(self, lights, max_depth: int | None = None) -> Aovs:
-        """Render the prepared stage under ``lights`` (LightRecords, world space, metres)."""
+    def render(self, lights, max_depth: int | None = None, area_samples: int | None = None) -> Aovs:
+        """Render the prepared stage under ``lights`` (LightRecords, world space, metres); ``area_samples``: shadow
+        rays per pixel of the lights that sample, for this frame only (a preview; None: the settings')."""
         prep, surf = self.prepared, self.surface
         depth = self.settings.max_depth if max_depth is None else max_depth
         sec: dict = {}
         t = time.perf_counter()
-        e = self._light_sum(lights)
+        e = self._light_sum(lights, area_samples)
         sec["direct"] = time.perf_counter() - t
         t = time.perf_counter()
         # the surface seen at the pixel centre reflects e (+ the bounce); the pixel averages albedo and coverage

@@ -244,38 +244,47 @@ class RelightSession:
         k = self.scene.camera.intrinsics
         return resize_image(read_photo(path), k.width, k.height)
 
-    def transfer_match(self, lights) -> tuple[list[float], list[float]]:
+    def transfer_match(self, lights, area_samples: int | None = None) -> tuple[list[float], list[float]]:
         """For ``lights`` (``--light`` strings or LightRecords, all that a frame renders): the angle (degrees) of
         each to the nearest photo light, seen from the scene's centre, and its share of the render's light (the
         sum of its own direct light, kept per light content; equal shares with Mitsuba, which would path trace
-        each). See :mod:`usdrelight.relight.light_match`."""
+        each; ``area_samples`` as in :meth:`render`). See :mod:`usdrelight.relight.light_match`."""
         if self._centre is None:
             self._centre = scene_centre(self.scene.meshes)
         lights = parse_lights(lights)
         if self.engine.name == "fast":  # direct light only (enough to weigh lights), kept by content
             shares = []
             for light in lights:
-                key = content_key(light)
+                key = content_key(light, *self._sample_counts(area_samples))
                 if key not in self._shares:
                     if len(self._shares) > 256:
                         self._shares.clear()
-                    self._shares[key] = float(np.maximum(self.engine.render([light], max_depth=1).beauty,
-                                                         0.0).sum())
+                    direct = self.engine.render([light], max_depth=1, area_samples=area_samples).beauty
+                    self._shares[key] = float(np.maximum(direct, 0.0).sum())
                 shares.append(self._shares[key])
         else:
             shares = [1.0] * len(lights)
         return match_angles(lights, self._photo_lights, self._centre), shares
 
-    def transfer_weight(self, lights) -> float:
+    def transfer_weight(self, lights, area_samples: int | None = None) -> float:
         """w of mode ``transfer`` for ``lights``: how much of their light comes from where the photo's lights
         came from (:meth:`transfer_match`, :func:`usdrelight.relight.light_match.match_weight`)."""
-        return match_weight(*self.transfer_match(lights))
+        return match_weight(*self.transfer_match(lights, area_samples))
 
-    def render(self, lights=(), mode: str | None = None, time_code: float | None = None) -> RelitFrame:
+    def _sample_counts(self, area_samples: int | None) -> tuple[int, int]:
+        """(shadow rays per pixel of a frame, the fast renderer's default): what keys a light's kept share."""
+        default = self.engine.settings.area_samples
+        return (default if area_samples is None else max(int(area_samples), 1)), default
+
+    def render(self, lights=(), mode: str | None = None, time_code: float | None = None,
+               area_samples: int | None = None) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
         in the session's mode or in ``mode`` (one of :data:`usdrelight.relight.composite.MODES`; what it needs is
         loaded on first use); ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
-        In ``add`` mode the fitted lights are not rendered: the photo already holds their light."""
+        In ``add`` mode the fitted lights are not rendered: the photo already holds their light.
+        ``area_samples``: the fast renderer's shadow rays per pixel for the sampling lights of this frame only (a
+        preview while a light moves; None: the settings'); the fitted render the composites divide by keeps the
+        settings' count. Refused with the Mitsuba renderer."""
         t0 = perf_counter()
         if time_code is not None:
             self.set_time(time_code)
@@ -288,7 +297,10 @@ class RelightSession:
         if not all_lights and mode != "add":
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
-        aovs = self.engine.render(all_lights)
+        if area_samples is not None and self.engine.name != "fast":
+            raise UsdRelightError("area_samples is a setting of the fast renderer (Mitsuba takes spp)")
+        aovs = self.engine.render(all_lights) if area_samples is None else \
+            self.engine.render(all_lights, area_samples=area_samples)
         beauty, albedo, valid = aovs.beauty, aovs.albedo, aovs.valid
         sec = {"render": perf_counter() - t0}
         t = perf_counter()
@@ -311,7 +323,7 @@ class RelightSession:
                 fitted = self.engine.render(list(self._photo_lights))
                 self._transfer_fitted = render_photo(fitted.beauty, fitted.coverage)
                 self._transfer_reference = transfer_reference(self.photo, self._transfer_fitted, fitted.coverage > 0)
-            new, w = render_photo(beauty, aovs.coverage), self.transfer_weight(all_lights)
+            new, w = render_photo(beauty, aovs.coverage), self.transfer_weight(all_lights, area_samples)
             image = transfer_apply(new, self._transfer_reference, w)
             sec["composite"] = perf_counter() - t
             if mode == "residual":  # the network's bounded gain on the transfer picture

@@ -73,6 +73,8 @@ class Shown:
     """Timing of the frame (RelightSession's plus ``update``)."""
     error: str = ""
     """Why the frame failed, '' when it did not."""
+    preview: bool = False
+    """A preview (fewer shadow rays for the area lights); the full frame of the same request follows."""
 
 
 class ServeApp:
@@ -377,14 +379,15 @@ class ServeApp:
         self.gui.show_frame(img, frame)
         latency = time.perf_counter() - frame.requested_at
         with self._shown_cond:
-            self.shown = Shown(frame.request, latency, frame.seconds, frame.error)
+            self.shown = Shown(frame.request, latency, frame.seconds, frame.error, frame.preview)
             self._shown_cond.notify_all()
 
-    def wait_shown(self, request: int, timeout: float = 60.0) -> Shown:
-        """Block until the frame of ``request`` (or a newer one) has been shown."""
+    def wait_shown(self, request: int, timeout: float = 60.0, preview: bool = False) -> Shown:
+        """Block until the frame of ``request`` (or a newer one) has been shown: its full frame, or with
+        ``preview`` whatever comes first (a preview when its area lights moved)."""
         end = time.monotonic() + timeout
         with self._shown_cond:
-            while self.shown.request < request:
+            while self.shown.request < request or (self.shown.preview and not preview):
                 left = end - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"frame {request} not shown within {timeout} s")

@@ -222,7 +222,7 @@ class Gui:
         parts = [f"{k} {v:.3f} s" for k, v in sec.items() if k not in ("total", "update")]
         text = (f"frame {frame.request}: **{sec.get('update', 0):.3f} s** from the change "
                 f"({sec.get('total', 0):.3f} s relight: {', '.join(parts)}), {frame.lights} light(s), "
-                f"mode {frame.mode or '?'}")
+                f"mode {frame.mode or '?'}" + (", preview (fewer shadow rays)" if frame.preview else ""))
         self.timing.content = text if not frame.error else f"{text}  \n**error:** {frame.error}"
 
     # ---- light editor ----------------------------------------------------------------------------

@@ -12,7 +12,11 @@ other lights are read at the light set's time code (the app's timeline frame).
 
 :class:`FrameLoop` is the update path: a GUI thread calls :meth:`FrameLoop.request` with the newest light set
 (e.g. on every gizmo move) and one worker thread renders the newest request only, so a drag never queues a
-backlog; each finished frame is handed to a callback with the time from the request to the frame.
+backlog; each finished frame is handed to a callback with the time from the request to the frame. A frame whose
+area lights (sphere, disk, rect, a wide sun) have no kept full-quality term, such as a rect light being dragged,
+is shown first as a preview with :data:`PREVIEW_SAMPLES` shadow rays per pixel (a few times faster), then, once no
+newer request has come for :data:`SETTLE_SECONDS`, at the renderer's full count: moving a light stays
+interactive and the picture it comes to rest in is the one ``relight`` renders.
 
 Display images are sRGB 8-bit: linear * 2^display exposure, clipped to [0, 1], sRGB-encoded.
 """
@@ -39,6 +43,10 @@ from .state import to_record
 log = logging.getLogger(__name__)
 #: The modes the app offers: ``auto`` (resolved per frame, as ``relight`` resolves it) and every fixed mode.
 APP_MODES = ("auto",) + MODES
+#: Shadow rays per pixel of a preview frame (the fast renderer's default is 16; see benchmarks/bench_area_lights.py).
+PREVIEW_SAMPLES = 2
+#: Seconds without a newer request after a preview before the frame is rendered at full quality.
+SETTLE_SECONDS = 0.25
 #: The app's first mode: relight's default. A fixed mode the stage cannot run (ratio without a fit) falls back
 #: to auto.
 DEFAULT_MODE = RELIGHT_DEFAULT_MODE
@@ -94,6 +102,8 @@ class Frame:
     """time.perf_counter() when the request was made (for the request -> shown latency)."""
     mode: str = ""
     """The fixed mode that made the image (what ``auto`` resolved to)."""
+    preview: bool = False
+    """A preview (:data:`PREVIEW_SAMPLES` shadow rays per pixel for the area lights); the full frame follows."""
 
 
 def check_servable(stage, path) -> None:
@@ -226,16 +236,26 @@ class LiveRelight:
                 records.append(rec)
         return records
 
-    def render(self, ls: LightSet, session: RelightSession | None = None) -> tuple[np.ndarray, dict, int]:
-        """(linear relit image, seconds, lights) for ``ls``; black when nothing emits (all modes but add)."""
+    def render(self, ls: LightSet, session: RelightSession | None = None,
+               area_samples: int | None = None) -> tuple[np.ndarray, dict, int]:
+        """(linear relit image, seconds, lights) for ``ls``; black when nothing emits (all modes but add);
+        ``area_samples``: a preview's shadow rays per pixel (None: the renderer's count)."""
         mode = self.resolve(ls)
         session = session or self.session(mode)
         records = self.lights(ls)
         if not records and mode != "add":
             w, h = (session.scene.camera.intrinsics.width, session.scene.camera.intrinsics.height)
             return np.zeros((h, w, 3), np.float32), {"total": 0.0}, 0
-        frame = session.render(records, mode=mode)
+        frame = session.render(records, mode=mode, area_samples=area_samples)
         return frame.image, dict(frame.seconds), frame.lights
+
+    def previews(self, ls: LightSet, samples: int) -> bool:
+        """Whether a preview of ``ls`` at ``samples`` shadow rays per pixel saves time: the live renderer is the
+        fast one, its count is higher, and some area light of ``ls`` has no full-quality term kept (it moved)."""
+        engine = self.session(self.resolve(ls)).engine
+        if engine.name != "fast" or samples >= engine.settings.area_samples:
+            return False
+        return bool(engine.missing_sampled_terms(self.lights(ls)))
 
     def export(self, ls: LightSet) -> np.ndarray:
         """The relit image of ``ls`` at the stage's full resolution (a full-size session, made once)."""
@@ -252,8 +272,10 @@ class LiveRelight:
 class FrameLoop:
     """Renders the newest requested :class:`LightSet` on one worker thread; ``on_frame(Frame)`` per frame."""
 
-    def __init__(self, live: LiveRelight, on_frame):
+    def __init__(self, live: LiveRelight, on_frame, preview_samples: int | None = PREVIEW_SAMPLES,
+                 settle: float = SETTLE_SECONDS):
         self.live, self.on_frame = live, on_frame
+        self.preview_samples, self.settle = preview_samples, settle  # None: no previews
         self._cond = threading.Condition()
         self._pending: tuple | None = None
         self._requests = 0
@@ -287,19 +309,44 @@ class FrameLoop:
                     return
                 number, ls, t0 = self._pending
                 self._pending = None
-            mode = ""
-            try:
-                mode = self.live.resolve(ls)
-                image, sec, n = self.live.render(ls)
-                self._last = image
-                err = ""
-            except UsdRelightError as exc:
-                h, w = self.live.resolution[1], self.live.resolution[0]
-                image = self._last if self._last is not None else np.zeros((h, w, 3), np.float32)
-                sec, n, err = {}, 0, str(exc)
-                log.warning("frame %d: %s", number, exc)
-            sec["update"] = time.perf_counter() - t0
-            try:
-                self.on_frame(Frame(image, sec, number, n, err, t0, mode))
-            except Exception:  # a failing display must not stop the loop
-                log.exception("showing frame %d failed", number)
+            preview = self._previews(ls)
+            if preview and (not self._frame(number, ls, t0, self.preview_samples) or not self._settled()):
+                continue  # the preview failed (its error is shown), or a newer request supersedes the full frame
+            self._frame(number, ls, t0, None)
+
+    def _previews(self, ls: LightSet) -> bool:
+        if self.preview_samples is None:
+            return False
+        try:
+            return self.live.previews(ls, self.preview_samples)
+        except UsdRelightError:
+            return False  # the full frame reports it
+
+    def _settled(self) -> bool:
+        """Wait up to ``settle`` seconds: True when no newer request came meanwhile (and the loop runs on)."""
+        end = time.monotonic() + self.settle
+        with self._cond:
+            while self._pending is None and not self._stop and time.monotonic() < end:
+                self._cond.wait(max(end - time.monotonic(), 0.0))
+            return self._pending is None and not self._stop
+
+    def _frame(self, number: int, ls: LightSet, t0: float, area_samples: int | None) -> bool:
+        """Render ``ls`` (a preview at ``area_samples`` shadow rays, or the full frame at None) and hand it on;
+        False when it failed (the last good image is shown with the error)."""
+        mode = ""
+        try:
+            mode = self.live.resolve(ls)
+            image, sec, n = self.live.render(ls, area_samples=area_samples)
+            self._last = image
+            err = ""
+        except UsdRelightError as exc:
+            h, w = self.live.resolution[1], self.live.resolution[0]
+            image = self._last if self._last is not None else np.zeros((h, w, 3), np.float32)
+            sec, n, err = {}, 0, str(exc)
+            log.warning("frame %d: %s", number, exc)
+        sec["update"] = time.perf_counter() - t0
+        try:
+            self.on_frame(Frame(image, sec, number, n, err, t0, mode, preview=area_samples is not None))
+        except Exception:  # a failing display must not stop the loop
+            log.exception("showing frame %d failed", number)
+        return not err
