@@ -181,6 +181,34 @@ def test_state_matches_light_specs_and_records():
     assert to_record(cases[0][0].with_(enabled=False)) is None
 
 
+def test_the_3d_view_draws_an_area_light_where_and_as_large_as_it_renders():
+    """light_outline, carried by the gizmo's frame (the record's to_world), lies on the emitting shape the engine
+    samples: a rect's corners at to_world @ (+-W/2, +-H/2, 0), width along local X; a disk's circle at its
+    radius around the light's position, in the plane normal to the direction it shines."""
+    from usdrelight.serve.scene_view import light_outline
+    from usdrelight.stage.lux import light_direction
+
+    panel = LightState("Panel", "rect", intensity=6.0, position=(0.2, 1.6, -2.5),
+                       rotation=quat_pointing_along([0.3, -1.0, 0.2]), width=0.75, height=0.5)
+    rec = to_record(panel)
+    seg = light_outline(panel)
+    world = seg.reshape(-1, 3) @ rec.to_world[:3, :3].T + rec.to_world[:3, 3]
+    want = np.array([[sx * 0.375, sy * 0.25, 0.0, 1.0] for sx in (-1, 1) for sy in (-1, 1)]) @ rec.to_world.T
+    assert seg.shape == (4, 2, 3)
+    np.testing.assert_allclose(np.unique(np.round(world, 9), axis=0), np.unique(np.round(want[:, :3], 9), axis=0),
+                               atol=1e-9)
+    edges = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    np.testing.assert_allclose(sorted(edges), [0.5, 0.5, 0.75, 0.75])
+    assert np.allclose(seg[0, 1] - seg[0, 0], [0.75, 0.0, 0.0])  # the width lies along local X, as UsdLux's
+    disk = LightState("Round", "disk", intensity=8.0, position=(-0.5, 1.5, -2.0),
+                      rotation=quat_pointing_along([0.3, -1.0, 0.1]), radius=0.3)
+    rec = to_record(disk)
+    world = light_outline(disk).reshape(-1, 3) @ rec.to_world[:3, :3].T + rec.to_world[:3, 3]
+    np.testing.assert_allclose(np.linalg.norm(world - np.array(disk.position), axis=1), 0.3, rtol=1e-6)
+    np.testing.assert_allclose((world - np.array(disk.position)) @ light_direction(rec), 0.0, atol=1e-6)
+    assert light_outline(LightState("P", "point")) is None and light_outline(LightState("B", "sphere")) is None
+
+
 def test_colour_picker_round_trip_and_validation():
     for v in range(256):
         assert picker_from_color(color_from_picker((v, 255 - v, v // 2))) == (v, 255 - v, v // 2)

@@ -2,9 +2,10 @@
 
 The viser scene uses the stage's frame and units directly (``+y`` up, as a ``build`` stage). viser's camera
 frustums follow OpenCV (+Z forward, +Y down): the USD camera frame (looks down -Z, +Y up) turned by 180 degrees
-about X. Each editable light sits under a transform gizmo (``/user/<name>``); spots and suns show a line along
-the direction they shine (local -Z); fitted point lights are small spheres under ``/fitted`` (a toggle hides
-them). Light markers are coloured with the picker colour of the light.
+about X. Each editable light sits under a transform gizmo (``/user/<name>``); spots, suns, disks and rects show a
+line along the direction they shine (local -Z); area lights show their true shape and size (a rect's outline, a
+disk's circle, a sphere's wireframe, :func:`light_outline`); fitted point lights are small spheres under
+``/fitted`` (a toggle hides them). Light markers are coloured with the picker colour of the light.
 """
 from __future__ import annotations
 
@@ -66,6 +67,21 @@ def mesh_for_view(scene: SceneRecord):
             kw["vertex_colors"] = np.tile(colour, (len(m.points), 1))
         meshes.append(trimesh.Trimesh(**kw))
     return meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
+
+
+def light_outline(s: LightState, segments: int = 48) -> np.ndarray | None:
+    """(N, 2, 3) line segments of a disk's or rect's emitting shape in the light's own frame (metres; the gizmo's
+    frame, which has no scale): a rect's width along local X, its height along Y, a disk's circle, both at z = 0
+    (UsdLux); None for other kinds (a sphere is drawn as a wireframe sphere of its radius)."""
+    if s.kind == "rect":
+        x, y = s.width / 2.0, s.height / 2.0
+        corners = np.array([[-x, -y, 0.0], [x, -y, 0.0], [x, y, 0.0], [-x, y, 0.0]])
+        return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+    if s.kind == "disk":
+        a = np.linspace(0.0, 2 * np.pi, segments + 1)
+        ring = np.stack([s.radius * np.cos(a), s.radius * np.sin(a), np.zeros_like(a)], axis=1)
+        return np.stack([ring[:-1], ring[1:]], axis=1)
+    return None
 
 
 class SceneView:
@@ -143,13 +159,20 @@ class SceneView:
         if not (np.allclose(gizmo.position, s.position) and np.allclose(gizmo.wxyz, s.rotation)):
             gizmo.position, gizmo.wxyz = s.position, s.rotation
         r = 0.02 * self.distance
-        key = (s.kind, colour, s.enabled)
+        key = (s.kind, colour, s.enabled, s.radius, s.width, s.height)
         if h.get("key") != key:
-            for n in ("bulb", "ray"):
+            for n in ("bulb", "ray", "shape"):
                 if n in h:
                     h.pop(n).remove()
             h["bulb"] = self.server.scene.add_icosphere(f"/user/{s.name}/bulb", radius=r, color=colour,
                                                         opacity=1.0 if s.enabled else 0.3)
+            outline = light_outline(s)
+            if outline is not None:
+                h["shape"] = self.server.scene.add_line_segments(f"/user/{s.name}/shape", outline, colors=colour,
+                                                                 thickness=2.0, thickness_units="screen")
+            elif s.kind == "sphere" and s.radius > 0:
+                h["shape"] = self.server.scene.add_icosphere(f"/user/{s.name}/shape", radius=s.radius, color=colour,
+                                                             wireframe=True, subdivisions=2)
             if s.kind in ("spot", "sun", "disk", "rect"):
                 seg = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, -0.3 * self.distance]]])
                 h["ray"] = self.server.scene.add_line_segments(f"/user/{s.name}/ray", seg, colors=colour,
