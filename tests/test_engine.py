@@ -334,6 +334,10 @@ def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_on
     rel = float(np.abs(preview - full).sum() / full.sum())
     assert 0 < rel < 0.25, rel  # two shadow rays instead of 16: near, not equal
     np.testing.assert_array_equal(kept.render(lights[2:], area_samples=2).beauty, kept.render(lights[2:]).beauty)
+    for step in range(3 * settings.direct_terms):  # a long drag of the rect: previews only, the sphere stays
+        moved = replace(lights[0], to_world=_at([0.3 + 0.01 * step, 1.6, -3.0], [0, -1, 0.2]))
+        kept.render([moved] + lights[1:], area_samples=2)
+    assert kept.missing_sampled_terms(lights) == []  # the previews pushed no full term out
     with RelightSession(procedural, max_side=32, renderer="mitsuba", spp=4) as s:
         with pytest.raises(UsdRelightError, match="area_samples is a setting of the fast renderer"):
             s.render(["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"], mode="render", area_samples=2)

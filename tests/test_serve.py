@@ -298,6 +298,25 @@ def test_a_moved_area_light_is_previewed_then_shown_at_the_full_count(stage):
                                    fitted_on=False))
         wait_for(lambda fs: any(f.request == n4 for f in fs))
         assert [(f.request, f.preview) for f in frames] == [(n3, True), (n4, False)]
+        frames.clear()
+        again = LightSet((rect.with_(position=(0.6, 1.6, -2.5)),), fitted_on=False)
+        n5 = loop.request(again)
+        wait_for(lambda fs: bool(fs))
+        n6 = loop.request(again)  # the same state sent again (a GUI on mouse-up): the full frame answers it
+        wait_for(lambda fs: any(not f.preview for f in fs))
+        assert [(f.request, f.preview) for f in frames] == [(n5, True), (n6, False)]
+    finally:
+        loop.stop()
+    frames.clear()
+    live.hdris["Gone"] = str(stage.parent / "no_such_sky.exr")  # a dome whose HDRI went missing
+    loop = FrameLoop(live, on_frame, settle=0.05)
+    try:
+        broken = LightSet((rect.with_(position=(0.8, 1.6, -2.5)), LightState("Sky", "dome", hdri="Gone")),
+                          fitted_on=False)
+        n7 = loop.request(broken)
+        wait_for(lambda fs: bool(fs))
+        time.sleep(0.3)
+        assert [(f.request, f.preview, bool(f.error)) for f in frames] == [(n7, False, True)]  # final, not preview
     finally:
         loop.stop()
     live.close()

@@ -33,6 +33,11 @@ from .aovs import Aovs, nonnegative
 from .lights import distant_light, dome_light, planar_light, point_light, sphere_light
 
 
+PREVIEW_TERMS = 8
+"""Most per-light direct terms kept at another count than the settings' (previews: :meth:`FastRenderer.render`'s
+``area_samples``), apart from the full ones."""
+
+
 @dataclass(frozen=True)
 class EngineSettings:
     """Knobs of the fast renderer (the transport's are part of its cache key; ``area_samples``,
@@ -133,6 +138,7 @@ class FastRenderer:
         self.seconds: dict = {"prepare": self.prepared.seconds}
         self.textures: dict = {}
         self._terms: dict = {}
+        self._preview_terms: dict = {}  # terms at another count than the settings' (term_key), PREVIEW_TERMS at most
         self._sums: dict = {}  # content keys of a run of lights (a frame's start) -> their (N, 3) float64 sum
         self._last: tuple = ()  # content keys of the lights of the frame before
         self._static = None  # (albedo, valid, coverage) images: light-independent, made on first use
@@ -179,14 +185,17 @@ class FastRenderer:
         ``area_samples``: the shadow rays of a sampling light (None: the settings')."""
         samples = self._samples(area_samples)
         key = term_key(light, samples, self.settings.area_samples)
-        term = self._terms.pop(key, None)
+        # a preview's terms are kept apart, a few only: a drag's previews never push the full terms out
+        kept, most = ((self._preview_terms, min(PREVIEW_TERMS, self.settings.direct_terms)) if key != light_key(light)
+                      else (self._terms, self.settings.direct_terms))
+        term = kept.pop(key, None)
         if term is None:
             # seeded by the light alone: a preview at n rays is the frame of a renderer whose count is n
             seed = int.from_bytes(hashlib.sha256(light_key(light)).digest()[:8], "little") ^ self.settings.seed
             term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed), samples)
-        self._terms[key] = term  # most recently used last
-        while len(self._terms) > max(self.settings.direct_terms, 0):
-            self._terms.pop(next(iter(self._terms)))
+        kept[key] = term  # most recently used last
+        while len(kept) > max(most, 0):
+            kept.pop(next(iter(kept)))
         return term * np.asarray(light.radiance, np.float64)[None, :]
 
     def _samples(self, area_samples: int | None) -> int:
@@ -201,7 +210,7 @@ class FastRenderer:
         lights, samples, default = list(lights), self._samples(area_samples), self.settings.area_samples
         term_keys = [term_key(l, samples, default) for l in lights]
         keys = tuple(content_key(l, samples, default) for l in lights)
-        keep = self.settings.direct_terms > 0
+        keep = self.settings.direct_terms > 0 and samples == default  # a preview keeps no partial sums
         start, e = 0, None
         for prefix, part in self._sums.items():
             if len(prefix) > start and keys[:len(prefix)] == prefix:

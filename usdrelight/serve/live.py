@@ -269,6 +269,14 @@ class LiveRelight:
         return self.render(ls, session)[0]
 
 
+def _same(a: LightSet, b: LightSet) -> bool:
+    """a == b, False where the comparison is not a plain bool (a state holding an array)."""
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return False
+
+
 class FrameLoop:
     """Renders the newest requested :class:`LightSet` on one worker thread; ``on_frame(Frame)`` per frame."""
 
@@ -309,9 +317,12 @@ class FrameLoop:
                     return
                 number, ls, t0 = self._pending
                 self._pending = None
-            preview = self._previews(ls)
-            if preview and (not self._frame(number, ls, t0, self.preview_samples) or not self._settled()):
-                continue  # the preview failed (its error is shown), or a newer request supersedes the full frame
+            if self._previews(ls):
+                if not self._frame(number, ls, t0, self.preview_samples):
+                    continue  # the preview failed: its error frame is final (the full frame would fail alike)
+                number = self._settled(number, ls)
+                if number is None:
+                    continue  # a newer request supersedes the full frame
             self._frame(number, ls, t0, None)
 
     def _previews(self, ls: LightSet) -> bool:
@@ -322,13 +333,19 @@ class FrameLoop:
         except UsdRelightError:
             return False  # the full frame reports it
 
-    def _settled(self) -> bool:
-        """Wait up to ``settle`` seconds: True when no newer request came meanwhile (and the loop runs on)."""
+    def _settled(self, number: int, ls: LightSet) -> int | None:
+        """Wait up to ``settle`` seconds after a preview of ``ls``: the request number the full frame answers, or
+        None when a different request came meanwhile (or the loop stops). A request of the same light set (a GUI
+        sending its state again) is taken over: the full frame answers it too."""
         end = time.monotonic() + self.settle
         with self._cond:
-            while self._pending is None and not self._stop and time.monotonic() < end:
+            while not self._stop and time.monotonic() < end:
+                if self._pending is not None:
+                    if not _same(self._pending[1], ls):
+                        return None
+                    number, self._pending = self._pending[0], None
                 self._cond.wait(max(end - time.monotonic(), 0.0))
-            return self._pending is None and not self._stop
+            return None if self._stop else number
 
     def _frame(self, number: int, ls: LightSet, t0: float, area_samples: int | None) -> bool:
         """Render ``ls`` (a preview at ``area_samples`` shadow rays, or the full frame at None) and hand it on;
@@ -346,7 +363,7 @@ class FrameLoop:
             log.warning("frame %d: %s", number, exc)
         sec["update"] = time.perf_counter() - t0
         try:
-            self.on_frame(Frame(image, sec, number, n, err, t0, mode, preview=area_samples is not None))
+            self.on_frame(Frame(image, sec, number, n, err, t0, mode, preview=area_samples is not None and not err))
         except Exception:  # a failing display must not stop the loop
             log.exception("showing frame %d failed", number)
         return not err
