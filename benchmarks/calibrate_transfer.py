@@ -76,10 +76,12 @@ def generator_scene(generator: str, seed: int, args, work):
 
 def collect(args, work, extra=None):
     """Per scene and kind: photo, truth, N~, F~, coverage mask and the truth's valid mask; ``extra(stage, kind,
-    relight)``, when given, returns more entries for the case (while the stage still exists)."""
+    relight)``, when given, returns more entries for the case (while the stage still exists). Scenes: seeds
+    ``args.first_seed`` (0 when absent) on, ``args.scenes`` of them per family and generator."""
     cases = []
-    todo = [(fam, seed) for fam in CALIBRATION for seed in range(args.scenes)]
-    todo += [(g, seed) for g in args.generators for seed in range(args.scenes)]
+    seeds = range(getattr(args, "first_seed", 0), getattr(args, "first_seed", 0) + args.scenes)
+    todo = [(fam, seed) for fam in CALIBRATION for seed in seeds]
+    todo += [(g, seed) for g in args.generators for seed in seeds]
     for fam, seed in todo:
         if fam in CALIBRATION:
             sc, stage, photo, gt_valid, _ = photo_stage(fam, seed, args, work)
