@@ -15,8 +15,6 @@ Writes benchmarks/results/fit_trust_rule.json (about 2 min on 2 cores for the 2,
 """
 from __future__ import annotations
 
-import argparse
-import json
 import re
 import sys
 from pathlib import Path
@@ -27,9 +25,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from compare_texture_gated_detail import KINDS, scored  # noqa: E402
+from compare_texture_gated_detail import KINDS, gate_line, open_pairs, scored, written  # noqa: E402
 from train_transfer_residual import per_image_mse  # noqa: E402
-from usdrelight.neural.residual import DEFAULT_RESIDUAL  # noqa: E402
 
 THRESHOLDS = (18.0, 20.0, 22.0, 24.0, 26.0)
 W_MAX = 0.5
@@ -70,17 +67,10 @@ def table(rows: list[dict], t: float) -> dict:
 
 
 def main() -> int:
-    import onnxruntime as ort
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("pairs", type=Path)
-    ap.add_argument("--json", action="store_true", help="only JSON on stdout")
-    args = ap.parse_args()
-    files = sorted(args.pairs.glob("*.npz")) if args.pairs.is_dir() else []
-    if not files:
-        print(f"compare_fit_trust_rule: error: no pairs in {args.pairs}", file=sys.stderr)
+    opened = open_pairs("compare_fit_trust_rule", __doc__)
+    if opened is None:
         return 2
-    session = ort.InferenceSession(str(DEFAULT_RESIDUAL), providers=["CPUExecutionProvider"])
+    args, files, session = opened
     split: dict = {"train": [], "validation": []}
     for f in files:
         m = re.fullmatch(r"(\D+)(\d+)_\d+", f.stem)
@@ -102,16 +92,13 @@ def main() -> int:
     result = {"protocol": __doc__.split("    .venv")[0].strip(), "gate": GATE, "w_max": W_MAX,
               "pairs": {k: len(v) for k, v in split.items()}, "train": train, "chosen_threshold_db": chosen,
               "validation": val, "gate_checks": checks, "passes": all(checks.values())}
-    out = HERE.parent / "benchmarks" / "results" / "fit_trust_rule.json"
-    out.write_text(json.dumps(result, indent=1) + "\n")
-    if args.json:
-        print(json.dumps(result))
+    if written(result, "fit_trust_rule.json", args.json):
         return 0
     for name, t in [(f"train, T {k} dB", v) for k, v in train.items()] + [(f"VALIDATION, T {chosen} dB", val)]:
         print(f"{name}: acts on {t['acting']} pairs; " + "; ".join(
             f"{k} {t[k]['mean_over_generators_db']:+.3f} (lowest {min(t[k]['per_generator_db'].values()):+.2f})"
             for k in KINDS))
-    print("gate: " + ", ".join(f"{k} {'holds' if v else 'FAILS'}" for k, v in checks.items()))
+    print(gate_line(checks))
     return 0
 
 

@@ -90,18 +90,39 @@ def table(rows: list[dict], tau: str) -> dict:
     return out
 
 
-def main() -> int:
+def open_pairs(prog: str, doc: str):
+    """The command line of these comparisons: (args, the pair files, the shipped network's onnxruntime session), or
+    None after one error line on stderr when PAIRS_DIR holds no pairs."""
     import onnxruntime as ort
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     ap.add_argument("pairs", type=Path)
     ap.add_argument("--json", action="store_true", help="only JSON on stdout")
     args = ap.parse_args()
     files = sorted(args.pairs.glob("*.npz")) if args.pairs.is_dir() else []
     if not files:
-        print(f"compare_texture_gated_detail: error: no pairs in {args.pairs}", file=sys.stderr)
+        print(f"{prog}: error: no pairs in {args.pairs}", file=sys.stderr)
+        return None
+    return args, files, ort.InferenceSession(str(DEFAULT_RESIDUAL), providers=["CPUExecutionProvider"])
+
+
+def written(result: dict, name: str, as_json: bool) -> bool:
+    """Write ``result`` to benchmarks/results/``name``; with ``as_json`` also print it (only JSON on stdout)."""
+    (HERE.parent / "benchmarks" / "results" / name).write_text(json.dumps(result, indent=1) + "\n")
+    if as_json:
+        print(json.dumps(result))
+    return as_json
+
+
+def gate_line(checks: dict) -> str:
+    return "gate: " + ", ".join(f"{k} {'holds' if v else 'FAILS'}" for k, v in checks.items())
+
+
+def main() -> int:
+    opened = open_pairs("compare_texture_gated_detail", __doc__)
+    if opened is None:
         return 2
-    session = ort.InferenceSession(str(DEFAULT_RESIDUAL), providers=["CPUExecutionProvider"])
+    args, files, session = opened
     split: dict = {"train": [], "validation": []}
     for i, f in enumerate(files):
         m = re.fullmatch(r"(\D+)(\d+)_\d+", f.stem)
@@ -126,16 +147,13 @@ def main() -> int:
     result = {"protocol": __doc__.split("    .venv")[0].strip(), "gate": GATE,
               "pairs": {k: len(v) for k, v in split.items()}, "train_third": train, "chosen_tau": chosen,
               "validation": val, "gate_checks": checks, "passes": all(checks.values())}
-    out = HERE.parent / "benchmarks" / "results" / "texture_gated_detail.json"
-    out.write_text(json.dumps(result, indent=1) + "\n")
-    if args.json:
-        print(json.dumps(result))
+    if written(result, "texture_gated_detail.json", args.json):
         return 0
     for name, t in [(f"train third, tau {tau}", train[tau]) for tau in TAUS] + [(f"VALIDATION, tau {chosen}", val)]:
         print(f"{name}: " + "; ".join(f"{k} {t[k]['mean_over_generators_db']:+.2f} (lowest generator "
                                       f"{min(t[k]['per_generator_db'].values()):+.2f})" for k in KINDS)
               + f"; below -0.2 dB {100 * t['share_below_minus_0.2_db']:.1f}%")
-    print("gate: " + ", ".join(f"{k} {'holds' if v else 'FAILS'}" for k, v in checks.items()))
+    print(gate_line(checks))
     return 0
 
 
