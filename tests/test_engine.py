@@ -341,3 +341,17 @@ def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_on
     with RelightSession(procedural, max_side=32, renderer="mitsuba", spp=4) as s:
         with pytest.raises(UsdRelightError, match="area_samples is a setting of the fast renderer"):
             s.render(["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"], mode="render", area_samples=2)
+
+
+def test_sphere_and_wide_sun_rays_go_in_bounded_chunks_with_the_same_bits(procedural, monkeypatch):
+    """Sphere and wide-sun shadow rays are traced RAY_CHUNK at a time (pixels x samples), so a photo of any size
+    stays in memory; the samples are made per chunk from shifts drawn once, so any chunk size gives the same bits."""
+    import usdrelight.engine.lights as engine_lights
+
+    rec = read_scene(open_stage(procedural))
+    lights = [AREA_RECORDS["sphere"], parse_light("sun:0.4,-1,-0.3:2,2,2:10")]
+    whole = FastRenderer(rec, EngineSettings(max_side=64, direct_terms=0)).render(lights).beauty
+    monkeypatch.setattr(engine_lights, "RAY_CHUNK", 997)  # a prime: chunks of 62 pixels at 16 samples, one short
+    chunked = FastRenderer(rec, EngineSettings(max_side=64, direct_terms=0)).render(lights).beauty
+    np.testing.assert_array_equal(chunked, whole)
+    assert whole.max() > 0 and len(engine_lights._chunks(64 * 48, 16)) > 40

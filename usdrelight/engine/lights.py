@@ -26,7 +26,10 @@ from ..imageio import read_photo
 from ..stage.lux import emitted_radiance, light_direction, world_area, world_scale
 from ..stage.records import LightRecord
 from ..transport.basis import LightTransport
-from ..transport.sampling import direction_to_cell, stratified, tangent_frames
+from ..transport.sampling import direction_to_cell, shifted_grid, stratified, tangent_frames
+
+RAY_CHUNK = 4_000_000
+"""Most shadow rays of a sphere or wide sun light traced in one batch (pixels x samples; the transport's bound)."""
 
 
 def spot_falloff(light: LightRecord, points: np.ndarray) -> np.ndarray:
@@ -58,9 +61,28 @@ def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
     if not outside.any():
         return out
     o, w, dist, n = o[outside], w[outside], dist[outside], surf.n[outside]
+    shift = rng.random((len(o), 2))  # what stratified() draws: the samples are made per chunk of pixels
+    weight = np.empty(len(o))
+    for sl in _chunks(len(o), samples):
+        weight[sl] = _sphere_weight(tr, o[sl], w[sl], dist[sl], n[sl], radius, shifted_grid(shift[sl], samples))
+    out[outside] = weight[:, None] * emitted_radiance(light)[None, :]
+    return out
+
+
+def _chunks(n: int, samples: int):
+    """Slices of at most :data:`RAY_CHUNK` // ``samples`` pixels: one chunk's rays and (N, S, 3) arrays stay
+    bounded on a photo of any size."""
+    step = max(1, RAY_CHUNK // max(samples, 1))
+    return [slice(a, min(n, a + step)) for a in range(0, n, step)]
+
+
+def _sphere_weight(tr, o, w, dist, n, radius, u) -> np.ndarray:
+    """Cone sampling of a sphere of ``radius`` seen from ``o`` (the chunk's points, normals ``n``, vectors ``w``
+    to the centre at ``dist``) with the stratified samples ``u`` = (u1, u2): E / (pi L) per point."""
+    u1, u2 = u
+    samples = u1.shape[1]
     wn = w / dist[:, None]
     cos_max = np.sqrt(np.maximum(0.0, 1.0 - (radius / dist) ** 2))
-    u1, u2 = stratified(len(o), samples, rng)
     cos_t = 1.0 - u1 * (1.0 - cos_max[:, None])
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
     t, b = tangent_frames(wn)
@@ -71,9 +93,7 @@ def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
     hit = dist[:, None] * cos_t - np.sqrt(np.maximum(radius ** 2 - (dist[:, None] * sin_t) ** 2, 0.0))
     cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, n), 0.0)
     vis = tr.visible(np.repeat(o, samples, 0), dirs.reshape(-1, 3), hit.reshape(-1)).reshape(len(o), samples)
-    weight = 2.0 * (1.0 - cos_max) * np.mean(vis * cos_x, axis=1)
-    out[outside] = weight[:, None] * emitted_radiance(light)[None, :]
-    return out
+    return 2.0 * (1.0 - cos_max) * np.mean(vis * cos_x, axis=1)
 
 
 def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
@@ -115,15 +135,20 @@ def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> 
         if live.any():
             vis[live] = tr.visible(o[live], np.broadcast_to(towards, (int(live.sum()), 3)).copy(), None)
         return (cos_x * vis / np.pi)[:, None] * emitted_radiance(light)[None, :]
-    u1, u2 = stratified(surf.n_pixels, samples, rng)
-    cos_t = 1.0 - u1 * (1.0 - math.cos(half))
-    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    shift = rng.random((surf.n_pixels, 2))  # what stratified() draws: the samples are made per chunk of pixels
     t, b = tangent_frames(towards[None])
-    phi = 2 * np.pi * u2
-    dirs = (sin_t * np.cos(phi))[..., None] * t[0] + (sin_t * np.sin(phi))[..., None] * b[0] + cos_t[..., None] * towards
-    cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, surf.n), 0.0)
-    vis = tr.visible(np.repeat(o, samples, 0), dirs.reshape(-1, 3), None).reshape(surf.n_pixels, samples)
-    return (np.mean(vis * cos_x, axis=1) / np.pi)[:, None] * emitted_radiance(light)[None, :]
+    e = np.empty(surf.n_pixels)
+    for sl in _chunks(surf.n_pixels, samples):
+        u1, u2 = shifted_grid(shift[sl], samples)
+        cos_t = 1.0 - u1 * (1.0 - math.cos(half))
+        sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+        phi = 2 * np.pi * u2
+        dirs = (sin_t * np.cos(phi))[..., None] * t[0] + (sin_t * np.sin(phi))[..., None] * b[0] \
+            + cos_t[..., None] * towards
+        cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, surf.n[sl]), 0.0)
+        vis = tr.visible(np.repeat(o[sl], samples, 0), dirs.reshape(-1, 3), None).reshape(-1, samples)
+        e[sl] = np.mean(vis * cos_x, axis=1) / np.pi
+    return e[:, None] * emitted_radiance(light)[None, :]
 
 
 def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int = 8) -> np.ndarray:

@@ -51,12 +51,17 @@ def rays(mi, o: np.ndarray, d: np.ndarray, maxt=None):
 
 def stratified(n: int, s: int, rng) -> tuple[np.ndarray, np.ndarray]:
     """(N, s) stratified samples on [0,1)^2 with a per-pixel random shift (Cranley-Patterson)."""
+    return shifted_grid(rng.random((n, 2)), s)
+
+
+def shifted_grid(shift: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, s) stratified samples on [0,1)^2 for the per-pixel shifts ``shift`` (N, 2) (what :func:`stratified`
+    draws): a caller working in chunks of pixels draws the shifts once and makes each chunk's samples."""
     sx = int(np.floor(np.sqrt(s)))
     sy = int(np.ceil(s / sx))
     gx, gy = np.meshgrid(np.arange(sx), np.arange(sy))
     base1 = ((gx.ravel() + 0.5) / sx)[:s]
     base2 = ((gy.ravel() + 0.5) / sy)[:s]
-    shift = rng.random((n, 2))
     return np.mod(base1[None] + shift[:, :1], 1.0), np.mod(base2[None] + shift[:, 1:], 1.0)
 
 
