@@ -355,3 +355,23 @@ def test_sphere_and_wide_sun_rays_go_in_bounded_chunks_with_the_same_bits(proced
     chunked = FastRenderer(rec, EngineSettings(max_side=64, direct_terms=0)).render(lights).beauty
     np.testing.assert_array_equal(chunked, whole)
     assert whole.max() > 0 and len(engine_lights._chunks(64 * 48, 16)) > 40
+
+
+def test_relight_area_samples_option_is_the_renderers_count(cli, procedural, tmp_path):
+    """`relight --area-samples N` renders what a fast renderer with area_samples N renders (render_diffuse.exr);
+    out of range, zero or with the Mitsuba renderer it is one line and exit 2, and nothing is written."""
+    spec = SCENE_LIGHTS["rect"][0]
+    rec = read_scene(open_stage(procedural))
+    for n in (2, 64):
+        out = tmp_path / f"n{n}"
+        rc, _, err = cli("relight", procedural, "--light", spec, "--mode", "render", "--area-samples", str(n),
+                         "-o", out)
+        assert rc == 0, err
+        want = FastRenderer(rec, EngineSettings(max_side=None, area_samples=n)).render([parse_light(spec)]).beauty
+        np.testing.assert_array_equal(read_map(out / "render_diffuse.exr", 3), want)
+    for bad, words in ((["--area-samples", "0"], "[1, 1024]"), (["--area-samples", "5000"], "[1, 1024]"),
+                       (["--area-samples", "4", "--renderer", "mitsuba"], "the mitsuba renderer takes --spp")):
+        out = tmp_path / "bad"
+        rc, _, err = cli("relight", procedural, "--light", spec, *bad, "-o", out)
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and words in err, (bad, err)
+        assert not out.exists()

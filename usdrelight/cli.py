@@ -167,7 +167,7 @@ def cmd_relight(args) -> int:
     res = relight(args.stage, args.light or [], args.output, args.model, args.with_fitted, args.spp,
                   max_side=args.max_side, renderer=args.renderer, sequence=args.sequence, mode=args.mode,
                   fitted_scale=args.fitted_scale, contact_sheet=args.contact_sheet, time=args.time,
-                  frames=args.frames, video=args.video, save_lights=args.save_lights)
+                  frames=args.frames, video=args.video, save_lights=args.save_lights, area_samples=args.area_samples)
 
     def secs(d):
         return {k: round(v, 4) for k, v in d.items()}

@@ -7,6 +7,9 @@ from pathlib import Path
 from ..argtypes import add_frames_argument, add_time_argument, positive_int as _positive_int
 from ..stage.light_syntax import SYNTAX as LIGHT_SYNTAX
 
+MAX_AREA_SAMPLES = 1024
+"""The most --area-samples (each ray per pixel and light is one more shadow ray batch)."""
+
 DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
                "time code of --frames) and --light, rendered, then composited (ratio, add) or through the network "
                "(neural). Writes relit.exr/.png (linear EXR, sRGB PNG) and render_diffuse.exr, or for several "
@@ -49,6 +52,9 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     rl.add_argument("--model", type=Path)
     rl.add_argument("-o", "--output", type=Path)
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
+    rl.add_argument("--area-samples", type=int, metavar="N",
+                    help=f"shadow rays per pixel for sphere, disk, rect and wide sun lights (fast renderer; default "
+                         f"16, at most {MAX_AREA_SAMPLES}): more for smoother penumbrae, fewer for speed")
     rl.add_argument("--max-side", type=_positive_int, help="render at most this many pixels on the longer side")
     rl.set_defaults(func=func)
     return rl

@@ -17,12 +17,14 @@ from rich.console import Console
 from rich.progress import track
 
 from ..atomic import result_group
+from ..engine.fast import EngineSettings
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..neural.model import write_relit
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.timing import check_time, parse_frames, stage_fps
+from .args import MAX_AREA_SAMPLES
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
 from .session import DEFAULT_MODE, RelightSession, RelitFrame
@@ -115,10 +117,22 @@ def read_sequence(path) -> list[list[str]]:
     return frames
 
 
+def _area_settings(area_samples: int | None, renderer: str) -> EngineSettings | None:
+    """The fast renderer's settings for ``--area-samples`` (None: its defaults); one clear line when out of range
+    or given to the Mitsuba renderer."""
+    if area_samples is None:
+        return None
+    if renderer != "fast":
+        raise UsdRelightError("--area-samples sets the fast renderer's shadow rays (the mitsuba renderer takes --spp)")
+    if not 1 <= int(area_samples) <= MAX_AREA_SAMPLES:
+        raise UsdRelightError(f"--area-samples must be in [1, {MAX_AREA_SAMPLES}], got {area_samples}")
+    return EngineSettings(area_samples=int(area_samples))
+
+
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
             max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
             mode: str = DEFAULT_MODE, fitted_scale: float = 1.0, contact_sheet: bool = False, time=None,
-            frames=None, video=None, save_lights=None) -> RelightResult:
+            frames=None, video=None, save_lights=None, area_samples: int | None = None) -> RelightResult:
     """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or for several frames relit_NNNN.* and
     render_diffuse_NNNN.exr (NNNN: the frame's index in the run), one frame per entry of ``sequence`` (a
     LIGHTS.json path) or per USD time code of ``frames`` (``"START:END[:STEP]"``; ``""``: the stage's own
@@ -127,7 +141,9 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     ``fitted_scale`` scales the fitted lights (and implies ``with_fitted``); ``contact_sheet`` also writes
     contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights; ``video`` also
     encodes the frames as an H.264 MP4 at the stage's framesPerSecond; ``save_lights`` (with ``sequence``)
-    also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`)."""
+    also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`);
+    ``area_samples``: the fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None:
+    :class:`usdrelight.engine.EngineSettings`' 16)."""
     t0 = time_module.perf_counter()
     if sequence is not None and frames is not None:
         raise UsdRelightError("--sequence and --frames both choose the frames: give one")
@@ -143,9 +159,10 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
     with_fitted = with_fitted or fitted_scale != 1.0
+    settings = _area_settings(area_samples, renderer)
     session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
                              model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale,
-                             time=time)
+                             time=time, settings=settings)
     with session:
         if frames is not None and times is None:
             times = parse_frames(None, session.usd_stage)
