@@ -334,6 +334,11 @@ def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_on
     rel = float(np.abs(preview - full).sum() / full.sum())
     assert 0 < rel < 0.25, rel  # two shadow rays instead of 16: near, not equal
     np.testing.assert_array_equal(kept.render(lights[2:], area_samples=2).beauty, kept.render(lights[2:]).beauty)
+    for bad in (0, -3, 1025, 2.5, float("nan"), "16"):  # through the API: one clear error, nothing rendered
+        with pytest.raises(UsdRelightError, match="area_samples must be a whole number"):
+            kept.render(lights, area_samples=bad)
+    with pytest.raises(UsdRelightError, match="area_samples must be a whole number"):
+        FastRenderer(rec, replace(settings, area_samples=10 ** 9))
     for step in range(3 * settings.direct_terms):  # a long drag of the rect: previews only, the sphere stays
         moved = replace(lights[0], to_world=_at([0.3 + 0.01 * step, 1.6, -3.0], [0, -1, 0.2]))
         kept.render([moved] + lights[1:], area_samples=2)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import UsdRelightError
+from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.records import LightRecord, SceneRecord, TextureRecord
 from ..transport.cache import TransportCache, TransportSettings, prepare_transport
 from .aovs import Aovs, nonnegative
@@ -131,6 +132,7 @@ class FastRenderer:
             raise UsdRelightError(f"the fast renderer handles opaque Lambertian materials only ({unsupported[0]} is "
                                   f"not)")
         self.settings = settings
+        self.sample_count()  # the settings' count, checked before the transport is prepared
         self.prepared, self._lease = prepare_transport(rec, settings.transport, cache)
         self.transport = self.prepared.transport
         self.surface = self.prepared.surface
@@ -183,7 +185,7 @@ class FastRenderer:
     def direct(self, light: LightRecord, area_samples: int | None = None) -> np.ndarray:
         """(N, 3) E / pi of one light at the valid pixels (its unit-radiance term kept between calls);
         ``area_samples``: the shadow rays of a sampling light (None: the settings')."""
-        samples = self._samples(area_samples)
+        samples = self.sample_count(area_samples)
         key = term_key(light, samples, self.settings.area_samples)
         # a preview's terms are kept apart, a few only: a drag's previews never push the full terms out
         kept, most = ((self._preview_terms, min(PREVIEW_TERMS, self.settings.direct_terms)) if key != light_key(light)
@@ -198,16 +200,24 @@ class FastRenderer:
             kept.pop(next(iter(kept)))
         return term * np.asarray(light.radiance, np.float64)[None, :]
 
-    def _samples(self, area_samples: int | None) -> int:
-        """The shadow rays per pixel of a render: ``area_samples`` (at least 1) or the settings'."""
-        return self.settings.area_samples if area_samples is None else max(int(area_samples), 1)
+    def sample_count(self, area_samples: int | None = None) -> int:
+        """The shadow rays per pixel of a render: ``area_samples`` or the settings', each a whole number in [1,
+        :data:`MAX_AREA_SAMPLES`] (one clear error otherwise)."""
+        n = self.settings.area_samples if area_samples is None else area_samples
+        try:
+            ok = 1 <= n <= MAX_AREA_SAMPLES and int(n) == n
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise UsdRelightError(f"area_samples must be a whole number in [1, {MAX_AREA_SAMPLES}], got {n!r}")
+        return int(n)
 
     def _light_sum(self, lights, area_samples: int | None = None) -> np.ndarray:
         """(N, 3) float64 e = sum of E / pi of ``lights`` at the valid pixels, added in their order. The partial
         sum of the lights this call shares at its start with the call before is kept (``_sums``, by
         :func:`content_key`) and a later call starting with the same lights adds only the others;
         the same lights always give the same bits, whatever was rendered before."""
-        lights, samples, default = list(lights), self._samples(area_samples), self.settings.area_samples
+        lights, samples, default = list(lights), self.sample_count(area_samples), self.settings.area_samples
         term_keys = [term_key(l, samples, default) for l in lights]
         keys = tuple(content_key(l, samples, default) for l in lights)
         keep = self.settings.direct_terms > 0 and samples == default  # a preview keeps no partial sums

@@ -5,10 +5,7 @@ import argparse
 from pathlib import Path
 
 from ..argtypes import add_frames_argument, add_time_argument, positive_int as _positive_int
-from ..stage.light_syntax import SYNTAX as LIGHT_SYNTAX
-
-MAX_AREA_SAMPLES = 1024
-"""The most --area-samples (each ray per pixel and light is one more shadow ray batch)."""
+from ..stage.light_syntax import MAX_AREA_SAMPLES, SYNTAX as LIGHT_SYNTAX
 
 DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
                "time code of --frames) and --light, rendered, then composited (ratio, add) or through the network "

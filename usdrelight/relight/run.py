@@ -23,8 +23,8 @@ from ..imageio import write_image
 from ..neural.model import write_relit
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
+from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.timing import check_time, parse_frames, stage_fps
-from .args import MAX_AREA_SAMPLES
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
 from .session import DEFAULT_MODE, RelightSession, RelitFrame

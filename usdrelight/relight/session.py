@@ -273,8 +273,7 @@ class RelightSession:
 
     def _sample_counts(self, area_samples: int | None) -> tuple[int, int]:
         """(shadow rays per pixel of a frame, the fast renderer's default): what keys a light's kept share."""
-        default = self.engine.settings.area_samples
-        return (default if area_samples is None else max(int(area_samples), 1)), default
+        return self.engine.sample_count(area_samples), self.engine.settings.area_samples
 
     def render(self, lights=(), mode: str | None = None, time_code: float | None = None,
                area_samples: int | None = None) -> RelitFrame:

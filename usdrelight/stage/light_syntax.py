@@ -14,3 +14,6 @@ MAX_RADIANCE = 1e30
 3.4e38, so no renderer sum or USD float overflows)."""
 POSITION_LIMIT = 1e6
 """Largest |coordinate| of a light position (stage units)."""
+MAX_AREA_SAMPLES = 1024
+"""The most shadow rays per pixel a sampling light (sphere, disk, rect, a wide sun) may be rendered with by the fast
+renderer (``relight --area-samples``, :class:`usdrelight.engine.EngineSettings`): each is one more ray batch."""
