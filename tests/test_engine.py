@@ -339,6 +339,10 @@ def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_on
             kept.render(lights, area_samples=bad)
     with pytest.raises(UsdRelightError, match="area_samples must be a whole number"):
         FastRenderer(rec, replace(settings, area_samples=10 ** 9))
+    for bad in (0, 10 ** 9, True):  # through a session: an error, not a fall-back to Mitsuba
+        with pytest.raises(UsdRelightError, match="area_samples must be a whole number"):
+            RelightSession(procedural, max_side=32, settings=replace(settings, area_samples=bad))
+    assert kept.sample_count(np.int64(16)) == 16 and kept.sample_count(np.float64(4.0)) == 4
     for step in range(3 * settings.direct_terms):  # a long drag of the rect: previews only, the sphere stays
         moved = replace(lights[0], to_world=_at([0.3 + 0.01 * step, 1.6, -3.0], [0, -1, 0.2]))
         kept.render([moved] + lights[1:], area_samples=2)
@@ -374,7 +378,7 @@ def test_relight_area_samples_option_is_the_renderers_count(cli, procedural, tmp
         assert rc == 0, err
         want = FastRenderer(rec, EngineSettings(max_side=None, area_samples=n)).render([parse_light(spec)]).beauty
         np.testing.assert_array_equal(read_map(out / "render_diffuse.exr", 3), want)
-    for bad, words in ((["--area-samples", "0"], "[1, 1024]"), (["--area-samples", "5000"], "[1, 1024]"),
+    for bad, words in ((["--area-samples", "0"], "in [1, 1024]"), (["--area-samples", "5000"], "in [1, 1024]"),
                        (["--area-samples", "4", "--renderer", "mitsuba"], "the mitsuba renderer takes --spp")):
         out = tmp_path / "bad"
         rc, _, err = cli("relight", procedural, "--light", spec, *bad, "-o", out)

@@ -15,7 +15,7 @@ from ..mitsuba.render import check_spp
 from ..stage.records import SceneRecord
 from ..transport.cache import TransportCache
 from .aovs import Aovs, Renderer
-from .fast import EngineSettings, FastRenderer
+from .fast import EngineSettings, FastRenderer, check_area_samples
 from .path_traced import MitsubaRenderer
 
 log = logging.getLogger(__name__)
@@ -40,6 +40,11 @@ def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | N
     ``cache``) or ``mitsuba`` (``spp`` samples per pixel). A scene the fast renderer cannot render (mesh
     lights, non-Lambertian materials) gets Mitsuba, with one warning naming why."""
     check_renderer_options(renderer, spp, max_depth)
+    if settings is not None:
+        check_area_samples(settings.area_samples)  # a bad count is an error, never a reason to use Mitsuba
+        if renderer != "fast" and settings.area_samples != EngineSettings.area_samples:
+            log.warning("area_samples %d is the fast renderer's: Mitsuba samples area lights with its spp",
+                        settings.area_samples)
     if renderer == "fast":
         try:
             return FastRenderer(rec, replace(settings or EngineSettings(), max_side=max_side, max_depth=max_depth),

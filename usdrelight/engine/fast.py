@@ -75,6 +75,18 @@ class EngineSettings:
                                  env_filter_radius=self.env_filter_radius)
 
 
+def check_area_samples(n) -> int:
+    """``n`` as shadow rays per pixel: a whole number in [1, :data:`MAX_AREA_SAMPLES`] (numpy scalars too; not a
+    bool), else one clear :class:`UsdRelightError`."""
+    try:
+        ok = not isinstance(n, (bool, np.bool_)) and 1 <= n <= MAX_AREA_SAMPLES and int(n) == n
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise UsdRelightError(f"area_samples must be a whole number in [1, {MAX_AREA_SAMPLES}], got {n!r}")
+    return int(n)
+
+
 def light_key(light: LightRecord) -> bytes:
     """Everything but the radiance that decides a light's direct term, as bytes (a cache key)."""
     tex = light.texture
@@ -201,16 +213,8 @@ class FastRenderer:
         return term * np.asarray(light.radiance, np.float64)[None, :]
 
     def sample_count(self, area_samples: int | None = None) -> int:
-        """The shadow rays per pixel of a render: ``area_samples`` or the settings', each a whole number in [1,
-        :data:`MAX_AREA_SAMPLES`] (one clear error otherwise)."""
-        n = self.settings.area_samples if area_samples is None else area_samples
-        try:
-            ok = 1 <= n <= MAX_AREA_SAMPLES and int(n) == n
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise UsdRelightError(f"area_samples must be a whole number in [1, {MAX_AREA_SAMPLES}], got {n!r}")
-        return int(n)
+        """The shadow rays per pixel of a render: ``area_samples`` or the settings' (:func:`check_area_samples`)."""
+        return check_area_samples(self.settings.area_samples if area_samples is None else area_samples)
 
     def _light_sum(self, lights, area_samples: int | None = None) -> np.ndarray:
         """(N, 3) float64 e = sum of E / pi of ``lights`` at the valid pixels, added in their order. The partial

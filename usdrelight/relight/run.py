@@ -17,7 +17,7 @@ from rich.console import Console
 from rich.progress import track
 
 from ..atomic import result_group
-from ..engine.fast import EngineSettings
+from ..engine.fast import EngineSettings, check_area_samples
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..neural.model import write_relit
@@ -124,9 +124,11 @@ def _area_settings(area_samples: int | None, renderer: str) -> EngineSettings | 
         return None
     if renderer != "fast":
         raise UsdRelightError("--area-samples sets the fast renderer's shadow rays (the mitsuba renderer takes --spp)")
-    if not 1 <= int(area_samples) <= MAX_AREA_SAMPLES:
-        raise UsdRelightError(f"--area-samples must be in [1, {MAX_AREA_SAMPLES}], got {area_samples}")
-    return EngineSettings(area_samples=int(area_samples))
+    try:
+        return EngineSettings(area_samples=check_area_samples(area_samples))
+    except UsdRelightError:
+        raise UsdRelightError(f"--area-samples must be a whole number in [1, {MAX_AREA_SAMPLES}], "
+                              f"got {area_samples!r}") from None
 
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
