@@ -107,11 +107,12 @@ def test_wheel_in_a_fresh_venv_builds_fits_and_relights_from_outside_the_checkou
     off = json.loads(run(exe, "relight", "stage/scene.usda", "--max-side", "64", "--light", "point:0.5,1,-2.5:3,3,3",
                          "-o", "relit_off", "--json"))
     assert off["mode"] == "residual"  # the photo's light off: the shipped residual network, from the wheel
-    # area lights from the installed package: a rect whose width is keyed, saved as a time-sampled layer
+    # area lights from the installed package (4 shadow rays): a rect whose width is keyed, saved as a time-sampled layer
     (work / "area.json").write_text(json.dumps([["rect:0.3,1.6,-3:0,-1,0.2:6,6,6:0.5,0.25"],
                                                 ["rect:0.3,1.6,-3:0,-1,0.2:6,6,6:0.75,0.25"]]))
     area = json.loads(run(exe, "relight", "stage/scene.usda", "--with-fitted", "--max-side", "64", "--sequence",
-                          "area.json", "--save-lights", "area_lights.usda", "-o", "relit_area", "--json"))
+                          "area.json", "--save-lights", "area_lights.usda", "--area-samples", "4", "-o", "relit_area",
+                          "--json"))
     assert len(area["frames"]) == 2 and area["lights_layer"].endswith("area_lights.usda")
     layer = (work / "area_lights.usda").read_text()
     assert "RectLight" in layer and "float inputs:width.timeSamples" in layer

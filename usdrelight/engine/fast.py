@@ -197,15 +197,15 @@ class FastRenderer:
     def direct(self, light: LightRecord, area_samples: int | None = None) -> np.ndarray:
         """(N, 3) E / pi of one light at the valid pixels (its unit-radiance term kept between calls);
         ``area_samples``: the shadow rays of a sampling light (None: the settings')."""
-        samples = self.sample_count(area_samples)
+        samples, base = self.sample_count(area_samples), light_key(light)
         key = term_key(light, samples, self.settings.area_samples)
         # a preview's terms are kept apart, a few only: a drag's previews never push the full terms out
-        kept, most = ((self._preview_terms, min(PREVIEW_TERMS, self.settings.direct_terms)) if key != light_key(light)
+        kept, most = ((self._preview_terms, min(PREVIEW_TERMS, self.settings.direct_terms)) if key != base
                       else (self._terms, self.settings.direct_terms))
         term = kept.pop(key, None)
         if term is None:
             # seeded by the light alone: a preview at n rays is the frame of a renderer whose count is n
-            seed = int.from_bytes(hashlib.sha256(light_key(light)).digest()[:8], "little") ^ self.settings.seed
+            seed = int.from_bytes(hashlib.sha256(base).digest()[:8], "little") ^ self.settings.seed
             term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed), samples)
         kept[key] = term  # most recently used last
         while len(kept) > max(most, 0):

@@ -76,6 +76,18 @@ def _chunks(n: int, samples: int):
     return [slice(a, min(n, a + step)) for a in range(0, n, step)]
 
 
+def _cone_directions(u1, u2, cos_max, axis):
+    """(dirs (N, S, 3), cos_t, sin_t (N, S)): directions uniform in solid angle within the cone of ``cos_max`` ((N, 1)
+    or a number) around the unit ``axis`` ((N, 3), or (1, 3) for one axis), from stratified samples u1, u2 (N, S)."""
+    cos_t = 1.0 - u1 * (1.0 - cos_max)
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    t, b = tangent_frames(axis)
+    phi = 2 * np.pi * u2
+    dirs = (sin_t * np.cos(phi))[..., None] * t[:, None] + (sin_t * np.sin(phi))[..., None] * b[:, None] \
+        + cos_t[..., None] * axis[:, None]
+    return dirs, cos_t, sin_t
+
+
 def _sphere_weight(tr, o, w, dist, n, radius, u) -> np.ndarray:
     """Cone sampling of a sphere of ``radius`` seen from ``o`` (the chunk's points, normals ``n``, vectors ``w``
     to the centre at ``dist``) with the stratified samples ``u`` = (u1, u2): E / (pi L) per point."""
@@ -83,12 +95,7 @@ def _sphere_weight(tr, o, w, dist, n, radius, u) -> np.ndarray:
     samples = u1.shape[1]
     wn = w / dist[:, None]
     cos_max = np.sqrt(np.maximum(0.0, 1.0 - (radius / dist) ** 2))
-    cos_t = 1.0 - u1 * (1.0 - cos_max[:, None])
-    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
-    t, b = tangent_frames(wn)
-    phi = 2 * np.pi * u2
-    dirs = (sin_t * np.cos(phi))[..., None] * t[:, None] + (sin_t * np.sin(phi))[..., None] * b[:, None] \
-        + cos_t[..., None] * wn[:, None]
+    dirs, cos_t, sin_t = _cone_directions(u1, u2, cos_max[:, None], wn)
     # distance to the near side of the sphere along each direction
     hit = dist[:, None] * cos_t - np.sqrt(np.maximum(radius ** 2 - (dist[:, None] * sin_t) ** 2, 0.0))
     cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, n), 0.0)
@@ -136,15 +143,9 @@ def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> 
             vis[live] = tr.visible(o[live], np.broadcast_to(towards, (int(live.sum()), 3)).copy(), None)
         return (cos_x * vis / np.pi)[:, None] * emitted_radiance(light)[None, :]
     shift = rng.random((surf.n_pixels, 2))  # what stratified() draws: the samples are made per chunk of pixels
-    t, b = tangent_frames(towards[None])
     e = np.empty(surf.n_pixels)
     for sl in _chunks(surf.n_pixels, samples):
-        u1, u2 = shifted_grid(shift[sl], samples)
-        cos_t = 1.0 - u1 * (1.0 - math.cos(half))
-        sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
-        phi = 2 * np.pi * u2
-        dirs = (sin_t * np.cos(phi))[..., None] * t[0] + (sin_t * np.sin(phi))[..., None] * b[0] \
-            + cos_t[..., None] * towards
+        dirs = _cone_directions(*shifted_grid(shift[sl], samples), math.cos(half), towards[None])[0]
         cos_x = np.maximum(np.einsum("nsk,nk->ns", dirs, surf.n[sl]), 0.0)
         vis = tr.visible(np.repeat(o[sl], samples, 0), dirs.reshape(-1, 3), None).reshape(-1, samples)
         e[sl] = np.mean(vis * cos_x, axis=1) / np.pi

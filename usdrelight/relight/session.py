@@ -253,9 +253,9 @@ class RelightSession:
             self._centre = scene_centre(self.scene.meshes)
         lights = parse_lights(lights)
         if self.engine.name == "fast":  # direct light only (enough to weigh lights), kept by content
-            shares = []
+            shares, counts = [], self._sample_counts(area_samples)
             for light in lights:
-                key = content_key(light, *self._sample_counts(area_samples))
+                key = content_key(light, *counts)
                 if key not in self._shares:
                     if len(self._shares) > 256:
                         self._shares.clear()
