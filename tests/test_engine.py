@@ -347,7 +347,10 @@ def test_a_preview_is_the_frame_of_its_count_and_never_stands_in_for_the_full_on
         moved = replace(lights[0], to_world=_at([0.3 + 0.01 * step, 1.6, -3.0], [0, -1, 0.2]))
         kept.render([moved] + lights[1:], area_samples=2)
     assert kept.missing_sampled_terms(lights) == []  # the previews pushed no full term out
+    with RelightSession(procedural, max_side=32, settings=replace(settings, area_samples=5)) as s:
+        assert s.area_samples == 5  # what relight --json reports
     with RelightSession(procedural, max_side=32, renderer="mitsuba", spp=4) as s:
+        assert s.area_samples is None  # Mitsuba takes spp, not shadow rays
         with pytest.raises(UsdRelightError, match="area_samples is a setting of the fast renderer"):
             s.render(["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"], mode="render", area_samples=2)
 
@@ -373,9 +376,10 @@ def test_relight_area_samples_option_is_the_renderers_count(cli, procedural, tmp
     rec = read_scene(open_stage(procedural))
     for n in (2, 64):
         out = tmp_path / f"n{n}"
-        rc, _, err = cli("relight", procedural, "--light", spec, "--mode", "render", "--area-samples", str(n),
-                         "-o", out)
+        rc, stdout, err = cli("relight", procedural, "--light", spec, "--mode", "render", "--area-samples", str(n),
+                              "-o", out, "--json")
         assert rc == 0, err
+        assert json.loads(stdout)["area_samples"] == n  # the summary says what rendered
         want = FastRenderer(rec, EngineSettings(max_side=None, area_samples=n)).render([parse_light(spec)]).beauty
         np.testing.assert_array_equal(read_map(out / "render_diffuse.exr", 3), want)
     for bad, words in ((["--area-samples", "0"], "in [1, 1024]"), (["--area-samples", "5000"], "in [1, 1024]"),

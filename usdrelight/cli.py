@@ -175,7 +175,7 @@ def cmd_relight(args) -> int:
                "time": f.time, "seconds": secs(f.seconds)} for f in res.frames]
     first = res.frames[0]
     cache = None if res.cache_hit is None else ("hit" if res.cache_hit else "built")
-    summary = {"renderer": res.renderer, "mode": res.mode, "cache": cache,
+    summary = {"renderer": res.renderer, "mode": res.mode, "cache": cache, "area_samples": res.area_samples,
                "resolution": list(res.resolution), "exr": frames[0]["exr"], "png": frames[0]["png"],
                "contact_sheet": str(res.contact_sheet) if res.contact_sheet else None,
                "diffuse": frames[0]["diffuse"], "lights": first.lights, "frames": frames,

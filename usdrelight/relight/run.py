@@ -63,7 +63,7 @@ class RelightResult:
     renderer: str
     """fast | mitsuba (what rendered, after any fallback)."""
     mode: str
-    """neural | ratio | add (what ran: ``auto`` resolved)."""
+    """The mode that ran (one of composite.MODES; ``auto`` resolved)."""
     cache_hit: bool | None
     """Fast renderer: prepared data found on disk; None with Mitsuba."""
     seconds: dict
@@ -74,6 +74,8 @@ class RelightResult:
     """The H.264 MP4 of the frames when asked for."""
     lights_layer: Path | None = None
     """The time-sampled lights layer the sequence was saved as, when asked for."""
+    area_samples: int | None = None
+    """The fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None: Mitsuba)."""
 
 
 WRITE_QUEUE = 2
@@ -209,7 +211,8 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
                for f in written]
     h, w = frame.image.shape[:2]
     return RelightResult(tuple(written), (w, h), session.renderer, session.mode, session.cache_hit,
-                         {**session.seconds, "total": time_module.perf_counter() - t0}, sheet, video, layer)
+                         {**session.seconds, "total": time_module.perf_counter() - t0}, sheet, video, layer,
+                         session.area_samples)
 
 
 def _contact_sheet(out_dir: Path, lights, session: RelightSession, used: RelitFrame) -> Path:

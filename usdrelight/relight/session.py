@@ -224,6 +224,11 @@ class RelightSession:
             self.photo = self._photo()
 
     @property
+    def area_samples(self) -> int | None:
+        """The fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None: Mitsuba)."""
+        return self.engine.sample_count() if self.engine.name == "fast" else None
+
+    @property
     def cache_hit(self) -> bool | None:
         """Whether the fast renderer found its prepared data in the cache (None with Mitsuba)."""
         return self.engine.cache_hit
