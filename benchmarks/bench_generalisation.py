@@ -44,7 +44,7 @@ Writes benchmarks/results/generalisation.json and docs/manual/images/generalisat
 kind a row: photo, truth, D~, ratio, neural, auto; one exposure per row, the truth's) and
 generalisation_motorcycle.png / generalisation_motorcycle_right.png (left / right view: photo; its light replaced: D~,
 ratio, neural, auto at D~'s exposure). Run after `make setup`:
-    python benchmarks/bench_generalisation.py [--scenes 2] [--spp 1024] [--width 128 --height 96]
+    python benchmarks/bench_generalisation.py [--scenes 4] [--spp 1024] [--width 128 --height 96]
 """
 from __future__ import annotations
 
@@ -304,7 +304,7 @@ def print_table(means, over):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", type=int, default=2, help="scenes per family (seeds 0..N-1)")
+    ap.add_argument("--scenes", type=int, default=4, help="scenes per family (seeds 0..N-1)")
     ap.add_argument("--families", nargs="*", default=list(FAMILIES))
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel of the photo and of every truth")
     ap.add_argument("--width", type=int, default=128)

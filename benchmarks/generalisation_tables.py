@@ -59,19 +59,23 @@ def real_photo_table(real: dict) -> list[str]:
     return lines
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json", type=Path, default=HERE / "results" / "generalisation.json")
-    d = json.loads(ap.parse_args().json.read_text())
+def tables(d: dict) -> list[str]:
+    """The three tables (markdown text each) of a bench_generalisation.py JSON, as the docs quote them."""
     auto_is = {}
     for sc in d["scenes"]:
         for kind, r in sc["kinds"].items():
             auto_is.setdefault(kind, r.get("auto_is", "?"))
     real = d.get("real_photo", {})
     real = {"left": real.get("kinds", {}), "right": real.get("right", {})}  # the left view's kinds are top-level
-    for table in (psnr_table(d["means_per_family"], d["means_over_families"], auto_is),
-                  ssim_detail_table(d["means_over_families"]), real_photo_table(real)):
-        print("\n".join(table) + "\n")
+    return ["\n".join(t) for t in (psnr_table(d["means_per_family"], d["means_over_families"], auto_is),
+                                   ssim_detail_table(d["means_over_families"]), real_photo_table(real))]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", type=Path, default=HERE / "results" / "generalisation.json")
+    for table in tables(json.loads(ap.parse_args().json.read_text())):
+        print(table + "\n")
 
 
 if __name__ == "__main__":

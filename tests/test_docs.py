@@ -190,3 +190,18 @@ def test_readme_python_api_runs(tour):
                               timeout=300)
         assert proc.returncode == 0, f"README Python block failed:\n{block}\n{proc.stderr[-3000:]}"
         assert proc.stdout.strip(), "the README's Python block printed nothing"
+
+
+def test_generalisation_tables_in_the_manual_are_the_benchmark_json():
+    """The held-out tables of docs/manual/relighting.md are benchmarks/generalisation_tables.py's rendering of
+    benchmarks/results/generalisation.json, digit for digit (a re-run of the benchmark must update the docs)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from generalisation_tables import tables
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    manual = (ROOT / "docs" / "manual" / "relighting.md").read_text()
+    found = tables(json.loads((ROOT / "benchmarks" / "results" / "generalisation.json").read_text()))
+    assert len(found) == 3 and all(t.count("\n") >= 5 for t in found)  # header, rule, 4+ rows
+    for table in found:
+        assert table in manual, table.splitlines()[0]

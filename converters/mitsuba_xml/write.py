@@ -24,7 +24,7 @@ from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
 from usdrelight.mitsuba.cutout import presence_map
-from usdrelight.mitsuba.scene_dict import Matrix, _rgb, _texture, safe_name, scene_dict
+from usdrelight.mitsuba.scene_dict import Matrix, rgb_value, safe_name, scene_dict, texture_value
 from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
@@ -255,7 +255,7 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
             inner = inner["bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"]
         if isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS:
             if _unchanged(item.material, extra.get("inputs") or {}):
-                kept = {k: (_rgb(v) if isinstance(v, list) else v) for k, v in kept.items()}
+                kept = {k: (rgb_value(v) if isinstance(v, list) else v) for k, v in kept.items()}
                 if "dielectric" not in kept["type"]:  # inside the twosided / mask wrappers, as other opaque BSDFs
                     inner.clear()
                     inner.update(kept)
@@ -275,7 +275,7 @@ def _restore_coverage(mat, extra, entry: dict) -> None:
     if extra.get("mask") == "coverage" and mask.get("type") == "mask" and isinstance(mask.get("opacity"), dict) \
             and "cutout" in mask["opacity"] and isinstance(mat.opacity, TextureRecord) \
             and mat.opacity_threshold == 0.5:
-        mask["opacity"] = _texture(mat.opacity, Counter())
+        mask["opacity"] = texture_value(mat.opacity, Counter())
 
 
 #: BSDFs the XML reader keeps whole in a Material's customData (UsdPreviewSurface only approximates them).

@@ -44,6 +44,8 @@ def spot_falloff(light: LightRecord, points: np.ndarray) -> np.ndarray:
 
 
 def point_light(tr: LightTransport, light: LightRecord) -> np.ndarray:
+    """(N, 3) E / pi of a point light (a spot with ShapingAPI): emitted radiance (W m^-2 sr^-1, UsdLux units
+    through :func:`~usdrelight.stage.lux.emitted_radiance`) x cos / r^2 (metres), one shadow ray per pixel."""
     g = tr.point_columns(light.to_world[:3, 3][None])[:, 0]
     if light.cone_angle_deg is not None:
         g = g * spot_falloff(light, tr.surface.p)
@@ -51,6 +53,8 @@ def point_light(tr: LightTransport, light: LightRecord) -> np.ndarray:
 
 
 def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
+    """(N, 3) E / pi of a sphere light (radius in metres, scaled by its transform): ``samples`` shadow rays per pixel
+    over the cone it subtends, stratified with per-pixel shifts from ``rng``; traced in chunks of RAY_CHUNK rays."""
     surf = tr.surface
     radius = light.radius * float(np.cbrt(np.prod(world_scale(light.to_world))))
     o = tr.origins
@@ -131,6 +135,8 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
 
 
 def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
+    """(N, 3) E / pi of a distant light (irradiance L along its -Z): one shadow ray per pixel when its angular
+    diameter (degrees) is 0, else ``samples`` over that cone, shifted per pixel from ``rng``."""
     surf = tr.surface
     towards = -light_direction(light)
     o = tr.origins
@@ -180,4 +186,6 @@ def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int =
 
 
 def dome_light(tr: LightTransport, light: LightRecord, textures: dict) -> np.ndarray:
+    """(N, 3) E / pi of a dome light through the environment basis (its latlong texture, read once into
+    ``textures`` by path, averaged per world cell; radiance in W m^-2 sr^-1)."""
     return tr.environment(dome_cell_radiance(light, tr.env_shape, textures))

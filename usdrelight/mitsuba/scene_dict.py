@@ -43,11 +43,12 @@ class Matrix:
     m: np.ndarray
 
 
-def _rgb(v) -> dict:
+def rgb_value(v) -> dict:
+    """A Mitsuba ``rgb`` value of a scalar or an RGB triple (linear, as UsdLux and UsdPreviewSurface give it)."""
     return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(np.asarray(v, np.float64), (3,))]}
 
 
-def _texture(tex: TextureRecord, warnings) -> dict:
+def texture_value(tex: TextureRecord, warnings) -> dict:
     """A UsdUVTexture as a Mitsuba bitmap dict (:mod:`.textures`: wrap, to_uv, baked scale / bias / channel)."""
     d = texture_dict(tex, warnings)
     if "to_uv" in d:
@@ -56,7 +57,7 @@ def _texture(tex: TextureRecord, warnings) -> dict:
 
 
 def _value(v, warnings) -> dict:
-    return _texture(v, warnings) if isinstance(v, TextureRecord) else _rgb(v)
+    return texture_value(v, warnings) if isinstance(v, TextureRecord) else rgb_value(v)
 
 
 def _scalar(v, default: float, what: str, warnings) -> float:
@@ -83,13 +84,13 @@ def _plastic_specular(mat: MaterialRecord, warnings) -> tuple[dict, float]:
             warnings["specularColor above the normal-incidence reflectance of ior (int_ior raised so that F0 is "
                       "its largest channel)"] += 1
             ior, f0 = (1 + math.sqrt(peak)) / (1 - math.sqrt(peak)), peak
-        return _rgb(np.minimum(rgb / f0, 1.0)), ior
+        return rgb_value(np.minimum(rgb / f0, 1.0)), ior
     if np.allclose(s.scale[:3], f0, rtol=1e-4) and not any(s.bias[:3]):
         s = replace(s, scale=(1.0, 1.0, 1.0, 1.0))
     else:
         warnings["textured specularColor (texels used as Mitsuba's specular_reflectance, a Fresnel multiplier, "
                  "not as the normal-incidence colour)"] += 1
-    return _texture(s, warnings), ior
+    return texture_value(s, warnings), ior
 
 
 def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
@@ -134,7 +135,7 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
             if op.channel == "rgb":
                 warnings["UsdUVTexture output 'rgb' feeding opacity (red used)"] += 1
             spec = cutout_spec(op, mat.opacity_threshold)
-            plain = _texture(op, warnings)  # the same wrap and to_uv as the texture itself
+            plain = texture_value(op, warnings)  # the same wrap and to_uv as the texture itself
             spec.update({k: plain[k] for k in ("wrap_mode", "to_uv") if k in plain})
             return {"type": "mask", "opacity": spec, "bsdf": d}
         presence = float(op) if op >= mat.opacity_threshold else 0.0
@@ -144,7 +145,7 @@ def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
     if textured and op.channel == "rgb":  # a weight is one channel: red, as the cutout and Cycles use
         warnings["UsdUVTexture output 'rgb' feeding opacity (red used)"] += 1
         op = replace(op, channel="r")
-    weight = _texture(op, warnings) if textured else float(max(op, 0.0))
+    weight = texture_value(op, warnings) if textured else float(max(op, 0.0))
     ior = float(mat.ior)
     if not math.isfinite(ior) or ior <= 0.0 or abs(ior - 1.0) < 1e-3:  # no refraction: a pass-through blend
         return {"type": "mask", "opacity": weight, "bsdf": d}
@@ -226,16 +227,16 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
             m = np.eye(4)
             m[:3, :3] = rot
             m[:3, 3] = pos
-            return {name: {"type": "spot", "intensity": _rgb(L), "cutoff_angle": cutoff,
+            return {name: {"type": "spot", "intensity": rgb_value(L), "cutoff_angle": cutoff,
                            "beam_width": max(cutoff * (1.0 - light.cone_softness), 1e-4),
                            "to_world": Matrix(m @ FLIP_Z)}}
-        return {name: {"type": "point", "position": [float(x) for x in pos], "intensity": _rgb(L)}}
+        return {name: {"type": "point", "position": [float(x) for x in pos], "intensity": rgb_value(L)}}
     if light.cone_angle_deg is not None:
         warnings["ShapingAPI on an area, distant or dome light (ignored)"] += 1
     if light.kind == "mesh":
         return {}  # an area emitter on the light's own mesh (scene_dict)
-    emitter = {"type": "area", "radiance": _rgb(L)}
-    black = {"type": "diffuse", "reflectance": _rgb(0.0)}
+    emitter = {"type": "area", "radiance": rgb_value(L)}
+    black = {"type": "diffuse", "reflectance": rgb_value(0.0)}
     if light.kind == "sphere":
         r = light.radius
         return {name: {"type": "sphere", "to_world": Matrix(light.to_world @ np.diag([r, r, r, 1.0])),
@@ -251,10 +252,10 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         if light.angle_deg > 0:
             warnings["DistantLight angle > 0 (rendered as a sharp directional light)"] += 1
         return {name: {"type": "directional", "direction": [float(x) for x in light_direction(light)],
-                       "irradiance": _rgb(L)}}
+                       "irradiance": rgb_value(L)}}
     if light.kind == "dome":
         if light.texture is None:
-            return {name: {"type": "constant", "radiance": _rgb(L)}}
+            return {name: {"type": "constant", "radiance": rgb_value(L)}}
         rot = light.to_world.copy()
         rot[:3, :3] = rot[:3, :3] / np.maximum(world_scale(rot), 1e-300)
         d = {"type": "envmap", "filename": light.texture.path, "to_world": Matrix(rot)}
@@ -307,7 +308,7 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
             d[k] = {"type": "_mesh", "points": mesh.points, "faces": mesh.faces, "normals": mesh.normals,
                     "uv": uv, "bsdf": bsdf}
         if light is not None:
-            d[k]["emitter"] = {"type": "area", "radiance": _rgb(emitted_radiance(light))}
+            d[k]["emitter"] = {"type": "area", "radiance": rgb_value(emitted_radiance(light))}
             emitting.add(light.path)
     if set(mesh_lights) - emitting:
         warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)

@@ -51,14 +51,15 @@ stage has fitted lights and its photo, and ``render`` (the physics render
 D~, holes filled) otherwise. Chosen by measurement: on the training generator's scenes
 (benchmarks/calibrate_transfer.py: dimmed -> transfer +1.4 dB over ratio) and on held-out scene families
 (benchmarks/bench_generalisation.py, docs "Generalisation"): added light -> add ahead of ratio in every family;
-dimmed -> transfer ahead of ratio; switched off -> residual ahead of transfer and the coverage-correct render on
-average for replaced and recoloured lights (``ratio`` is ahead for recolour alone, far behind for replace)."""
+dimmed -> transfer ahead of ratio; switched off -> residual ahead of the coverage-correct render on average for
+replaced and recoloured lights, ahead of transfer for replaced ones and level with it for recoloured ones (``ratio``
+is ahead for recolour alone, far behind for replace)."""
 
 
 OFF_MODE = "residual" if DEFAULT_RESIDUAL.is_file() else "transfer"
 """``auto``'s mode when the photo's own lighting is switched off and the stage is fitted: ``residual`` (transfer
 corrected by the shipped residual network), ahead of ``transfer`` on average on the held-out families for replaced
-and recoloured lights (docs "Generalisation"); ``transfer`` when the network is not installed."""
+lights and level with it for recoloured ones (docs "Generalisation"); ``transfer`` when the network is not installed."""
 
 
 def resolve_mode(mode: str, fitted_kept: bool, photo_known: bool, fitted_scaled: bool = False,

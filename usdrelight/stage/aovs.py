@@ -27,6 +27,7 @@ class Aov:
 
     @property
     def product_name(self) -> str:
+        """The AOV's EXR, relative to the render output folder (``renders/NAME.exr``)."""
         return f"renders/{self.name}.exr"
 
 

@@ -102,6 +102,7 @@ def _timed(seconds: dict, name: str, progress=None):
 
 
 def load_mask(path, photo: Photo) -> np.ndarray:
+    """(H, W) bool: the mask image at ``path`` (the photo's size) above half its finite maximum."""
     m = read_map(path, 1)[..., 0]
     if m.shape != (photo.height, photo.width):
         raise UsdRelightError(f"mask {path} is {m.shape[1]}x{m.shape[0]} but the photo is {photo.width}x{photo.height}")

@@ -131,6 +131,8 @@ def _input_value(shader, name, default, warnings):
 
 
 def read_material(prim, warnings) -> MaterialRecord:
+    """The UsdPreviewSurface bound to ``prim`` as a record (grey diffuse when none); what cannot be read counts
+    into ``warnings`` (a Counter of one-line messages, logged once per stage)."""
     from pxr import UsdShade
 
     mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
@@ -229,6 +231,10 @@ def _primvar(pv, n_points, n_corners, n_faces):
 
 
 def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name: str = "st") -> list[MeshRecord]:
+    """A UsdGeom.Mesh as triangle records (one per GeomSubset material, or one), points taken to world space in
+    metres by ``xf`` (4x4 local-to-world, column vectors, metersPerUnit already applied); UVs from primvar
+    ``st_name``. Empty meshes are skipped with a count in ``warnings``; inconsistent topology or non-finite
+    points raise :class:`UsdRelightError`."""
     from pxr import UsdGeom, UsdShade
 
     mesh = UsdGeom.Mesh(prim)

@@ -1,8 +1,8 @@
 """Open a stage, and validate it with every validator that ``pxr.UsdValidation`` knows (usdchecker's engine)."""
 from __future__ import annotations
 
+import logging
 import re
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +10,8 @@ from .. import schemas
 from ..errors import UsdRelightError
 from ..native_io import captured_stderr
 from .usdz import is_usdz, unpack_usdz
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,9 @@ def open_stage(path: str | Path):
     if errors:
         more = f" (and {len(errors) - 1} more composition error(s))" if len(errors) > 1 else ""
         raise UsdRelightError(f"stage {path} does not compose: {_layer_error(str(errors[0]))}{more}")
-    if native.text.strip():
-        sys.stderr.write(native.text)
+    for line in native.text.splitlines():  # USD's own warnings while opening: through logging, like ours
+        if line.strip():
+            log.warning("USD: %s", line.strip())
     return stage
 
 

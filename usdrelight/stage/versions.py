@@ -43,6 +43,7 @@ _REF = re.compile(r"@\./versions/([^/@]+)/")
 
 
 def new_version_id() -> str:
+    """A fresh version folder name: UTC time ``YYYYMMDDTHHMMSS`` + ``-`` + 8 random hex digits."""
     return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + secrets.token_hex(4)
 
 

@@ -174,6 +174,7 @@ class TransportCache:
         return cls(Path(stage_path).resolve().parent / CACHE_DIR, **kwargs)
 
     def path(self, key: str) -> Path:
+        """The ``transport-KEY.npz`` file of a content key in this cache's folder."""
         return self.folder / f"transport-{key}.npz"
 
     @staticmethod
