@@ -7,13 +7,16 @@ X -> Y reads into a stage in memory and writes it. The options are the writer's 
 """
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
+from usdrelight.safe_paths import made_folders, no_link_inside, writable_parent
 from usdrelight.stage.timing import parse_frames
 from usdrelight.stage.validate import check_finite, open_stage
+from usdrelight.stage.versions import STAGE_LAYERS, VERSIONS, is_stage_folder
 
 from . import USD_SUFFIXES, check_options, converter_for
 
@@ -38,6 +41,11 @@ class ConvertReport:
     def to_dict(self) -> dict:
         """The report as JSON-ready plain data: ``{"files", "read_warnings", "write_warnings"}``."""
         return asdict(self)
+
+
+SIDE_FOLDERS = ("meshes", "textures")
+"""Folders a conversion fills beside its file (Mitsuba XML: PLY meshes, copied or baked textures; a USD layer
+read from XML: baked textures)."""
 
 
 def frame_path(dst: Path, index: int) -> Path:
@@ -65,7 +73,24 @@ def convert(src, dst, frames=None, **options) -> ConvertReport:
         check_options("USD writer", options, {})
     else:
         check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
-    dst.parent.mkdir(parents=True, exist_ok=True)
+    check_destination(dst)
+    with made_folders(dst.parent):  # a failed conversion leaves no empty folder behind
+        return _convert(src, dst, reader, writer, options)
+
+
+def check_destination(dst: Path) -> None:
+    """Before anything is read: ``dst``'s folder can exist, nothing a writer puts beside it (meshes/, textures/)
+    is a link out of that folder, and ``dst`` is not a usdrelight stage's own layer (the user's lights, the
+    scene, the fitted lights or the geometry are never written over by a conversion)."""
+    writable_parent(dst, "the converted file")
+    no_link_inside(dst.parent, SIDE_FOLDERS)
+    if os.path.lexists(dst) and (dst.name in STAGE_LAYERS and is_stage_folder(dst.parent)
+                                 or VERSIONS in dst.parts[-3:-1] and is_stage_folder(dst.parent.parent.parent)):
+        raise UsdRelightError(f"{dst} is a layer of a usdrelight stage: convert writes a new file, never over a "
+                              f"stage's own layers (nothing was written)")
+
+
+def _convert(src: Path, dst: Path, reader, writer, options: dict) -> ConvertReport:
     if reader is None:
         stage = open_stage(src)
         if writer is None:
@@ -100,11 +125,13 @@ def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> Convert
         raise UsdRelightError(f"file not found: {src}")
     times = parse_frames(frames) if frames else None
     check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
+    check_destination(dst)
     stage = open_stage(src)
     times = times if times is not None else parse_frames(None, stage)
     files, warnings = [], {}
-    for i, t in enumerate(times):
-        out = writer.write_to_file(stage, frame_path(dst, i), **options, time=t)
-        files += [f for f in out.files if f not in files]
-        warnings = {**warnings, **{k: max(v, warnings.get(k, 0)) for k, v in out.warnings.items()}}
+    with made_folders(dst.parent):
+        for i, t in enumerate(times):
+            out = writer.write_to_file(stage, frame_path(dst, i), **options, time=t)
+            files += [f for f in out.files if f not in files]
+            warnings = {**warnings, **{k: max(v, warnings.get(k, 0)) for k, v in out.warnings.items()}}
     return ConvertReport(files, write_warnings=warnings)

@@ -42,3 +42,12 @@ def add_frames_argument(parser, what: str) -> None:
     parser.add_argument("--frames", nargs="?", const="", metavar="START:END[:STEP]",
                         help=f"{what} for every USD time code from START to END (inclusive; STEP default 1); "
                              f"without a value: the stage's startTimeCode:endTimeCode")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are the command line's one line on stderr and exit status 2 (argparse's own
+    prints the whole usage block first); sub-command parsers made from it are of this class too."""
+
+    def error(self, message: str):
+        text = " ".join(str(message).split())
+        self.exit(2, f"usdrelight: error: {self.prog}: {text} (see {self.prog} --help)\n")

@@ -279,6 +279,12 @@ def result_group(out_dir: str | os.PathLike, keep_previous: bool = False):
 
 def _publish_group(out: Path, keep_previous: bool):
     results = out / RESULTS_DIR
+    current = results / "current"
+    pointed = os.readlink(current) if current.is_symlink() else ""
+    if results.is_symlink() or "/" in pointed or pointed[:1] == ".":
+        # a link planted there would take this run's files (or the previous result's names) out of the folder
+        raise UsdRelightError(f"{results if results.is_symlink() else current} is a symbolic link out of {out}: "
+                              f"usdrelight writes only inside the output folder (nothing was written)")
     results.mkdir(exist_ok=True)
     version = Path(tempfile.mkdtemp(prefix="v-", dir=results))
     os.chmod(version, 0o777 & ~current_umask())

@@ -15,7 +15,7 @@ import numpy as np
 
 from . import __version__
 from .argtypes import add_frames_argument, add_time_argument, non_negative_int as _non_negative_int, port as _port, \
-    positive_int as _positive_int
+    positive_int as _positive_int, OneLineParser
 from .batch.args import add_batch_parser
 from .relight.args import add_relight_parser
 from .errors import UsdRelightError, one_line
@@ -259,7 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "GPU; cuda: a GPU or one clear error)")
     device.set_defaults(uses_render_device=True)
 
-    p = argparse.ArgumentParser(prog="usdrelight", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="usdrelight", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"usdrelight {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -36,6 +36,51 @@ def confined_path(base: str | os.PathLike, name: str, what: str = "file") -> Pat
     return path
 
 
+def writable_parent(path: str | os.PathLike, what: str = "output") -> Path:
+    """``path`` when its folder exists or can be made: every existing ancestor is a folder (checked before any
+    work, so a path under a regular file is one clear error and not an OS error after the work is done)."""
+    path = Path(path)
+    for parent in path.absolute().parents:
+        if os.path.lexists(parent):
+            if not parent.is_dir():
+                raise UsdRelightError(f"cannot write {what} {path}: {parent} is not a folder")
+            break
+    return path
+
+
+def no_link_inside(folder: str | os.PathLike, names: Iterable[str]) -> None:
+    """UsdRelightError when a name usdrelight writes into under ``folder`` (``meshes``, ``textures``) is a symbolic
+    link that leads out of ``folder``: files go inside the output folder, never through a link planted there to
+    somewhere else (a stage's own links into its ``versions/`` stay inside and are fine)."""
+    real = Path(folder).resolve()
+    for name in names:
+        p = Path(folder) / name
+        if p.is_symlink() and not _inside(p.resolve(), real):
+            raise UsdRelightError(f"{p} is a symbolic link out of {folder}: usdrelight writes only inside the "
+                                  f"output folder, never through a link out of it (nothing was written)")
+
+
+@contextmanager
+def made_folders(folder: str | os.PathLike):
+    """Make ``folder`` (and missing parents); on an exception inside the block remove the ones made here if they
+    are still empty, so a failed command leaves no empty output folder behind."""
+    folder = Path(folder).absolute()
+    missing = [p for p in (folder, *folder.parents) if not os.path.lexists(p)]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot make the folder {folder}: {exc.strerror or exc}") from None
+    try:
+        yield folder
+    except BaseException:
+        for p in missing:  # deepest first
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
+
+
 # ---- read confinement ----------------------------------------------------------------------------
 #: Extra folders the user allowed scene files to read from (``--allow-path DIR``), for the running command.
 _ALLOWED: ContextVar[tuple[Path, ...]] = ContextVar("usdrelight_allowed_paths", default=())

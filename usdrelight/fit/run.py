@@ -18,6 +18,7 @@ from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import check_spp, render_record
+from ..safe_paths import writable_parent
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
 from ..stage.usdz import refuse_usdz
@@ -160,6 +161,8 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
         check_spp(verify_spp, "--verify-spp")
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
+    if report_dir is not None:  # before the fit publishes anything: a bad folder fails first, not after
+        writable_parent(Path(report_dir) / "fit_report.json", "the --report")
     t_all = time.perf_counter()
     prob = load_problem(stage_path, max_side)
     if method == "fast":

@@ -247,6 +247,7 @@ def run_neural(dtilde, albedo, valid, model: RelightModel, out_dir, name: str = 
 def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool = False, spp: int = 64) -> NeuralResult:
     """``usdrelight neural``: read the stage's AOVs (rendering missing ones when asked) and run the network."""
     t0 = time.perf_counter()
+    model = RelightModel(model_path)  # a bad model fails before anything is rendered into the stage folder
     stage = open_stage(stage_path)
     rec = read_scene(stage)
     aovs = find_aovs(stage_path, rec)
@@ -266,6 +267,5 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     if stale and not render_missing and dt.shape[:2] == alb.shape[:2] == valid.shape[:2]:  # else: sizes named below
         raise UsdRelightError(f"AOV file(s) {stale} were not rendered from {stage_path} as it is now (rebuilt, refit, "
                               f"lights edited, or written by another tool): render again or pass --render-missing")
-    model = RelightModel(model_path)
     res = run_neural(dt, alb, valid, model, out_dir or Path(stage_path).resolve().parent / "neural")
     return replace(res, seconds={**res.seconds, "total": time.perf_counter() - t0})

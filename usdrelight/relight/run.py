@@ -21,6 +21,7 @@ from ..engine.fast import EngineSettings, check_area_samples
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..neural.model import write_relit
+from ..safe_paths import writable_parent
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.light_syntax import MAX_AREA_SAMPLES
@@ -157,6 +158,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
         raise UsdRelightError("--frames and --time both choose the time: give one")
     time = check_time(time) if time is not None else None
     video = check_video_path(video) if video is not None else None
+    if out:  # a folder that cannot be made fails before the stage's transport is prepared
+        writable_parent(Path(out) / "relit.exr", "the relit photo")
     seq = read_sequence(sequence) if sequence is not None else None
     times = parse_frames(frames) if frames else None  # a bad range fails before the stage is read
     # parsed once, before any work: a bad spec fails fast, and each frame reuses the records

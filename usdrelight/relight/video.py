@@ -16,6 +16,7 @@ import numpy as np
 from ..atomic import atomic_path
 from ..errors import UsdRelightError
 from ..imageio import linear_to_srgb
+from ..safe_paths import writable_parent
 
 CRF = 16
 """x264 constant rate factor (0 lossless .. 51; 16: visually lossless for relit photos)."""
@@ -28,7 +29,7 @@ def check_video_path(path) -> Path:
         raise UsdRelightError(f"--video writes an H.264 .mp4 file, got {path.name!r}")
     if path.is_dir():
         raise UsdRelightError(f"--video {path} is a folder")
-    return path
+    return writable_parent(path, "--video")
 
 
 def _av():

@@ -17,6 +17,7 @@ from ..estimate.names import ALBEDO, GEOMETRY, is_learned
 from ..estimate.records import Photo, PhotoEstimates
 from ..imageio import read_map, read_photo
 from ..mesh import DEFAULT_MAX_GRAZING_DEG, triangulate
+from .versions import check_stage_folder
 from .write import write_stage
 
 log = logging.getLogger(__name__)
@@ -112,6 +113,7 @@ def load_mask(path, photo: Photo) -> np.ndarray:
 def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
     """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
     opts = opts or BuildOptions()
+    check_stage_folder(outdir)  # before any work: someone else's USD files are never written over
     if opts.model_paths and not (is_learned(opts.geometry) or is_learned(opts.albedo_from)):
         raise UsdRelightError("--model-path goes with --geometry or --albedo-from naming a hub model ("
                               f"{', '.join(n for n in GEOMETRY + ALBEDO if is_learned(n))})")

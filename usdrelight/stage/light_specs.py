@@ -33,6 +33,8 @@ from .records import LightRecord
 
 def _floats(text: str, n: int, what: str, spec: str) -> np.ndarray:
     try:
+        if not text.isascii():  # float() also reads other scripts' digits; a spec is written in ASCII
+            raise ValueError(text)
         v = np.array([float(x) for x in text.split(",")], np.float64)
     except ValueError:
         raise UsdRelightError(f"bad --light {spec!r}: {what} must be {n} comma-separated numbers") from None

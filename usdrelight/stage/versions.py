@@ -30,7 +30,8 @@ from typing import Callable
 
 from ..atomic import atomic_path, fsync_tree, link_or_copy, publish, temp_dir_beside
 from ..errors import UsdRelightError
-from .layout import ALBEDO_TEXTURE, DIFFUSE_TARGET, FITTED_ENV_TEXTURE, FITTED_LIGHTS, GEOMETRY, SCENE
+from .layout import ALBEDO_TEXTURE, DIFFUSE_TARGET, FITTED_ENV_TEXTURE, FITTED_LIGHTS, GEOMETRY, SCENE, \
+    USER_LIGHTS
 
 VERSIONS = "versions"
 #: Files a version holds (relative to its folder) that the root layer references.
@@ -55,6 +56,37 @@ def referenced_version(stage_dir) -> str | None:
         return None
     m = _REF.search(text)
     return m.group(1) if m and _ID.match(m.group(1)) else None
+
+
+PROVENANCE_MARK = b"RelightProvenanceAPI"
+"""What every ``scene.usda`` usdrelight writes carries (its root prim's API schema), old layout or new."""
+#: The names a publish writes or removes at the top of a stage folder (besides ``versions/`` and the links; the
+#: user's ``lights_user.usda`` is kept where it exists).
+STAGE_FILES = (SCENE,) + REFERENCED + (FITTED_ENV_TEXTURE,)
+#: A stage's own layers: no other command writes over them (``convert``'s destination, for one).
+STAGE_LAYERS = (SCENE, USER_LIGHTS, FITTED_LIGHTS, GEOMETRY)
+
+
+def is_stage_folder(folder) -> bool:
+    """Whether ``folder`` holds a usdrelight stage (a ``scene.usda`` usdrelight wrote)."""
+    try:
+        with open(Path(folder) / SCENE, "rb") as f:
+            return PROVENANCE_MARK in f.read(1 << 16)
+    except OSError:
+        return False
+
+
+def check_stage_folder(folder, what: str = "build") -> None:
+    """UsdRelightError when ``folder`` exists, is not a usdrelight stage and holds a file a publish would write
+    or remove (``scene.usda``, ``geometry.usdc``, ``textures/albedo.exr`` ...): someone else's files there are
+    never overwritten or deleted."""
+    folder = Path(folder)
+    if not folder.is_dir() or is_stage_folder(folder):
+        return
+    taken = [name for name in STAGE_FILES + (VERSIONS,) if os.path.lexists(folder / name)]
+    if taken:
+        raise UsdRelightError(f"{folder} is not a usdrelight stage but holds {taken[0]}: {what} writes into a new "
+                              f"folder or a usdrelight stage, never over other files (nothing was written)")
 
 
 def version_folder(stage_dir) -> Path:

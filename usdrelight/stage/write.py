@@ -30,7 +30,7 @@ from .create import author_lambertian, author_render_settings, author_uv_texture
     define_preview_material
 from .layout import (ALBEDO_TEXTURE, CAMERA, DIFFUSE_TARGET, FITTED_LIGHTS, GEOMETRY, MATERIAL, MESH, PHOTO,
                      ROOT, SCENE, SOURCE_PHOTO, USER_LIGHTS, USER_LIGHTS_SCOPE)
-from .versions import prepare_version, publish_version, version_prefix
+from .versions import check_stage_folder, prepare_version, publish_version, version_prefix
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +147,7 @@ def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=B
         raise UsdRelightError(f"cannot write to {outdir}: a parent path is not a directory") from None
     except OSError as exc:
         raise UsdRelightError(f"cannot write to {outdir}: {exc.strerror or exc}") from None
+    check_stage_folder(outdir)  # a folder of someone else's USD files is never written over
     created = not outdir.exists()
     try:
         with stage_lock(outdir):
