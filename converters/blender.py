@@ -15,6 +15,7 @@ lights hidden from the camera, the photo as backplate and the relit photo on F12
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 import tempfile
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from usdrelight.atomic import atomic_path, write_text_atomic
+from usdrelight.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
@@ -130,7 +131,9 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         if m.uv is not None:
             arrays["uv"] = m.uv.astype(np.float32)
         fname = f"mesh{i}.npz"
-        np.savez(data_dir / fname, **arrays)
+        buf = io.BytesIO()  # written atomically: a link planted at the name is replaced, never written through
+        np.savez(buf, **arrays)
+        write_bytes_atomic(data_dir / fname, buf.getvalue())
         meshes.append({"name": m.path.strip("/").replace("/", "_")[:60] or f"mesh{i}", "usd_path": m.path,
                        "file": f"{data_dir.name}/{fname}", "material": mats[key]["name"]})
     cam = None

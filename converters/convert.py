@@ -83,9 +83,10 @@ def check_destination(dst: Path) -> None:
     is a link out of that folder, and ``dst`` is not a usdrelight stage's own layer (the user's lights, the
     scene, the fitted lights or the geometry are never written over by a conversion)."""
     writable_parent(dst, "the converted file")
-    no_link_inside(dst.parent, SIDE_FOLDERS)
-    if os.path.lexists(dst) and (dst.name in STAGE_LAYERS and is_stage_folder(dst.parent)
-                                 or VERSIONS in dst.parts[-3:-1] and is_stage_folder(dst.parent.parent.parent)):
+    no_link_inside(dst.parent, SIDE_FOLDERS + (f"{dst.stem}_data",))  # the Blender script's mesh folder too
+    real = Path(os.path.realpath(dst))  # where it would land, however it is spelled (.., links)
+    if real.name in STAGE_LAYERS and is_stage_folder(real.parent) or \
+            any(p.name == VERSIONS and is_stage_folder(p.parent) for p in real.parents):
         raise UsdRelightError(f"{dst} is a layer of a usdrelight stage: convert writes a new file, never over a "
                               f"stage's own layers (nothing was written)")
 

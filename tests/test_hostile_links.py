@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 from pathlib import Path
 
 import pytest
 
-from conftest import build_procedural
+from conftest import EXAMPLES, build_procedural
 
+EXAMPLE = EXAMPLES / "procedural"
 LIGHT = "point:0.5,1.0,-2.5:3,2.5,2"
 
 
@@ -113,3 +115,62 @@ def test_a_bad_model_fails_before_neural_renders_into_the_stage(cli, stage, tmp_
     rc, _, err = cli("neural", stage, "--model", bad, "--render-missing", "--spp", "1", "-o", tmp_path / "n")
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     assert _tree(stage.parent) == before and not (tmp_path / "n").exists()  # no AOV rendered, nothing written
+
+
+def test_links_planted_in_a_stage_folder_are_refused(cli, tmp_path):
+    st = build_procedural(tmp_path / "st", stride=4).parent
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "versions").mkdir(parents=True)
+    for name in ("relit", "cache"):  # relight's default output, the transport cache
+        shutil.rmtree(st / name, ignore_errors=True)
+        (st / name).symlink_to(elsewhere, target_is_directory=True)
+        _refused(cli, "relight", st / "scene.usda", "--light", LIGHT, "--mode", "render", "--max-side", "16",
+                 words="leads outside")
+        (st / name).unlink()
+    out = tmp_path / "out"
+    (out / ".results").mkdir(parents=True)  # current -> a sibling that is itself a link out of the folder
+    (out / ".results" / "sib").symlink_to(elsewhere, target_is_directory=True)
+    (out / ".results" / "current").symlink_to("sib")
+    (out / "relit.exr").write_text("an older run's plain file")
+    _refused(cli, "relight", st / "scene.usda", "--light", LIGHT, "--mode", "render", "--max-side", "16", "-o", out,
+             words="symbolic link")
+    for dst in ("textures/../lights_fitted.usda", "versions/current/lights_fitted.usda", "versions/current/new.usda"):
+        _refused(cli, "convert", st / "scene.usda", st / dst, words="layer of a usdrelight stage")
+    (tmp_path / "bl").mkdir()
+    (tmp_path / "bl" / "scene_data").symlink_to(elsewhere, target_is_directory=True)
+    _refused(cli, "convert", st / "scene.usda", tmp_path / "bl" / "scene.py", words="symbolic link")
+    shutil.rmtree(st / "versions")  # a stage whose versions/ is a planted link: build never writes through it
+    (st / "versions").symlink_to(elsewhere / "versions", target_is_directory=True)
+    _refused(cli, "build", EXAMPLE / "photo.exr", "--depth", EXAMPLE / "depth.exr", "-o", st, words="symbolic link")
+    assert _tree(elsewhere) == {"versions": ""}
+
+
+def test_a_build_killed_before_its_first_publish_can_be_built_over(cli, tmp_path):
+    out = tmp_path / "st"
+    (out / "versions" / ".20260101T000000-deadbeef.tmp-1").mkdir(parents=True)  # what a SIGKILL leaves
+    rc, _, err = cli("build", EXAMPLE / "photo.exr", "--depth", EXAMPLE / "depth.exr", "-o", out)
+    assert rc == 0 and (out / "scene.usda").is_file(), err
+    flat = tmp_path / "flat"  # a flattened copy of a stage carries its provenance, but is not a stage
+    flat.mkdir()
+    rc, _, err = cli("convert", out / "scene.usda", flat / "scene.usda")
+    assert rc == 0, err
+    _refused(cli, "build", EXAMPLE / "photo.exr", "--depth", EXAMPLE / "depth.exr", "-o", flat,
+             words="is not a usdrelight stage")
+
+
+def test_the_web_apps_export_and_upload_folders_stay_in_the_stage(tmp_path):
+    import numpy as np
+
+    from usdrelight.errors import UsdRelightError
+    from usdrelight.serve.files import EXPORTS, UPLOADS, export_relit, video_path
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (tmp_path / "st" / "serve").mkdir(parents=True)
+    (tmp_path / "st" / EXPORTS).symlink_to(elsewhere, target_is_directory=True)
+    (tmp_path / "st" / UPLOADS).symlink_to(elsewhere, target_is_directory=True)
+    for call in (lambda: export_relit(tmp_path / "st", np.ones((4, 4, 3), np.float32)),
+                 lambda: video_path(tmp_path / "st")):
+        with pytest.raises(UsdRelightError, match="leads outside"):
+            call()
+    assert _tree(elsewhere) == {}

@@ -281,7 +281,7 @@ def _publish_group(out: Path, keep_previous: bool):
     results = out / RESULTS_DIR
     current = results / "current"
     pointed = os.readlink(current) if current.is_symlink() else ""
-    if results.is_symlink() or "/" in pointed or pointed[:1] == ".":
+    if results.is_symlink() or "/" in pointed or pointed[:1] == "." or (results / pointed).is_symlink():
         # a link planted there would take this run's files (or the previous result's names) out of the folder
         raise UsdRelightError(f"{results if results.is_symlink() else current} is a symbolic link out of {out}: "
                               f"usdrelight writes only inside the output folder (nothing was written)")

@@ -21,7 +21,7 @@ from ..engine.fast import EngineSettings, check_area_samples
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..neural.model import write_relit
-from ..safe_paths import writable_parent
+from ..safe_paths import confined_path, writable_parent
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.light_syntax import MAX_AREA_SAMPLES
@@ -188,7 +188,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
 
 def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool, contact_sheet: bool, video,
          fps: float, layer, t0: float) -> RelightResult:
-    out_dir = Path(out) if out else Path(stage_path).resolve().parent / "relit"
+    out_dir = Path(out) if out else confined_path(Path(stage_path).resolve().parent, "relit", "the relit folder")
     written = []
     sheet = None
     # every file of this run appears at once (atomic.result_group): a reader never mixes two runs' files

@@ -32,6 +32,7 @@ from ..atomic import LOCK_NAME, stage_lock, write_bytes_atomic, write_text_atomi
 from ..errors import UsdRelightError
 from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
+from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
@@ -66,7 +67,7 @@ def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path
     except UsdRelightError as exc:
         raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
     digest = hashlib.sha256(content).hexdigest()[:16]
-    path = Path(stage_dir).resolve() / UPLOADS / f"hdri-{digest}{suffix}"
+    path = confined_path(Path(stage_dir).resolve(), UPLOADS, "the uploads folder") / f"hdri-{digest}{suffix}"
     write_bytes_atomic(path, content)
     try:
         w, h = check_image_size(path)  # OpenImageIO's reading of the header, before any pixel
@@ -83,12 +84,12 @@ def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path
 
 def export_relit(stage_dir, image: np.ndarray) -> tuple[Path, Path]:
     """``STAGE_DIR/serve/export/relit.exr`` (linear float) and ``relit.png`` (sRGB), written atomically."""
-    return write_relit(Path(stage_dir).resolve() / EXPORTS, "relit", image)
+    return write_relit(confined_path(Path(stage_dir).resolve(), EXPORTS, "the export folder"), "relit", image)
 
 
 def video_path(stage_dir) -> Path:
     """Where "Export video" writes: ``STAGE_DIR/serve/export/relit.mp4`` (fixed; its folder is made)."""
-    folder = Path(stage_dir).resolve() / EXPORTS
+    folder = confined_path(Path(stage_dir).resolve(), EXPORTS, "the export folder")
     folder.mkdir(parents=True, exist_ok=True)
     return folder / VIDEO
 

@@ -68,12 +68,30 @@ STAGE_LAYERS = (SCENE, USER_LIGHTS, FITTED_LIGHTS, GEOMETRY)
 
 
 def is_stage_folder(folder) -> bool:
-    """Whether ``folder`` holds a usdrelight stage (a ``scene.usda`` usdrelight wrote)."""
+    """Whether ``folder`` holds a usdrelight stage: a ``scene.usda`` usdrelight wrote, with its ``versions/`` or
+    (the layout before versions) its ``lights_user.usda`` beside it; a flattened copy of a stage is not one."""
+    folder = Path(folder)
     try:
-        with open(Path(folder) / SCENE, "rb") as f:
-            return PROVENANCE_MARK in f.read(1 << 16)
+        with open(folder / SCENE, "rb") as f:
+            marked = PROVENANCE_MARK in f.read(1 << 16)
     except OSError:
         return False
+    return marked and ((folder / VERSIONS).is_dir() or (folder / USER_LIGHTS).is_file())
+
+
+def _only_ours(vdir: Path) -> bool:
+    """Whether ``versions/`` holds only what a build writes there (version ids, ``current``, temporary folders):
+    what a build killed before its first publish leaves, which the next build may take over."""
+    return vdir.is_dir() and not vdir.is_symlink() and all(
+        _ID.match(p.name) or p.name == CURRENT or ".tmp-" in p.name for p in vdir.iterdir())
+
+
+def no_versions_link(stage_dir) -> None:
+    """UsdRelightError when ``versions/`` is a symbolic link: a publish writes and removes versions there, so a
+    link planted in a stage would take both out of its folder."""
+    if (Path(stage_dir) / VERSIONS).is_symlink():
+        raise UsdRelightError(f"{Path(stage_dir) / VERSIONS} is a symbolic link: usdrelight writes and removes "
+                              f"versions only inside the stage folder (nothing was written)")
 
 
 def check_stage_folder(folder, what: str = "build") -> None:
@@ -81,9 +99,11 @@ def check_stage_folder(folder, what: str = "build") -> None:
     or remove (``scene.usda``, ``geometry.usdc``, ``textures/albedo.exr`` ...): someone else's files there are
     never overwritten or deleted."""
     folder = Path(folder)
+    no_versions_link(folder)
     if not folder.is_dir() or is_stage_folder(folder):
         return
-    taken = [name for name in STAGE_FILES + (VERSIONS,) if os.path.lexists(folder / name)]
+    taken = [name for name in STAGE_FILES if os.path.lexists(folder / name)]
+    taken += [VERSIONS] if os.path.lexists(folder / VERSIONS) and not _only_ours(folder / VERSIONS) else []
     if taken:
         raise UsdRelightError(f"{folder} is not a usdrelight stage but holds {taken[0]}: {what} writes into a new "
                               f"folder or a usdrelight stage, never over other files (nothing was written)")
@@ -103,6 +123,7 @@ def version_prefix(vid: str | None) -> str:
 def prepare_version(stage_dir) -> tuple[str, Path]:
     """A new version id and the temporary folder to write it into (inside ``versions/``)."""
     vid = new_version_id()
+    no_versions_link(stage_dir)
     (Path(stage_dir) / VERSIONS).mkdir(parents=True, exist_ok=True)
     return vid, temp_dir_beside(Path(stage_dir) / VERSIONS / vid)
 
@@ -187,6 +208,7 @@ def collect_garbage(stage_dir) -> list[str]:
     ``scene.usda`` and ``lights_user.usda``), and, once versions are in use, the top-level files of the old
     layout. Call it holding the stage's lock. Never touches other files. Returns what it removed."""
     stage_dir = Path(stage_dir)
+    no_versions_link(stage_dir)
     keep = referenced_version(stage_dir)
     removed = []
     vdir = stage_dir / VERSIONS

@@ -32,6 +32,7 @@ import scipy.sparse as sp
 from ..atomic import write_bytes_atomic
 from ..mitsuba.render import pixel_footprint
 from ..mitsuba.runtime import load_mitsuba
+from ..safe_paths import confined_path
 from ..stage.records import SceneRecord, TextureRecord
 from .basis import LightTransport, bounce_filter, build_transport, env_fractions
 from .surface import R_MIN_REL, PixelFringe, VisibleSurface, geometry_scene, pixel_fringe, trace_surface
@@ -171,7 +172,7 @@ class TransportCache:
     @classmethod
     def for_stage(cls, stage_path, **kwargs) -> TransportCache:
         """The cache in the stage's folder (``STAGE_DIR/cache``)."""
-        return cls(Path(stage_path).resolve().parent / CACHE_DIR, **kwargs)
+        return cls(confined_path(Path(stage_path).resolve().parent, CACHE_DIR, "the transport cache"), **kwargs)
 
     def path(self, key: str) -> Path:
         """The ``transport-KEY.npz`` file of a content key in this cache's folder."""
