@@ -151,6 +151,13 @@ def rank(rows: list[dict], tol: float = TIE_DB) -> list[dict]:
     return first + sorted((r for r in rows if id(r) not in chosen), key=lambda r: -r["mean_gain_db"])
 
 
+def collected(args, extra=None) -> list[dict]:
+    """Log to stderr and :func:`collect` the cases of ``args`` in a temporary folder (removed after)."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    with tempfile.TemporaryDirectory() as td:
+        return collect(args, Path(td), extra)
+
+
 def scene_arguments(ap: argparse.ArgumentParser, scenes: int, generators: list[str]) -> None:
     """The options :func:`collect` reads: scenes per family or generator, samples per pixel, image size, the
     training generators whose scenes join."""

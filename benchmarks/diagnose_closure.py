@@ -37,10 +37,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import logging
 import re
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,7 +49,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from bench_generalisation import psnr  # noqa: E402
-from calibrate_transfer import BUCKET, GENERATORS, collect, scene_arguments  # noqa: E402
+from calibrate_transfer import BUCKET, GENERATORS, collected, scene_arguments  # noqa: E402
 from usdrelight.neural.model import hole_fill  # noqa: E402
 from usdrelight.neural.residual import ResidualModel, apply_gain, residual_input  # noqa: E402
 from usdrelight.relight.composite import render_photo, transfer_apply, transfer_reference  # noqa: E402
@@ -147,10 +145,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     scene_arguments(ap, 8, list(GENERATORS))
     args = ap.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as td:
-        cases = collect(args, Path(td), closure_inputs)
+    cases = collected(args, closure_inputs)
     model = ResidualModel()
     rows = []
     for c in cases:

@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import re
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,7 +29,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from bench_generalisation import psnr  # noqa: E402
-from calibrate_transfer import BUCKET, GENERATORS, collect, scene_arguments  # noqa: E402
+from calibrate_transfer import BUCKET, GENERATORS, collected, scene_arguments  # noqa: E402
 from usdrelight.relight.session import RelightSession  # noqa: E402
 
 MODES = ("render", "transfer", "residual")
@@ -74,11 +72,9 @@ def main() -> int:
     ap.add_argument("--depths", type=int, nargs="+", default=[3, 4, 5, 8])
     args = ap.parse_args()
     depths = sorted(set(args.depths) | {3})
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
     first = args.first_seed
-    with tempfile.TemporaryDirectory() as td:
-        cases = collect(args, Path(td), depth_renders(depths))
+    cases = collected(args, depth_renders(depths))
     rows = []
     for c in cases:
         if c["kind"] == "dim":

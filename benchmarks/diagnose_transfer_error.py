@@ -34,10 +34,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import re
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,7 +46,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from bench_generalisation import psnr  # noqa: E402
-from calibrate_transfer import BUCKET, GENERATORS, collect, scene_arguments  # noqa: E402
+from calibrate_transfer import BUCKET, GENERATORS, collected, scene_arguments  # noqa: E402
 from usdrelight.neural.model import hole_fill  # noqa: E402
 from usdrelight.relight.composite import (TransferReference, log_ratio, render_photo, transfer_apply,  # noqa: E402
                                           transfer_reference)
@@ -164,10 +162,8 @@ def main():
     ap = argparse.ArgumentParser()
     scene_arguments(ap, 4, list(GENERATORS))
     args = ap.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as td:
-        cases = collect(args, Path(td), split_renders)
+    cases = collected(args, split_renders)
     rows = []
     for c in cases:
         if c["kind"] == "dim":
