@@ -471,3 +471,27 @@ def test_browser_page_of_another_site_cannot_connect_and_the_token_url_works(sta
         finally:
             browser.close()
             other.shutdown()
+
+
+def test_oversized_deeply_nested_and_overbright_client_data_is_refused(tmp_path):
+    """One frame bigger than MAX_FRAME_BYTES or nested past Python's recursion limit closes its connection before
+    viser decodes it (a 45 MB frame of empty arrays would be ~3 GB of Python objects there); an uploaded HDRI whose
+    pixels go beyond any light's radiance limit is not kept (x a dome's intensity it would overflow)."""
+    import numpy as np
+
+    from usdrelight.errors import UsdRelightError
+    from usdrelight.imageio import write_image
+    from usdrelight.serve.files import store_upload
+    from usdrelight.serve.guard import GUI_UPDATE, MAX_FRAME_BYTES, screen
+
+    gate, owner = uploads.UploadGate(), object()
+    deep = b"\x91" * 200_000 + b"\xc0"
+    assert screen(gate, owner, b"\x81\xa4type" + deep) == uploads.CLOSE  # a "type" nested 200,000 deep
+    assert screen(gate, owner, deep) == uploads.CLOSE
+    assert screen(gate, owner, b"\x90" * (MAX_FRAME_BYTES + 1)) == uploads.CLOSE
+    assert screen(gate, owner, msgspec.msgpack.encode({"type": GUI_UPDATE, "uuid": "x", "updates": {"value": 1}})) \
+        == uploads.PASS  # an ordinary widget change still goes through
+    img = np.full((4, 8, 3), 1e35, np.float32)
+    with pytest.raises(UsdRelightError, match="beyond 1e"):
+        store_upload(tmp_path, "sun.exr", write_image(tmp_path / "src.exr", img, "float").read_bytes())
+    assert not list((tmp_path / "serve" / "uploads").glob("hdri-*"))  # not kept

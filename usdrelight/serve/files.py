@@ -34,6 +34,7 @@ from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
+from ..stage.light_syntax import MAX_RADIANCE
 from ..stage.read import gf_to_np
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
 from .uploads import MAX_HDRI_MEGAPIXELS, check_declared, check_hdri_header
@@ -76,6 +77,8 @@ def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path
         img = read_photo(path)
         if img.ndim != 3 or not np.all(np.isfinite(img)):
             raise UsdRelightError("not a finite RGB image")
+        if float(np.abs(img).max(initial=0.0)) > MAX_RADIANCE:  # x a dome's intensity it would overflow
+            raise UsdRelightError(f"pixel values beyond {MAX_RADIANCE:g} (the limit of any light's radiance)")
     except UsdRelightError as exc:
         path.unlink(missing_ok=True)
         raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None

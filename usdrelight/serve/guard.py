@@ -51,6 +51,9 @@ LOOPBACK_NAMES = ("127.0.0.1", "localhost", "::1")
 UPLOAD_START, UPLOAD_PART, GUI_UPDATE = "FileTransferStartUpload", "FileTransferPart", "GuiUpdateMessage"
 LOG_EVERY = 10.0
 """Seconds between two logged refusals (the others are counted)."""
+MAX_FRAME_BYTES = 2 << 20
+"""Largest message a client may send (viser's browser sends uploads in 512 KiB parts; its own limit, 50 MB, lets
+one frame of empty arrays decode into ~80 times its size in Python objects)."""
 _install_lock = threading.Lock()
 
 
@@ -187,6 +190,16 @@ def screen(gate: UploadGate, owner, data) -> str:
     state: its callbacks, its id); everything else is viser's to judge."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         return PASS
+    if len(data) > MAX_FRAME_BYTES:
+        log.warning("a %d-byte message was refused (at most %d)", len(data), MAX_FRAME_BYTES)
+        return CLOSE
+    try:
+        msgspec.msgpack.decode(data)  # nested deeper than Python's recursion limit: viser's decoder would raise
+    except RecursionError:
+        log.warning("a message nested too deeply was refused")
+        return CLOSE
+    except msgspec.DecodeError:
+        return PASS  # not msgpack; viser judges it
     try:
         kind = msgspec.msgpack.decode(data, type=_Head).type
     except (msgspec.DecodeError, msgspec.ValidationError):
