@@ -129,6 +129,9 @@ def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> Convert
     check_destination(dst)
     stage = open_stage(src)
     times = times if times is not None else parse_frames(None, stage)
+    clash = next((p for p in map(lambda i: frame_path(dst, i), range(len(times))) if p.is_dir()), None)
+    if clash is not None:  # before the first frame: never some frames written and then a failure
+        raise UsdRelightError(f"cannot write {clash}: a folder of that name is in the way (nothing was written)")
     files, warnings = [], {}
     with made_folders(dst.parent):
         for i, t in enumerate(times):

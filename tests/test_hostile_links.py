@@ -5,6 +5,7 @@ failed command leaves no folder behind (from a hostile-input probe of the comman
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 from pathlib import Path
@@ -174,3 +175,73 @@ def test_the_web_apps_export_and_upload_folders_stay_in_the_stage(tmp_path):
         with pytest.raises(UsdRelightError, match="leads outside"):
             call()
     assert _tree(elsewhere) == {}
+
+
+def test_names_in_the_way_fail_before_anything_is_published(cli, stage, tmp_path):
+    """A folder where a result file goes, or a file where its folder goes: one line, exit 2, nothing published
+    (no broken links, no leftover version); with --video the old video stays with the old frames."""
+    out = tmp_path / "r"
+    (out / "renders" / "diffuse.exr").mkdir(parents=True)
+    _refused(cli, "render", stage, "--spp", "1", "-o", out, words="in the way")
+    assert not (out / ".results" / "current").exists() and not list((out / ".results").glob("v-*"))
+    out2 = tmp_path / "r2"
+    out2.mkdir()
+    (out2 / "renders").write_text("a file")
+    _refused(cli, "render", stage, "--spp", "1", "-o", out2, words="is not a folder")
+    assert not list((out2 / ".results").glob("v-*")) and (out2 / "renders").read_text() == "a file"
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([[LIGHT], ["point:-0.5,1.0,-2.5:2,3,2"]]))
+    rel = tmp_path / "rel"
+    args = ("relight", stage, "--sequence", seq, "--mode", "render", "--max-side", "16", "--video", rel / "v.mp4")
+    rc, _, err = cli(*args, "-o", rel)
+    assert rc == 0, err
+    video, frame = (rel / "v.mp4").read_bytes(), (rel / "relit_0000.exr").read_bytes()
+    (rel / "contact_sheet.png").mkdir()
+    rc, _, err = cli(*args, "--contact-sheet", "-o", rel)  # (the unfitted stage logs the modes it leaves out)
+    assert rc == 2 and [ln for ln in err.splitlines() if "error" in ln] == [err.strip().splitlines()[-1]], err
+    assert "in the way" in err and "Traceback" not in err
+    assert (rel / "v.mp4").read_bytes() == video and (rel / "relit_0000.exr").read_bytes() == frame
+    conv = tmp_path / "conv"
+    (conv / "scene_0001.xml").mkdir(parents=True)
+    _refused(cli, "convert", stage, conv / "scene.xml", "--frames", "1:2", words="in the way")
+    assert not (conv / "scene_0000.xml").exists()
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    _refused(cli, "relight", stage, "--sequence", seq, "--save-lights", afile / "l.usda", "--mode", "render",
+             "--max-side", "16", "-o", tmp_path / "sl", words="is not a folder")
+
+
+def test_neural_default_folder_batch_manifest_and_a_rerun_keep_to_the_rules(cli, tmp_path):
+    from usdrelight.batch.manifest import RECORD, read_manifest
+    from usdrelight.batch.task import _replace
+    from usdrelight.errors import UsdRelightError
+
+    st = build_procedural(tmp_path / "st", stride=4).parent
+    (tmp_path / "elsewhere").mkdir()
+    (st / "neural").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    _refused(cli, "neural", st / "scene.usda", "--render-missing", "--spp", "1", words="leads outside")
+    assert _tree(tmp_path / "elsewhere") == {}
+    (tmp_path / "b" / "manifest.jsonl").mkdir(parents=True)
+    with pytest.raises(UsdRelightError, match="is not a file"):
+        read_manifest(tmp_path / "b")  # batch reads it first, before any photo is processed
+    final, tmp = tmp_path / "b" / "a", tmp_path / "b" / ".a.tmp"
+    for folder, lights in ((final, "#usda 1.0\n(doc = \"my own lights\")\n"), (tmp, "#usda 1.0\n")):
+        folder.mkdir()
+        (folder / RECORD).write_text("{}")
+        (folder / "lights_user.usda").write_text(lights)
+    _replace(tmp, final)  # a re-run of the photo: the new stage keeps the user's own lights
+    assert "my own lights" in (final / "lights_user.usda").read_text()
+
+
+def test_render_product_names_never_land_on_the_stages_own_files(cli, tmp_path):
+    from pxr import Usd
+
+    st = build_procedural(tmp_path / "st", stride=4)
+    before = _tree(st.parent / "versions")
+    for name in ("versions/current/estimates/diffuse.exr", "estimates/diffuse.exr", "source/photo.exr"):
+        stage = Usd.Stage.Open(str(st))
+        stage.GetPrimAtPath("/Render/Products/diffuse").GetAttribute("productName").Set(name)
+        stage.GetRootLayer().Save()
+        rc, _, err = cli("render", st, "--spp", "1", "--aov", "diffuse")
+        assert rc == 2 and len(err.strip().splitlines()) == 1 and "stage's own files" in err, (name, err)
+        assert _tree(st.parent / "versions") == before

@@ -290,10 +290,27 @@ def _publish_group(out: Path, keep_previous: bool):
     os.chmod(version, 0o777 & ~current_umask())
     try:
         yield version
+        _check_names(out, version)  # before any public name changes: a clash fails with nothing published
     except BaseException:
         shutil.rmtree(version, ignore_errors=True)
         raise
     _switch(out, results, version, keep_previous)
+
+
+def _check_names(out: Path, version: Path) -> None:
+    """UsdRelightError when a public name of ``version``'s files is taken by a folder, or one of its folders by
+    a file, in ``out`` (someone else's): the result could not be published whole."""
+    for p in version.rglob("*"):
+        if not p.is_file():
+            continue
+        public = out / p.relative_to(version)
+        if public.is_dir() and not public.is_symlink():
+            raise UsdRelightError(f"cannot publish {public}: a folder of that name is in the way (nothing was "
+                                  f"published)")
+        for parent in public.relative_to(out).parents:
+            q = out / parent
+            if parent != Path(".") and os.path.lexists(q) and not q.is_dir():
+                raise UsdRelightError(f"cannot publish {public}: {q} is not a folder (nothing was published)")
 
 
 def _switch(out: Path, results: Path, version: Path, keep_previous: bool) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import shutil
 from pathlib import Path
 
@@ -59,6 +60,8 @@ def make_job(photo: Path, out_dir: Path, options: BatchOptions) -> PhotoJob:
 def read_manifest(out_dir: Path) -> dict[str, PhotoRecord]:
     """name -> row of ``out_dir/manifest.jsonl`` (empty when there is none; unreadable lines are ignored)."""
     path = Path(out_dir) / MANIFEST
+    if os.path.lexists(path) and not path.is_file():  # before any photo is processed, not after them all
+        raise UsdRelightError(f"{path} is not a file: batch keeps its manifest there (nothing was processed)")
     rows = {}
     if path.is_file():
         for line in path.read_text().splitlines():

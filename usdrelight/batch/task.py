@@ -13,9 +13,10 @@ import signal
 import time
 from pathlib import Path
 
-from ..atomic import fsync_tree, publish, temp_dir_beside, write_text_atomic
+from ..atomic import fsync_tree, publish, temp_dir_beside, write_bytes_atomic, write_text_atomic
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import make_pair_files
+from ..stage.layout import USER_LIGHTS
 from .manifest import RECORD
 from .records import PhotoJob, PhotoRecord
 
@@ -103,7 +104,8 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
 
 
 def _replace(tmp: Path, final: Path) -> None:
-    """Publish ``tmp`` as ``final``; an existing ``final`` is moved aside first and removed after. Only a
+    """Publish ``tmp`` as ``final``; an existing ``final`` is moved aside first and removed after (its
+    ``lights_user.usda``, the user's own lights, is carried into the new stage first). Only a
     batch's own photo folder (a folder holding ``batch.json``) is replaced: anything else under that name
     (your folder, a file, a symbolic link) is a UsdRelightError and stays as it is."""
     old = None
@@ -111,6 +113,9 @@ def _replace(tmp: Path, final: Path) -> None:
         raise UsdRelightError(f"{final} exists and is not a batch photo folder (no {RECORD}): not replaced; "
                               f"move it away and rerun with --retry-failed")
     if final.exists():
+        mine = final / USER_LIGHTS
+        if mine.is_file() and not mine.is_symlink():  # the user's own lights survive a re-run of the photo
+            write_bytes_atomic(tmp / USER_LIGHTS, mine.read_bytes())
         old = final.with_name(f".{final.name}.old-{os.getpid()}-{time.monotonic_ns()}")
         publish(final, old)
     publish(tmp, final)

@@ -267,5 +267,6 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     if stale and not render_missing and dt.shape[:2] == alb.shape[:2] == valid.shape[:2]:  # else: sizes named below
         raise UsdRelightError(f"AOV file(s) {stale} were not rendered from {stage_path} as it is now (rebuilt, refit, "
                               f"lights edited, or written by another tool): render again or pass --render-missing")
-    res = run_neural(dt, alb, valid, model, out_dir or Path(stage_path).resolve().parent / "neural")
+    res = run_neural(dt, alb, valid, model, out_dir or confined_path(Path(stage_path).resolve().parent, "neural",
+                                                                     "the neural folder"))
     return replace(res, seconds={**res.seconds, "total": time.perf_counter() - t0})

@@ -194,9 +194,11 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
     # every file of this run appears at once (atomic.result_group): a reader never mixes two runs' files
     # frames are written on one background thread while the next renders (at most WRITE_QUEUE waiting)
     with ExitStack() as stack:
+        # the video appears after the frames are published (contexts close in reverse): a run that fails to
+        # publish leaves the previous video too, never a new video beside old frames
+        mp4 = stack.enter_context(Mp4Writer(video, fps)) if video is not None else None
         folder = stack.enter_context(result_group(out_dir))
         writer = stack.enter_context(ThreadPoolExecutor(1, "usdrelight-write"))
-        mp4 = stack.enter_context(Mp4Writer(video, fps)) if video is not None else None
         pending: deque = deque()
         console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
         steps = track(plan, description="relight", console=console, transient=True,

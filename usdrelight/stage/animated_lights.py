@@ -25,6 +25,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import UsdRelightError
+from ..safe_paths import writable_parent
 from .layout import LIGHTS, RELIGHT_LIGHTS_SCOPE, ROOT
 from .lux import split_rgb
 from .records import LightRecord
@@ -60,6 +61,7 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
         raise UsdRelightError(f"the lights layer must be a .usda, .usd or .usdc file, got {path.name}")
     if path.exists() or path.is_symlink():
         raise UsdRelightError(f"{path} exists: a lights layer is written as a new file, never over another")
+    writable_parent(path, "the lights layer")
     if not frames:
         raise UsdRelightError("an empty light sequence has no layer to write")
     count = max(len(f) for f in frames)

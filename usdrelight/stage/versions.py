@@ -67,6 +67,14 @@ STAGE_FILES = (SCENE,) + REFERENCED + (FITTED_ENV_TEXTURE,)
 STAGE_LAYERS = (SCENE, USER_LIGHTS, FITTED_LIGHTS, GEOMETRY)
 
 
+def stage_free(rel: Path) -> bool:
+    """Whether a path relative to a stage folder is free for other files (renders, exports): not one of the
+    stage's layers and not under the folders a publish owns (``versions/``, its links, the source photo)."""
+    parts = Path(rel).parts
+    owned = {VERSIONS, "source", *LINKS}
+    return bool(parts) and parts[0] not in owned and str(Path(rel)) not in STAGE_LAYERS + STAGE_FILES
+
+
 def is_stage_folder(folder) -> bool:
     """Whether ``folder`` holds a usdrelight stage: a ``scene.usda`` usdrelight wrote, with its ``versions/`` or
     (the layout before versions) its ``lights_user.usda`` beside it; a flattened copy of a stage is not one."""
