@@ -245,3 +245,25 @@ def test_render_product_names_never_land_on_the_stages_own_files(cli, tmp_path):
         rc, _, err = cli("render", st, "--spp", "1", "--aov", "diffuse")
         assert rc == 2 and len(err.strip().splitlines()) == 1 and "stage's own files" in err, (name, err)
         assert _tree(st.parent / "versions") == before
+
+
+def test_a_planted_lock_link_and_links_inside_a_previous_result_are_not_trusted(cli, stage, tmp_path):
+    from usdrelight.atomic import LOCK_NAME, RESULTS_DIR
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / LOCK_NAME).symlink_to(tmp_path / "nowhere")  # a dangling link where the lock goes
+    _refused(cli, "render", stage, "--spp", "1", "-o", out, words="not a lock usdrelight made")
+    (out / LOCK_NAME).unlink()
+    rc, _, err = cli("render", stage, "--spp", "1", "-o", out)
+    assert rc == 0, err
+    secret = tmp_path / "secret.txt"
+    secret.write_text("not yours")
+    current = out / RESULTS_DIR / os.readlink(out / RESULTS_DIR / "current")
+    (current / "renders" / "normal.exr").unlink()
+    (current / "renders" / "normal.exr").symlink_to(secret)  # planted inside the previous result
+    rc, _, err = cli("render", stage, "--spp", "1", "--aov", "diffuse", "-o", out)  # keeps the other AOVs
+    assert rc == 0, err
+    normal = out / "renders" / "normal.exr"
+    assert not normal.exists() or secret not in (normal.resolve(), *normal.resolve().parents)
+    assert (out / "renders" / "albedo.exr").is_file()  # the previous result's own files are carried

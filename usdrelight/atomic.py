@@ -207,6 +207,8 @@ def stage_lock(folder: str | os.PathLike):
 
 
 def _acquire(lock: Path, folder: Path) -> None:
+    if lock.is_symlink():  # usdrelight's locks are plain files: a link there was put by someone else
+        raise UsdRelightError(f"{lock} is a symbolic link, not a lock usdrelight made: remove it and run again")
     for _ in range(3):
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -313,11 +315,19 @@ def _check_names(out: Path, version: Path) -> None:
                 raise UsdRelightError(f"cannot publish {public}: {q} is not a folder (nothing was published)")
 
 
+def _inside_real(path: Path, folder: Path) -> bool:
+    """Whether ``path``, links resolved, lies inside ``folder`` (resolved)."""
+    real, base = path.resolve(), folder.resolve()
+    return base in real.parents
+
+
 def _switch(out: Path, results: Path, version: Path, keep_previous: bool) -> None:
     """Publish ``version``: public links first (they keep showing the current result), then one rename."""
     current = results / "current"
     old = (results / os.readlink(current)) if current.is_symlink() else None
-    previous = sorted(p.relative_to(old) for p in old.rglob("*") if p.is_file()) if old and old.is_dir() else []
+    # the previous result's own files only: a link planted inside its version is not carried into the new one
+    previous = sorted(p.relative_to(old) for p in old.rglob("*") if p.is_file() and not p.is_symlink()
+                      and _inside_real(p, old)) if old and old.is_dir() else []
     if keep_previous:  # carried into the new version (hard links: the published files are never written)
         for name in previous:
             if not (version / name).exists():
