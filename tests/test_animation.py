@@ -165,6 +165,8 @@ def test_convert_frames_writes_one_mitsuba_xml_per_time(animated_stage, tmp_path
     xmls = sorted(tmp_path.glob("scene_*.xml"))
     assert [p.name for p in xmls] == ["scene_0000.xml", "scene_0001.xml", "scene_0002.xml"]
     assert str(xmls[0]) in res["files"]
+    rc, stdout, _ = cli("convert", animated_stage, tmp_path / "again.xml", "--frames", "1:12:5")
+    assert rc == 0 and stdout.startswith(f"wrote {tmp_path / 'again_0000.xml'} and ")  # names a file it wrote
     for path, i in zip(xmls, (0, 5, 10)):
         assert _point_positions(path).get("Scene_Lights_User_Mover") == pytest.approx(_path(i))
     one = cli.json("convert", animated_stage, tmp_path / "t7.xml", "--time", "7")

@@ -217,7 +217,8 @@ def cmd_convert(args) -> int:
     for kind, n in sorted(res.write_warnings.items()):  # what DST cannot represent: a line per kind
         log.warning("%s: %d", kind, n)
     summary = {"src": str(args.src), "dst": str(args.dst), **res.to_dict()}
-    _emit(args, summary, f"wrote {args.dst}")
+    shown = args.dst if args.frames is None else f"{res.files[0]} and {len(res.files) - 1} more file(s)"
+    _emit(args, summary, f"wrote {shown}")  # with --frames no file is named DST itself
     return 0
 
 
