@@ -13,7 +13,7 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
-from usdrelight.safe_paths import made_folders, no_link_inside, writable_parent
+from usdrelight.safe_paths import confined_path, made_folders, writable_parent
 from usdrelight.stage.timing import parse_frames
 from usdrelight.stage.validate import check_finite, open_stage
 from usdrelight.stage.versions import STAGE_LAYERS, VERSIONS, is_stage_folder
@@ -83,7 +83,8 @@ def check_destination(dst: Path) -> None:
     is a link out of that folder, and ``dst`` is not a usdrelight stage's own layer (the user's lights, the
     scene, the fitted lights or the geometry are never written over by a conversion)."""
     writable_parent(dst, "the converted file")
-    no_link_inside(dst.parent, SIDE_FOLDERS + (f"{dst.stem}_data",))  # the Blender script's mesh folder too
+    for side in SIDE_FOLDERS + (f"{dst.stem}_data",):  # the Blender script's mesh folder too: no link out
+        confined_path(dst.parent, side, "the folder")
     real = Path(os.path.realpath(dst))  # where it would land, however it is spelled (.., links)
     if real.name in STAGE_LAYERS and is_stage_folder(real.parent) or \
             any(p.name == VERSIONS and is_stage_folder(p.parent) for p in real.parents):

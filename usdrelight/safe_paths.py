@@ -48,18 +48,6 @@ def writable_parent(path: str | os.PathLike, what: str = "output") -> Path:
     return path
 
 
-def no_link_inside(folder: str | os.PathLike, names: Iterable[str]) -> None:
-    """UsdRelightError when a name usdrelight writes into under ``folder`` (``meshes``, ``textures``) is a symbolic
-    link that leads out of ``folder``: files go inside the output folder, never through a link planted there to
-    somewhere else (a stage's own links into its ``versions/`` stay inside and are fine)."""
-    real = Path(folder).resolve()
-    for name in names:
-        p = Path(folder) / name
-        if p.is_symlink() and not _inside(p.resolve(), real):
-            raise UsdRelightError(f"{p} is a symbolic link out of {folder}: usdrelight writes only inside the "
-                                  f"output folder, never through a link out of it (nothing was written)")
-
-
 @contextmanager
 def made_folders(folder: str | os.PathLike):
     """Make ``folder`` (and missing parents); on an exception inside the block remove the ones made here if they

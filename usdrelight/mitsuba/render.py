@@ -252,10 +252,10 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     wanted = {aov_kind(v) for p in products for v in p.vars}
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
-    for name, path in paths.items():
-        if is_stage_folder(base) and not stage_free(path.relative_to(base)):
-            raise UsdRelightError(f"RenderProduct {name} productName {path.relative_to(base)} would write over the "
-                                  f"stage's own files (nothing was rendered)")
+    taken = [name for name, path in paths.items() if not stage_free(path.relative_to(base))]
+    if taken and is_stage_folder(base):  # the stage's scene file is read only when a name needs it
+        raise UsdRelightError(f"RenderProduct {taken[0]} productName {paths[taken[0]].relative_to(base)} would "
+                              f"write over the stage's own files (nothing was rendered)")
     stamp = stage_stamp(stage, rec.resolution)
     t1 = time_module.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed, hide_emitters=hides_emitters(stage))

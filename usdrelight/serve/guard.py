@@ -180,10 +180,6 @@ class _Update(msgspec.Struct):
     updates: dict
 
 
-class _Head(msgspec.Struct):
-    type: str = ""
-
-
 def screen(gate: UploadGate, owner, data) -> str:
     """PASS, DROP or CLOSE for one incoming message. Uploads go through ``gate``; a widget change may change
     only its ``value`` (viser 1.1 would set any other name it carries as an attribute of the widget's server
@@ -193,30 +189,27 @@ def screen(gate: UploadGate, owner, data) -> str:
     if len(data) > MAX_FRAME_BYTES:
         log.warning("a %d-byte message was refused (at most %d)", len(data), MAX_FRAME_BYTES)
         return CLOSE
-    try:
-        msgspec.msgpack.decode(data)  # nested deeper than Python's recursion limit: viser's decoder would raise
+    try:  # decoded once here: too deep a message would make viser's own decoder raise
+        message = msgspec.msgpack.decode(data)
     except RecursionError:
         log.warning("a message nested too deeply was refused")
         return CLOSE
     except msgspec.DecodeError:
         return PASS  # not msgpack; viser judges it
-    try:
-        kind = msgspec.msgpack.decode(data, type=_Head).type
-    except (msgspec.DecodeError, msgspec.ValidationError):
-        return PASS  # not an upload message; viser judges it
+    kind = message.get("type") if isinstance(message, dict) else None
     try:
         if kind == UPLOAD_START:
-            m = msgspec.msgpack.decode(data, type=_Start)
+            m = msgspec.convert(message, _Start)
             return gate.start(owner, m.transfer_uuid, m.filename, m.size_bytes, m.part_count)
         if kind == UPLOAD_PART:
-            m = msgspec.msgpack.decode(data, type=_Part)
+            m = msgspec.convert(message, _Part)
             return gate.part(owner, m.transfer_uuid, m.part_index, m.content)
         if kind == GUI_UPDATE:
-            keys = set(msgspec.msgpack.decode(data, type=_Update).updates)
+            keys = set(msgspec.convert(message, _Update).updates)
             if keys - {"value"}:
                 log.warning("a widget change that sets %s was dropped", ", ".join(sorted(map(str, keys))))
                 return DROP
-    except (msgspec.DecodeError, msgspec.ValidationError):
+    except msgspec.ValidationError:
         return DROP
     return PASS
 
