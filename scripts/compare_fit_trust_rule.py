@@ -15,7 +15,6 @@ Writes benchmarks/results/fit_trust_rule.json (about 2 min on 2 cores for the 2,
 """
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from compare_texture_gated_detail import KINDS, gate_line, open_pairs, scored, written  # noqa: E402
+from compare_texture_gated_detail import KINDS, gate_line, open_pairs, pair_split, scored, written  # noqa: E402
 from train_transfer_residual import per_image_mse  # noqa: E402
 
 THRESHOLDS = (18.0, 20.0, 22.0, 24.0, 26.0)
@@ -73,12 +72,12 @@ def main() -> int:
     args, files, session = opened
     split: dict = {"train": [], "validation": []}
     for f in files:
-        m = re.fullmatch(r"(\D+)(\d+)_\d+", f.stem)
+        named = pair_split(f)
         pair = dict(np.load(f))
-        if m is None or str(pair["kind"]) not in KINDS:
+        if named is None or str(pair["kind"]) not in KINDS:
             continue
-        split["validation" if int(m.group(2)) % 10 == 9 else "train"].append(
-            {"generator": m.group(1), "kind": str(pair["kind"]), "fit_psnr_db": float(pair["fit_psnr_db"]),
+        split["validation" if named[1] else "train"].append(
+            {"generator": named[0], "kind": str(pair["kind"]), "fit_psnr_db": float(pair["fit_psnr_db"]),
              "weight": float(pair["weight"]), "residual": scored(pair, None, session), "render": render_mse(pair)})
     train = {str(t): table(split["train"], t) for t in THRESHOLDS}
     chosen = max(THRESHOLDS, key=lambda t: train[str(t)]["replace"]["mean_over_generators_db"])

@@ -90,6 +90,13 @@ def table(rows: list[dict], tau: str) -> dict:
     return out
 
 
+def pair_split(path: Path) -> tuple[str, bool] | None:
+    """(generator, is it a validation pair) of a pair file ``GENERATORSEED_N.npz``, None for another name: the
+    validation pairs are the scenes whose seed ends in 9, as scripts/train_transfer_residual.py holds them out."""
+    m = re.fullmatch(r"(\D+)(\d+)_\d+", path.stem)
+    return None if m is None else (m.group(1), int(m.group(2)) % 10 == 9)
+
+
 def open_pairs(prog: str, doc: str):
     """The command line of these comparisons: (args, the pair files, the shipped network's onnxruntime session), or
     None after one error line on stderr when PAIRS_DIR holds no pairs."""
@@ -125,14 +132,13 @@ def main() -> int:
     args, files, session = opened
     split: dict = {"train": [], "validation": []}
     for i, f in enumerate(files):
-        m = re.fullmatch(r"(\D+)(\d+)_\d+", f.stem)
-        val = m is not None and int(m.group(2)) % 10 == 9
-        if m is None or (not val and i % 3):
+        named = pair_split(f)
+        if named is None or (not named[1] and i % 3):
             continue
-        pair = dict(np.load(f))
+        (generator, val), pair = named, dict(np.load(f))
         if str(pair["kind"]) not in KINDS:
             continue
-        row = {"generator": m.group(1), "kind": str(pair["kind"]), "shipped": scored(pair, None, session)}
+        row = {"generator": generator, "kind": str(pair["kind"]), "shipped": scored(pair, None, session)}
         row |= {tau: scored(pair, tau, session) for tau in TAUS}
         split["validation" if val else "train"].append(row)
     train = {tau: table(split["train"], tau) for tau in TAUS}
