@@ -4,6 +4,7 @@ one line on stderr and exit 2, nothing is written outside the output folder, no 
 failed command leaves no folder behind (from a hostile-input probe of the command line)."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -97,6 +98,9 @@ def test_a_failed_conversion_leaves_no_empty_folder(cli, tmp_path):
     bad.write_text("<scene version='3.0.0'><shape type=")
     _refused(cli, "convert", bad, tmp_path / "new" / "deeper" / "scene.usda", words="")
     assert not (tmp_path / "new").exists()
+    # a destination through ``..`` makes two folders (``new`` and ``x``): both go
+    _refused(cli, "convert", bad, f"{tmp_path}/new/../x/scene.usda", words="")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.xml"]
 
 
 @pytest.mark.parametrize("args", [["fit", "s.usda", "--max-side", "-5"], ["relight", "s.usda", "--max-side", "0"],
@@ -267,3 +271,31 @@ def test_a_planted_lock_link_and_links_inside_a_previous_result_are_not_trusted(
     normal = out / "renders" / "normal.exr"
     assert not normal.exists() or secret not in (normal.resolve(), *normal.resolve().parents)
     assert (out / "renders" / "albedo.exr").is_file()  # the previous result's own files are carried
+
+
+def test_a_failed_build_never_removes_a_stage_another_build_published_meanwhile(cli, tmp_path, monkeypatch):
+    """Two builds into one new folder: the second checks the folder, then waits for the lock while the first
+    publishes. If the second then fails, it must not remove the folder as if it had made it."""
+    import usdrelight.stage.write as write
+
+    theirs = tmp_path / "theirs"
+    rc, _, err = cli("build", EXAMPLE / "photo.exr", "--depth", EXAMPLE / "depth.exr", "-o", theirs)
+    assert rc == 0, err
+    out = tmp_path / "st"
+    real_lock = write.stage_lock
+
+    @contextlib.contextmanager
+    def lock_after_the_other_build(folder):
+        shutil.copytree(theirs, out, symlinks=True)  # the other build published while this one waited
+        with real_lock(folder) as f:
+            yield f
+
+    def full_disk(*_):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(write, "stage_lock", lock_after_the_other_build)
+    monkeypatch.setattr(write, "_write_version", full_disk)
+    assert not out.exists()
+    rc, _, err = cli("build", EXAMPLE / "photo.exr", "--depth", EXAMPLE / "depth.exr", "-o", out)
+    assert rc == 2 and err.strip().splitlines()[-1].endswith("No space left on device"), err
+    assert _tree(out) == _tree(theirs)  # the published stage is untouched

@@ -51,9 +51,11 @@ def writable_parent(path: str | os.PathLike, what: str = "output") -> Path:
 @contextmanager
 def made_folders(folder: str | os.PathLike):
     """Make ``folder`` (and missing parents); on an exception inside the block remove the ones made here if they
-    are still empty, so a failed command leaves no empty output folder behind."""
+    are still empty, so a failed command leaves no empty output folder behind (``..`` in ``folder`` included:
+    ``new/../x`` made ``new`` and ``x``, and both go)."""
     folder = Path(folder).absolute()
-    missing = [p for p in (folder, *folder.parents) if not os.path.lexists(p)]
+    prefixes = [Path(*folder.parts[:i]) for i in range(2, len(folder.parts) + 1)]
+    missing = [p for p in prefixes if p.name not in ("..", ".") and not os.path.lexists(p)]
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -61,11 +63,11 @@ def made_folders(folder: str | os.PathLike):
     try:
         yield folder
     except BaseException:
-        for p in missing:  # deepest first
+        for p in reversed(missing):  # deepest first; one still holding files keeps its parents too
             try:
                 p.rmdir()
             except OSError:
-                break
+                pass
         raise
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, schemas
-from ..atomic import stage_lock, write_text_atomic
+from ..atomic import LOCK_NAME, stage_lock, write_text_atomic
 from ..errors import UsdRelightError
 from ..estimate.records import PhotoEstimates
 from ..imageio import write_image
@@ -151,10 +151,13 @@ def write_stage(est: PhotoEstimates, mesh: PixelMesh, outdir: str | Path, aovs=B
     created = not outdir.exists()
     try:
         with stage_lock(outdir):
+            # again under the lock: files that appeared since, or a stage another build published meanwhile
+            check_stage_folder(outdir)
+            fresh = created and {p.name for p in outdir.iterdir()} <= {LOCK_NAME}
             try:
                 sizes = _write_version(est, mesh, outdir, aovs)
             except BaseException:
-                if created:  # a failed first build leaves no folder behind
+                if fresh:  # a failed first build leaves no folder behind (never one another build published)
                     shutil.rmtree(outdir, ignore_errors=True)
                 raise
     except OSError as exc:
