@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import usdrelight  # noqa: E402,F401  (configures drjit's libLLVM before Mitsuba is imported)
 from blender_native import all_lights_stage, native_import, place_light, zup_cm_point_stage  # noqa: E402
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender  # noqa: E402
+from pxr import Usd, UsdLux, UsdRender  # noqa: E402
 from usd_scenes import add_closed_form_light, asymmetric_latlong, dome_view_stage, looking_down_at_floor  # noqa: E402
 from usdrelight.cli import main  # noqa: E402
 from usdrelight.imageio import read_map  # noqa: E402

@@ -33,13 +33,13 @@ LAYERS = [
     ("batch", ["usdrelight.batch"]),
     ("serve", ["usdrelight.serve"]),
     ("converters", ["usdrelight.converters"]),
-    ("api", ["usdrelight.api", "usdrelight.cli", "usdrelight.__main__"]),
+    ("api", ["usdrelight.api", "usdrelight.cli", "usdrelight.commands", "usdrelight.__main__"]),
 ]
 #: Layers next to each other in the list above that must not import one another either way.
 INDEPENDENT = [("usdrelight.fit", "usdrelight.engine"), ("usdrelight.batch", "usdrelight.serve")]
 #: Modules allowed to import project modules inside functions: the CLI loads a subcommand's code only when
 #: that subcommand runs (so `usdrelight --help` and `validate` start fast). Nothing else may defer an import.
-LAZY_OK = {"usdrelight.cli"}
+LAZY_OK = {"usdrelight.cli", "usdrelight.commands"}
 MAX_LINES = 400
 
 

@@ -6,7 +6,7 @@ from pxr import Gf, UsdGeom, UsdLux
 from conftest import EXAMPLES
 from usd_scenes import add_closed_form_light, asymmetric_latlong, camera, looking_down_at_floor, new_stage
 from usdrelight.converters.blender import blender_lights, render_blend
-from usdrelight.imageio import read_map, write_image
+from usdrelight.imageio import read_map
 from usdrelight.intrinsics import Intrinsics
 
 

@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdRender, UsdShade
+from pxr import Usd, UsdGeom, UsdRender, UsdShade
 
 from usdrelight.imageio import read_map, read_photo
 from usdrelight.stage.validate import errors_only, open_stage, validate_stage

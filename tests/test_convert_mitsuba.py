@@ -1,12 +1,11 @@
 """USD <-> Mitsuba XML: real Mitsuba scene files, round trips, bad input."""
 import json
 import math
-import shutil
 
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade
 
 from conftest import SHARED
 from usd_scenes import camera, diffuse_material, new_stage

@@ -9,7 +9,7 @@ from pxr import UsdGeom
 
 from conftest import make_photo
 from usdrelight.estimate.decomposition import retinex
-from usdrelight.imageio import read_photo, read_map, write_image
+from usdrelight.imageio import read_photo, write_image
 from usdrelight.intrinsics import Intrinsics
 from usdrelight.stage.validate import open_stage
 

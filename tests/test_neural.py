@@ -1,5 +1,4 @@
 """Neural render stage: hole filling, the model contract, tiling, the CLI, relight end to end."""
-import json
 
 import numpy as np
 import onnx

@@ -1,5 +1,4 @@
 """The procedural ground-truth scene: Mitsuba units checked in closed form; the build sits on its geometry."""
-import json
 
 import numpy as np
 import pytest

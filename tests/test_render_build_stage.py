@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 
 from usdrelight.imageio import read_map, read_photo
-from usdrelight.intrinsics import Intrinsics
 from usdrelight.mitsuba.runtime import load_mitsuba
 
 

@@ -57,7 +57,7 @@ def test_textured_dome_seen_directly_has_usd_orientation(tmp_path, yaw):
 
 def test_off_centre_principal_point_lands_geometry_on_the_right_pixels(tmp_path):
     """A unit square at z = -2 must cover exactly the pixels the intrinsics predict (cx, cy far off-centre)."""
-    from pxr import Sdf, UsdShade
+    from pxr import UsdShade
 
     from usd_scenes import camera, diffuse_material, new_stage
     from usdrelight.intrinsics import Intrinsics

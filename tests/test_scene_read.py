@@ -3,9 +3,7 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdShade
 
-from usd_scenes import add_closed_form_light, camera, diffuse_material, looking_down_at_floor, new_stage
-from usdrelight.imageio import read_map
-from usdrelight.intrinsics import Intrinsics
+from usd_scenes import add_closed_form_light, diffuse_material, looking_down_at_floor, new_stage
 from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.stage.read import read_scene
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
