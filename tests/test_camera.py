@@ -47,10 +47,14 @@ def test_intrinsics_survive_a_usd_round_trip(tmp_path):
         cam.GetPrim().GetAttribute(k).Set(p[k])
     stage.GetRootLayer().Save()
     reopened = Usd.Stage.Open(str(tmp_path / "cam.usda"))
-    back = intrinsics_from_usd_camera(UsdGeom.Camera(reopened.GetPrimAtPath("/Cam")), 1280, 720)
+    cam = UsdGeom.Camera(reopened.GetPrimAtPath("/Cam"))
+    back = intrinsics_from_usd_camera(cam, 1280, 720, pixel_aspect=p["pixelAspectRatio"])
     for k in ("fx", "fy", "cx", "cy"):
         assert getattr(back, k) == pytest.approx(getattr(intr, k), rel=1e-6)
     assert p["pixelAspectRatio"] == pytest.approx(0.75)
+    # without the pixel aspect the RenderSettings carry, USD's fallback policy widens the aperture to 16:9
+    square = intrinsics_from_usd_camera(cam, 1280, 720)
+    assert square.fx == pytest.approx(square.fy) == pytest.approx(900.0, rel=1e-6)
 
 
 def test_intrinsics_json_forms(tmp_path):

@@ -203,9 +203,10 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
         steps = track(plan, description="relight", console=console, transient=True,
                       disable=len(plan) < 2 or not console.is_terminal)
+        first = None  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
             frame = session.render(common + extra, time_code=t)
-            first = frame if i == 0 else first
+            first = frame if first is None else first
             pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4))
             while len(pending) > WRITE_QUEUE:
                 written.append(pending.popleft().result())

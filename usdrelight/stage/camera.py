@@ -75,14 +75,42 @@ def author_usd_camera(camera, intr: Intrinsics, near: float, far: float, focal_m
     return params
 
 
-def intrinsics_from_usd_camera(camera, width: int, height: int, time=None) -> Intrinsics:
-    """Inverse of :func:`usd_camera_params` for a ``UsdGeom.Camera`` rendered at ``width`` x ``height``."""
+#: UsdRender's ``aspectRatioConformPolicy`` tokens; the first is its fallback.
+CONFORM_POLICIES = ("expandAperture", "cropAperture", "adjustApertureWidth", "adjustApertureHeight",
+                    "adjustPixelAspectRatio")
+
+
+def conformed_apertures(ha: float, va: float, width: int, height: int, pixel_aspect: float = 1.0,
+                        policy: str = "expandAperture") -> tuple[float, float]:
+    """The horizontal and vertical apertures (the unit given) a camera shows through a ``width`` x ``height``
+    image of pixels ``pixel_aspect`` (width / height) as UsdRender's ``aspectRatioConformPolicy`` makes them
+    agree with the image's aspect ``width * pixel_aspect / height``: ``expandAperture`` (the fallback) widens
+    the narrow one, ``cropAperture`` crops the wide one, ``adjustApertureWidth`` / ``adjustApertureHeight``
+    change that one, ``adjustPixelAspectRatio`` keeps both (the pixels take the difference). Offsets are kept
+    (the window is conformed about its centre). Apertures that agree to 1e-6 (a float32 round trip of the
+    ones :func:`usd_camera_params` writes) are returned as given, so usdrelight's own stages never conform."""
+    target = width * pixel_aspect / height
+    aspect = ha / va
+    if policy == "adjustPixelAspectRatio" or abs(aspect / target - 1.0) < 1e-6:
+        return ha, va
+    if policy == "adjustApertureWidth":
+        return va * target, va
+    if policy == "adjustApertureHeight":
+        return ha, ha / target
+    widen = (aspect < target) == (policy != "cropAperture")  # expand a narrow window / crop a wide one
+    return (va * target, va) if widen else (ha, ha / target)
+
+
+def intrinsics_from_usd_camera(camera, width: int, height: int, time=None, pixel_aspect: float = 1.0,
+                               policy: str = "expandAperture") -> Intrinsics:
+    """Inverse of :func:`usd_camera_params` for a ``UsdGeom.Camera`` rendered at ``width`` x ``height`` through
+    RenderSettings with ``pixel_aspect`` and conform ``policy`` (:func:`conformed_apertures`)."""
     from pxr import Usd
 
     t = Usd.TimeCode.Default() if time is None else time
     f = float(camera.GetFocalLengthAttr().Get(t))
-    ha = float(camera.GetHorizontalApertureAttr().Get(t))
-    va = float(camera.GetVerticalApertureAttr().Get(t))
+    ha, va = conformed_apertures(float(camera.GetHorizontalApertureAttr().Get(t)),
+                                 float(camera.GetVerticalApertureAttr().Get(t)), width, height, pixel_aspect, policy)
     ho = float(camera.GetHorizontalApertureOffsetAttr().Get(t))
     vo = float(camera.GetVerticalApertureOffsetAttr().Get(t))
     fx = f * width / ha

@@ -10,8 +10,12 @@ usdrelight writes) is read exactly as before. Nothing here imports a renderer.
 
 Supported: Mesh and UsdPreviewSurface (see :mod:`usdrelight.stage.read_geometry`), Sphere, Cube, Plane
 gprims; Camera (through RenderSettings); RenderProducts and RenderVars;
-SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and ShapingAPI; a Mesh with
-MeshLightAPI is both a mesh and a light of kind ``mesh``.
+SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and ShapingAPI (see
+:mod:`usdrelight.stage.read_lux`); a Mesh with MeshLightAPI is both a mesh and a light of kind ``mesh``. The
+camera's apertures are conformed to the image as RenderSettings' ``aspectRatioConformPolicy`` says
+(:func:`usdrelight.stage.camera.conformed_apertures`). Meshes are read at the time code asked for (their points,
+topology and primvars, not only their transforms). A PointInstancer is not converted (warned), and neither are
+its prototypes, which are drawn only where it instances them.
 Anything else is counted in ``warnings`` (one line per kind), never dropped silently.
 """
 from __future__ import annotations
@@ -24,12 +28,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_image_size, check_resolution
-from ..safe_paths import check_read, stage_folder
-from .camera import check_clipping, intrinsics_from_usd_camera
+from ..imageio import check_resolution
+from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, read_material, read_mesh
+from .read_lux import read_light
 from .validate import open_stage
-from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, ShapeRecord, TextureRecord
+from .records import CameraRecord, LightRecord, MeshRecord, ProductRecord, RenderVarRecord, SceneRecord, \
+    ShapeRecord
 
 log = logging.getLogger(__name__)
 
@@ -38,30 +43,7 @@ def gf_to_np(m) -> np.ndarray:
     """Gf.Matrix4d (row-vector convention) -> numpy column-vector convention."""
     return np.array(m, dtype=np.float64).T
 
-# ---- lights -----------------------------------------------------------------------------------
-def light_radiance(prim, t=None) -> np.ndarray:
-    """UsdLux: L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled), at time code ``t``
-    (a ``Usd.TimeCode``; None: the default time)."""
-    from pxr import Usd, UsdLux
-
-    t = Usd.TimeCode.Default() if t is None else t
-    api = UsdLux.LightAPI(prim)
-    intensity = float(api.GetIntensityAttr().Get(t))
-    exposure = float(api.GetExposureAttr().Get(t))
-    color = np.asarray(api.GetColorAttr().Get(t), dtype=np.float64)
-    try:
-        L = intensity * 2.0 ** exposure * color
-    except OverflowError:  # 2^exposure beyond a double
-        L = np.full(3, np.inf)
-    if api.GetEnableColorTemperatureAttr().Get(t):
-        L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(float(api.GetColorTemperatureAttr().Get(t))), np.float64)
-    if not np.all(np.isfinite(L)):
-        raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
-    if np.any(L < 0):
-        raise UsdRelightError(f"light {prim.GetPath()} has a negative intensity or color (radiance {L.tolist()})")
-    return L
-
-
+# ---- transforms -------------------------------------------------------------------------------
 def _finite_xform(m, prim, mpu: float = 1.0) -> np.ndarray:
     """A prim's local-to-world matrix (numpy, column vectors) in metres: the stage's world matrix ``m`` with
     its output scaled by ``mpu`` (metersPerUnit; 1 leaves it untouched, bit for bit). NaN/Inf entries are an
@@ -84,104 +66,6 @@ def stage_meters_per_unit(stage) -> float:
     return mpu
 
 
-def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0, t=None) -> LightRecord | None:
-    """The light record of a UsdLux prim at time code ``t`` (a ``Usd.TimeCode``; None: the default time; None
-    returned for kinds not converted); non-finite or negative sizes and radiance are errors. ``area``: the
-    world-space area of a mesh light's mesh. Every animatable attribute (intensity, exposure, colour, colour
-    temperature, radius, size, angle, cone) is read at ``t``; ``xf`` is the light's world matrix at ``t``."""
-    from pxr import Usd
-
-    rec = _light_record(prim, xf, warnings, area, Usd.TimeCode.Default() if t is None else t)
-    if rec is not None:
-        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg, rec.area)
-                 if v is not None]
-        if not all(np.isfinite(sizes)) or any(v < 0 for v in sizes):
-            raise UsdRelightError(f"light {prim.GetPath()} has a negative or non-finite size or angle")
-    return rec
-
-
-def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord | None:
-    from pxr import UsdGeom, UsdLux
-
-    L = light_radiance(prim, t)
-    common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
-              "normalize": bool(UsdLux.LightAPI(prim).GetNormalizeAttr().Get(t))}
-    path = common["path"]
-    if prim.HasAPI(UsdLux.ShapingAPI):
-        sh = UsdLux.ShapingAPI(prim)
-        angle = float(sh.GetShapingConeAngleAttr().Get(t))
-        if angle < 180.0:
-            common["cone_angle_deg"] = angle
-            common["cone_softness"] = float(sh.GetShapingConeSoftnessAttr().Get(t))
-        if float(sh.GetShapingFocusAttr().Get(t) or 0.0) != 0.0:
-            warnings["ShapingAPI focus (ignored)"] += 1
-        if sh.GetShapingIesFileAttr().Get(t) and sh.GetShapingIesFileAttr().Get(t).path:
-            warnings["ShapingAPI IES profile (ignored)"] += 1
-    _ignored_lux(prim, warnings)
-    typ = prim.GetTypeName()
-    if prim.IsA(UsdGeom.Mesh):
-        return LightRecord(kind="mesh", area=area, **common)
-    if typ == "SphereLight":
-        s = UsdLux.SphereLight(prim)
-        r = float(s.GetRadiusAttr().Get(t))
-        return LightRecord(kind="sphere", radius=r, treat_as_point=bool(s.GetTreatAsPointAttr().Get(t)) or r == 0.0,
-                           **common)
-    if typ == "DiskLight":
-        return LightRecord(kind="disk", radius=float(UsdLux.DiskLight(prim).GetRadiusAttr().Get(t)), **common)
-    if typ == "RectLight":
-        r = UsdLux.RectLight(prim)
-        if r.GetTextureFileAttr().Get(t) and r.GetTextureFileAttr().Get(t).path:
-            warnings["RectLight texture (ignored; uniform radiance used)"] += 1
-        return LightRecord(kind="rect", width=float(r.GetWidthAttr().Get(t)), height=float(r.GetHeightAttr().Get(t)),
-                           **common)
-    if typ == "DistantLight":
-        return LightRecord(kind="distant", angle_deg=float(UsdLux.DistantLight(prim).GetAngleAttr().Get(t)), **common)
-    if typ in ("DomeLight", "DomeLight_1"):
-        d = UsdLux.DomeLight(prim) if typ == "DomeLight" else UsdLux.DomeLight_1(prim)
-        tex = None
-        asset = d.GetTextureFileAttr().Get(t)
-        if asset is not None and asset.path:
-            if not asset.resolvedPath:
-                raise UsdRelightError(f"DomeLight texture not found: {asset.path} ({path})")
-            fmt = d.GetTextureFormatAttr().Get(t)
-            if fmt not in ("automatic", "latlong"):
-                warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
-            check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
-            if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
-                check_image_size(asset.resolvedPath)
-            tex = TextureRecord(asset.resolvedPath, "auto")
-        if typ == "DomeLight_1" and d.GetPoleAxisAttr().Get(t) == "Z":
-            common["to_world"] = xf @ _rot_x(90.0)
-        return LightRecord(kind="dome", texture=tex, **common)
-    warnings[f"light type {typ} (not converted)"] += 1
-    return None
-
-
-def _ignored_lux(prim, warnings) -> None:
-    """UsdLux controls no renderer here represents: diffuse/specular multipliers, ShadowAPI, light/shadow
-    linking (one warning line per kind; README "UsdLux attributes not represented")."""
-    from pxr import UsdLux
-
-    api = UsdLux.LightAPI(prim)
-    if any(a.HasAuthoredValue() and float(a.Get()) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
-        warnings["UsdLux diffuse/specular multipliers (ignored: 1 used)"] += 1
-    if prim.HasAPI(UsdLux.ShadowAPI):
-        sh = UsdLux.ShadowAPI(prim)
-        if sh.GetShadowEnableAttr().Get() is False or any(sh.GetShadowColorAttr().Get() or (0, 0, 0)):
-            warnings["ShadowAPI shadow:enable off or shadow:color (ignored: black shadows cast)"] += 1
-    for coll in (api.GetLightLinkCollectionAPI(), api.GetShadowLinkCollectionAPI()):
-        expr = coll.GetMembershipExpressionAttr().Get()
-        if coll.GetIncludeRootAttr().Get() is False or coll.GetIncludesRel().GetTargets() or \
-                coll.GetExcludesRel().GetTargets() or (expr is not None and not expr.IsEmpty()):
-            warnings["UsdLux light/shadow linking (ignored: every light lights and shadows everything)"] += 1
-            break
-
-
-def _rot_x(deg: float) -> np.ndarray:
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]], dtype=np.float64)
-
-
 # ---- camera and settings ----------------------------------------------------------------------
 def _settings_prim(stage):
     from pxr import UsdRender
@@ -195,6 +79,19 @@ def _settings_prim(stage):
         if prim.IsA(UsdRender.Settings):
             return UsdRender.Settings(prim)
     return None
+
+
+def _conform(settings, warnings) -> tuple[float, str]:
+    """RenderSettings' pixelAspectRatio (finite, > 0; else 1, warned) and aspectRatioConformPolicy."""
+    par = float(settings.GetPixelAspectRatioAttr().Get() or 1.0)
+    if not (math.isfinite(par) and par > 0):
+        warnings[f"pixelAspectRatio {par:g} (1 used)"] += 1
+        par = 1.0
+    policy = str(settings.GetAspectRatioConformPolicyAttr().Get() or CONFORM_POLICIES[0])
+    if policy not in CONFORM_POLICIES:
+        warnings[f"aspectRatioConformPolicy '{policy}' ({CONFORM_POLICIES[0]} used)"] += 1
+        policy = CONFORM_POLICIES[0]
+    return par, policy
 
 
 def _read_products(stage, settings) -> tuple[ProductRecord, ...]:
@@ -215,7 +112,8 @@ def _read_products(stage, settings) -> tuple[ProductRecord, ...]:
     return tuple(products)
 
 
-def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0) -> tuple[CameraRecord, tuple]:
+def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
+                 conform=(1.0, "expandAperture")) -> tuple[CameraRecord, tuple]:
     from pxr import UsdGeom
 
     cam = UsdGeom.Camera(cam_prim)
@@ -229,7 +127,7 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0) ->
     if resolution is None:
         resolution = check_resolution(640, max(1, round(640 * va / ha)), f"camera {cam_prim.GetPath()}")
     W, H = resolution
-    intr = intrinsics_from_usd_camera(cam, W, H, t)
+    intr = intrinsics_from_usd_camera(cam, W, H, t, *conform)
     near, far = cam.GetClippingRangeAttr().Get(t)
     check_clipping(float(near), float(far), str(cam_prim.GetPath()))
     if not all(np.isfinite([intr.fx, intr.fy, intr.cx, intr.cy])) or intr.fx <= 0 or intr.fy <= 0:
@@ -263,6 +161,36 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
     return None
 
 
+def _similarity(m: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether the 3x3 part of ``m`` is a rotation (or reflection) times one uniform scale."""
+    a = m[:3, :3]
+    g = a.T @ a
+    s = np.trace(g) / 3.0
+    return bool(s > 0 and np.abs(g - s * np.eye(3)).max() <= tol * s)
+
+
+def ellipsoid_mesh(shape: ShapeRecord, n_lat: int = 48, n_lon: int = 96) -> MeshRecord:
+    """A sphere gprim under a non-uniform scale as the ellipsoid it is: a UV sphere of ``n_lat`` x ``n_lon``
+    quads (split into triangles, outward and counter-clockwise) mapped by ``shape.to_world``, with smooth normals
+    (the inverse transpose) and st = (longitude / 2 pi, latitude from the -Z pole / pi), world space, metres."""
+    theta = np.linspace(0.0, np.pi, n_lat + 1)  # from the -Z pole (t = 0) to the +Z pole
+    phi = np.linspace(0.0, 2 * np.pi, n_lon + 1)
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    unit = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)], -1).reshape(-1, 3)
+    uv = np.stack([ph / (2 * np.pi), th / np.pi], -1).reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(n_lat), np.arange(n_lon), indexing="ij")
+    a, b = (i * (n_lon + 1) + j).ravel(), (i * (n_lon + 1) + j + 1).ravel()
+    c, d = a + n_lon + 1, b + n_lon + 1
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    m = shape.to_world
+    if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: keep the outside counter-clockwise
+        faces = faces[:, [0, 2, 1]]
+    normals = unit @ np.linalg.inv(m[:3, :3])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    return MeshRecord(shape.path, unit @ m[:3, :3].T + m[:3, 3], faces.astype(np.int64), normals, uv,
+                      shape.material, shape.double_sided)
+
+
 def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     """Only the lights of ``stage`` (a ``Usd.Stage``) at ``time`` (a time code: a number or ``Usd.TimeCode``;
     None: the default time), in metres, as :func:`read_scene` reads them: what a frame of an animation needs
@@ -274,7 +202,11 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     warnings: Counter = Counter()
     xcache = UsdGeom.XformCache(t)
     lights = []
-    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+    prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in prims:
+        if prim.IsA(UsdGeom.PointInstancer):  # as read_scene: a prototype's light is not lit where it stands
+            prims.PruneChildren()
+            continue
         if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
                 prim.IsA(UsdLux.NonboundableLightBase)):
             continue
@@ -285,7 +217,8 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         area = 0.0
         if prim.IsA(UsdGeom.Mesh):
-            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings), warnings)))
+            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings), warnings,
+                                                             t=t)))
         light = read_light(prim, xf, warnings, area, t=t)
         if light is not None:
             lights.append(light)
@@ -305,7 +238,12 @@ def read_scene(stage, time=None) -> SceneRecord:
     warnings: Counter = Counter()
     meshes, shapes, lights = [], [], []
     xcache = UsdGeom.XformCache(t)
-    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+    prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in prims:
+        if prim.IsA(UsdGeom.PointInstancer):  # its prototypes are drawn only where it instances them
+            warnings["PointInstancer (not converted: neither it nor its prototypes are drawn)"] += 1
+            prims.PruneChildren()
+            continue
         img = UsdGeom.Imageable(prim)
         if img and prim.IsA(UsdGeom.Imageable):
             if img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or \
@@ -319,13 +257,11 @@ def read_scene(stage, time=None) -> SceneRecord:
                 lights.append(light)
             continue
         if not prim.IsA(UsdGeom.Gprim):
-            if prim.IsA(UsdGeom.PointInstancer):
-                warnings["PointInstancer (not converted)"] += 1
             continue
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         mat = read_material(prim, warnings)
         if prim.IsA(UsdGeom.Mesh):
-            records = read_mesh(prim, xf, mat, warnings)
+            records = read_mesh(prim, xf, mat, warnings, t=t)
             meshes.extend(records)
             if is_light:
                 light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t)
@@ -337,11 +273,14 @@ def read_scene(stage, time=None) -> SceneRecord:
             raise UsdRelightError(f"{prim.GetPath()} has a non-finite size")
         if shape is None:
             warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
+        elif shape.kind == "sphere" and not _similarity(shape.to_world):
+            meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
         else:
             shapes.append(shape)
     settings = _settings_prim(stage)
-    cam_prim, resolution, products = None, None, ()
+    cam_prim, resolution, products, conform = None, None, (), (1.0, "expandAperture")
     if settings is not None:
+        conform = _conform(settings, warnings)
         res = settings.GetResolutionAttr().Get()
         resolution = check_resolution(res[0], res[1], f"{settings.GetPath()}") if res is not None else None
         targets = settings.GetCameraRel().GetTargets()
@@ -351,6 +290,6 @@ def read_scene(stage, time=None) -> SceneRecord:
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
     camera = None
     if cam_prim is not None and cam_prim.IsA(UsdGeom.Camera):
-        camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings, mpu)
+        camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings, mpu, conform)
     return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
                        mpu, str(UsdGeom.GetStageUpAxis(stage)), warnings)

@@ -135,7 +135,10 @@ def read_material(prim, warnings) -> MaterialRecord:
     into ``warnings`` (a Counter of one-line messages, logged once per stage)."""
     from pxr import UsdShade
 
-    mat, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()
+    binding = UsdShade.MaterialBindingAPI(prim)
+    mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.full)  # a full render's binding, else all-purpose
+    if not mat:  # only a preview binding (material:binding:preview): better than grey
+        mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.preview)
     if not mat:
         return MaterialRecord()
     surf = mat.ComputeSurfaceSource()[0]
@@ -155,7 +158,8 @@ def read_material(prim, warnings) -> MaterialRecord:
         opacity=_input_value(surf, "opacity", d.opacity, warnings),
         opacity_threshold=_threshold(surf, warnings),
         one_sided=_one_sided(mat.GetPrim()),
-        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings))
+        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings),
+        st_primvar=_st_primvar(mat, warnings))
     for name in ("normal", "displacement", "occlusion", "clearcoat"):
         inp = surf.GetInput(name)
         if inp and (inp.HasConnectedSource() or (inp.Get() not in (None, 0.0))):
@@ -165,6 +169,26 @@ def read_material(prim, warnings) -> MaterialRecord:
     if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
         warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
     return rec
+
+
+def _st_primvar(mat, warnings) -> str:
+    """The ``varname`` of the material's UsdPrimvarReader_float2 nodes (a value, or a material input it is
+    connected to): the mesh primvar its textures use. None: ``st``; several different ones: the first, warned."""
+    from pxr import Usd, UsdShade
+
+    names = []
+    for p in Usd.PrimRange(mat.GetPrim()):
+        node = UsdShade.Shader(p)
+        if not node or node.GetIdAttr().Get() != "UsdPrimvarReader_float2":
+            continue
+        inp = node.GetInput("varname")
+        attrs = inp.GetValueProducingAttributes() if inp else []
+        v = attrs[0].Get() if attrs else None
+        if v:
+            names.append(str(v))
+    if len(set(names)) > 1:
+        warnings[f"textures reading several UV sets ({', '.join(sorted(set(names)))}): {names[0]} used"] += 1
+    return names[0] if names else "st"
 
 
 def _ior(v, default: float, warnings) -> float:
@@ -215,9 +239,10 @@ def _fan(counts: np.ndarray):
     return np.stack([c0, c0 + k + 1, c0 + k + 2], 1), tri_face
 
 
-def _primvar(pv, n_points, n_corners, n_faces):
-    """Flattened primvar values and their interpolation class: 'point' | 'corner' | 'face' | 'constant'."""
-    vals = pv.ComputeFlattened()
+def _primvar(pv, n_points, n_corners, n_faces, t):
+    """Flattened primvar values at time code ``t`` and their interpolation class: 'point' | 'corner' | 'face' |
+    'constant'."""
+    vals = pv.ComputeFlattened(t)
     if vals is None:
         return None, None
     arr = np.asarray(vals, dtype=np.float64)
@@ -230,19 +255,24 @@ def _primvar(pv, n_points, n_corners, n_faces):
     return arr, kind
 
 
-def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name: str = "st") -> list[MeshRecord]:
-    """A UsdGeom.Mesh as triangle records (one per GeomSubset material, or one), points taken to world space in
-    metres by ``xf`` (4x4 local-to-world, column vectors, metersPerUnit already applied); UVs from primvar
-    ``st_name``. Empty meshes are skipped with a count in ``warnings``; inconsistent topology or non-finite
+def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name: str | None = None,
+              t=None) -> list[MeshRecord]:
+    """A UsdGeom.Mesh at time code ``t`` (a ``Usd.TimeCode``; None: the default time: points, topology, normals
+    and primvars all read at ``t``, so a time-sampled cache deforms) as triangle records (one per GeomSubset
+    material, or one), points taken to world space in metres by ``xf`` (4x4 local-to-world at ``t``, column
+    vectors, metersPerUnit already applied); UVs from primvar ``st_name`` (None: the material's
+    ``st_primvar``). Empty meshes are skipped with a count in ``warnings``; inconsistent topology or non-finite
     points raise :class:`UsdRelightError`."""
-    from pxr import UsdGeom, UsdShade
+    from pxr import Usd, UsdGeom, UsdShade
 
+    t = Usd.TimeCode.Default() if t is None else t
+    st_name = material.st_primvar if st_name is None else st_name
     mesh = UsdGeom.Mesh(prim)
-    pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    pts = np.asarray(mesh.GetPointsAttr().Get(t) or [], dtype=np.float64)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(t) or [], dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(t) or [], dtype=np.int64)
     if len(pts) == 0 or len(counts) == 0:
-        warnings["empty mesh (skipped)"] += 1
+        warnings["mesh without points or faces at the time read (skipped)"] += 1
         return []
     if np.any(counts < 0) or counts.sum() != len(idx) or idx.max(initial=0) >= len(pts) or idx.min(initial=0) < 0:
         raise UsdRelightError(f"mesh {prim.GetPath()} has inconsistent faceVertexCounts/Indices")
@@ -250,12 +280,12 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) points")
     if np.any(counts < 3):
         warnings["faces with fewer than 3 vertices (skipped)"] += 1
-    if mesh.GetHoleIndicesAttr().Get():
+    if mesh.GetHoleIndicesAttr().Get(t):
         warnings["mesh holeIndices (holes filled)"] += 1
-    if mesh.GetSubdivisionSchemeAttr().Get() not in (None, "none"):
+    if mesh.GetSubdivisionSchemeAttr().Get(t) not in (None, "none"):
         warnings["subdivision surfaces (rendered as the control mesh)"] += 1
     corners, tri_face = _fan(counts)
-    left = mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
+    left = mesh.GetOrientationAttr().Get(t) == UsdGeom.Tokens.leftHanded
     A = xf[:3, :3]
     if left != (np.linalg.det(A) < 0):
         corners = corners[:, [0, 2, 1]]
@@ -264,9 +294,9 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
     normals, nkind = None, None
     pv = pv_api.GetPrimvar("normals")
     if pv and pv.HasValue():
-        normals, nkind = _primvar(pv, len(pts), n_corners, len(counts))
+        normals, nkind = _primvar(pv, len(pts), n_corners, len(counts), t)
     if normals is None and mesh.GetNormalsAttr().HasValue():
-        arr = np.asarray(mesh.GetNormalsAttr().Get(), dtype=np.float64)
+        arr = np.asarray(mesh.GetNormalsAttr().Get(t), dtype=np.float64)
         interp = mesh.GetNormalsInterpolation()
         nkind = {"vertex": "point", "varying": "point", "faceVarying": "corner", "uniform": "face"}.get(interp)
         expected = {"point": len(pts), "corner": n_corners, "face": len(counts)}.get(nkind)
@@ -279,7 +309,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
                 pv = cand
                 break
     if pv and pv.HasValue():
-        uv, ukind = _primvar(pv, len(pts), n_corners, len(counts))
+        uv, ukind = _primvar(pv, len(pts), n_corners, len(counts), t)
     for name, arr in (("normals", normals), (st_name, uv)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) {name}")
@@ -311,13 +341,13 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         v_n = v_n @ np.linalg.inv(A)
         ln = np.linalg.norm(v_n, axis=1, keepdims=True)
         v_n = np.where(ln > 0, v_n / np.maximum(ln, 1e-300), 0.0)
-    ds = bool(mesh.GetDoubleSidedAttr().Get())
+    ds = bool(mesh.GetDoubleSidedAttr().Get(t))
     # GeomSubsets bound to their own materials split the triangles.
     subsets = UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()
     records = []
     taken = np.zeros(len(faces), bool)
     for sub in subsets:
-        ids = np.asarray(sub.GetIndicesAttr().Get() or [], dtype=np.int64)
+        ids = np.asarray(sub.GetIndicesAttr().Get(t) or [], dtype=np.int64)
         sel = np.isin(tri_face, ids) & ~taken
         if not sel.any():
             continue

@@ -106,6 +106,9 @@ class MaterialRecord:
     a gprim that is not ``doubleSided`` then renders black from behind in Mitsuba (USD viewers cull it)."""
     emissive: Color = (0.0, 0.0, 0.0)
     """emissiveColor, radiance in the UsdLux sense (ignored by the renderers, warned about)."""
+    st_primvar: str = "st"
+    """The mesh primvar the material's textures are looked up with: the ``varname`` of its
+    UsdPrimvarReader_float2 (``st`` when it has none)."""
 
     @property
     def is_lambertian(self) -> bool:

@@ -1,0 +1,208 @@
+"""USD files as other tools write them, read into records: each test asserts numbers that came out wrong before
+(from a probe of the converters on files others wrote). The scenes are USD text, as an exporter writes it."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pxr import Usd
+
+from usdrelight.stage.camera import conformed_apertures
+from usdrelight.stage.read import read_lights, read_scene
+from usdrelight.stage.read_lux import OLD_LUX_NAMES
+
+
+def _stage(tmp_path: Path, body: str, up: str = "Y", mpu: float = 1.0, extra: str = "") -> Path:
+    path = tmp_path / "s.usda"
+    path.write_text(f'#usda 1.0\n(\n    upAxis = "{up}"\n    metersPerUnit = {mpu}\n{extra})\n\n{body}\n')
+    return path
+
+
+def test_mesh_points_are_read_at_the_time_asked_for(tmp_path):
+    """A deforming cache (points time-sampled only) and a mesh with a rest pose plus samples, under an animated
+    translate: at t = 10 both are where frame 10 puts them, not dropped or frozen at the rest pose."""
+    path = _stage(tmp_path, '''
+def Mesh "Cache" {
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points.timeSamples = { 0: [(0,0,0), (1,0,0), (0,1,0)], 10: [(0,0,0), (4,0,0), (0,1,0)] }
+}
+def Xform "Rig" {
+    double3 xformOp:translate.timeSamples = { 0: (0,0,0), 10: (10,0,0) }
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+    def Mesh "Tri" {
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points = [(0,0,0), (1,0,0), (0,1,0)]
+        point3f[] points.timeSamples = { 0: [(0,0,0), (1,0,0), (0,1,0)], 10: [(0,0,0), (3,0,0), (0,1,0)] }
+    }
+}''')
+    meshes = {m.path: m for m in read_scene(path, time=10).meshes}
+    assert meshes["/Cache"].points[:, 0].max() == pytest.approx(4.0)
+    assert meshes["/Rig/Tri"].points[:, 0].min() == pytest.approx(10.0)
+    assert meshes["/Rig/Tri"].points[:, 0].max() == pytest.approx(13.0)
+    rest = {m.path: m for m in read_scene(path).meshes}  # the default time: the rest pose, no cache
+    assert set(rest) == {"/Rig/Tri"} and rest["/Rig/Tri"].points[:, 0].max() == pytest.approx(1.0)
+
+
+def test_a_dome_with_the_scene_pole_on_a_z_up_stage_is_turned_like_a_z_pole(tmp_path):
+    body = 'def DomeLight_1 "Sky" {{\n    token poleAxis = "{}"\n}}'
+    scene_pole = read_lights(Usd.Stage.Open(str(_stage(tmp_path, body.format("scene"), up="Z"))))[0]
+    (tmp_path / "s.usda").unlink()
+    z_pole = read_lights(Usd.Stage.Open(str(_stage(tmp_path, body.format("Z"), up="Z"))))[0]
+    np.testing.assert_allclose(scene_pole.to_world, z_pole.to_world)
+    assert scene_pole.to_world[:3, 1] == pytest.approx([0, 0, 1])  # the map's pole (+Y) is the stage's up, +Z
+
+
+WIDENED = np.degrees(2 * np.arctan(15.29 * 16 / 9 / 2 / 50))  # 30.41: the width made 16:9 of the height
+CROPPED = np.degrees(2 * np.arctan(20.955 / 2 / 50))  # 23.67: the width kept, the height cropped to 16:9
+
+
+@pytest.mark.parametrize("policy, hfov", [("expandAperture", WIDENED), ("cropAperture", CROPPED),
+                                          ("adjustApertureWidth", WIDENED), ("adjustApertureHeight", CROPPED)])
+def test_the_camera_is_conformed_to_the_image_as_the_render_settings_say(tmp_path, policy, hfov):
+    """Houdini's default 20.955 x 15.29 mm aperture rendered at 1280 x 720: USD widens (or crops) the aperture
+    to 16:9; the pixels stay square (before: 23.67 deg wide with non-square pixels, whatever the policy)."""
+    path = _stage(tmp_path, f'''
+def Camera "Cam" {{
+    float focalLength = 50
+    float horizontalAperture = 20.955
+    float verticalAperture = 15.29
+}}
+def Scope "Render" {{
+    def RenderSettings "Settings" {{
+        rel camera = </Cam>
+        uniform int2 resolution = (1280, 720)
+        uniform token aspectRatioConformPolicy = "{policy}"
+    }}
+}}''', extra='    renderSettingsPrimPath = "/Render/Settings"\n')
+    scene = read_scene(path)
+    intr = scene.camera.intrinsics
+    assert np.degrees(2 * np.arctan(1280 / 2 / intr.fx)) == pytest.approx(hfov, abs=1e-4)
+    assert intr.fy == pytest.approx(intr.fx, rel=1e-6)  # square pixels
+    assert not any("non-square" in w for w in scene.warnings)
+
+
+def test_conforming_leaves_apertures_that_agree_and_the_pixel_aspect_policy_alone():
+    assert conformed_apertures(36.0, 24.0, 600, 400) == (36.0, 24.0)
+    assert conformed_apertures(36.0, 24.0, 1280, 720, policy="adjustPixelAspectRatio") == (36.0, 24.0)
+    ha, va = conformed_apertures(36.0, 24.0, 640, 480, pixel_aspect=2.0)  # 8:3 image: widened
+    assert (ha, va) == pytest.approx((64.0, 24.0))
+
+
+def test_lights_with_the_names_before_usdlux_21_02_are_read(tmp_path):
+    path = _stage(tmp_path, '''
+def SphereLight "Old" {
+    float intensity = 200
+    color3f color = (1, 0.5, 0.25)
+    float radius = 0.1
+}''')
+    scene = read_scene(path)
+    light = scene.lights[0]
+    assert light.radiance == pytest.approx([200, 100, 50]) and light.radius == pytest.approx(0.1)
+    assert scene.warnings[OLD_LUX_NAMES] > 0
+
+
+def test_a_point_instancers_prototypes_are_not_drawn_where_they_stand(tmp_path):
+    path = _stage(tmp_path, '''
+def Mesh "Ground" {
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points = [(0,0,0), (1,0,0), (0,0,1)]
+}
+def PointInstancer "Scatter" {
+    point3f[] positions = [(5, 0, 0), (6, 0, 0)]
+    int[] protoIndices = [0, 0]
+    rel prototypes = </Scatter/Protos/Lamp>
+    def Scope "Protos" {
+        def Xform "Lamp" {
+            def Mesh "Shade" {
+                int[] faceVertexCounts = [3]
+                int[] faceVertexIndices = [0, 1, 2]
+                point3f[] points = [(0,0,0), (1,0,0), (0,1,0)]
+            }
+            def SphereLight "Bulb" {
+                float inputs:intensity = 7
+                bool treatAsPoint = 1
+            }
+        }
+    }
+}''')
+    scene = read_scene(path)
+    assert [m.path for m in scene.meshes] == ["/Ground"] and scene.lights == ()
+    assert any("PointInstancer" in w for w in scene.warnings)
+    assert read_lights(Usd.Stage.Open(str(path))) == ()
+
+
+def test_the_primvar_reader_varname_picks_the_uv_set_and_a_preview_binding_is_used(tmp_path):
+    """A quad with two UV sets whose material reads ``st1``, bound for preview only: its UVs are st1's and its
+    material is that one, not the grey default."""
+    path = _stage(tmp_path, '''
+def Mesh "Quad" (
+    prepend apiSchemas = ["MaterialBindingAPI"]
+) {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(0,0,0), (1,0,0), (1,1,0), (0,1,0)]
+    texCoord2f[] primvars:st = [(0,0), (1,0), (1,1), (0,1)] (interpolation = "vertex")
+    texCoord2f[] primvars:st1 = [(0,0), (0.5,0), (0.5,0.5), (0,0.5)] (interpolation = "vertex")
+    rel material:binding:preview = </Mat>
+}
+def Material "Mat" {
+    token outputs:surface.connect = </Mat/Surface.outputs:surface>
+    def Shader "Surface" {
+        uniform token info:id = "UsdPreviewSurface"
+        color3f inputs:diffuseColor = (0.8, 0.1, 0.1)
+        token outputs:surface
+    }
+    def Shader "Reader" {
+        uniform token info:id = "UsdPrimvarReader_float2"
+        string inputs:varname = "st1"
+        float2 outputs:result
+    }
+}''')
+    mesh = read_scene(path).meshes[0]
+    assert mesh.material.diffuse == pytest.approx((0.8, 0.1, 0.1)) and mesh.material.st_primvar == "st1"
+    assert mesh.uv.max() == pytest.approx(0.5)
+
+
+def test_a_sphere_under_a_non_uniform_scale_is_an_ellipsoid_in_mitsuba(tmp_path):
+    """Mitsuba's analytic sphere cannot stretch (a (2, 0.5, 1) scale came out as a radius-2 sphere): the reader
+    gives the ellipsoid as a mesh. Its bounding box, its area against Knud Thomsen's formula (within 1%) and the
+    normal at the tip of its long axis are the ellipsoid's."""
+    from usdrelight.mitsuba.runtime import load_mitsuba
+    from usdrelight.mitsuba.scene_dict import scene_dict, to_mitsuba
+    from usdrelight.stage.read_geometry import mesh_area
+
+    path = _stage(tmp_path, '''
+def Sphere "Egg" {
+    double radius = 1
+    float3 xformOp:scale = (2, 0.5, 1)
+    uniform token[] xformOpOrder = ["xformOp:scale"]
+}
+def Sphere "Ball" {
+    double radius = 0.25
+    double3 xformOp:translate = (5, 0, 0)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}''')
+    scene = read_scene(path)
+    assert [s.path for s in scene.shapes] == ["/Ball"]  # a uniform sphere stays analytic
+    egg = scene.meshes[0]
+    np.testing.assert_allclose(egg.points.min(0), [-2, -0.5, -1], atol=1e-3)
+    np.testing.assert_allclose(egg.points.max(0), [2, 0.5, 1], atol=1e-3)
+    p = 1.6075
+    a, b, c = 2.0, 0.5, 1.0
+    thomsen = 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
+    assert mesh_area(egg) == pytest.approx(thomsen, rel=0.01)
+    tri = egg.points[egg.faces]
+    outward = (np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) * tri.mean(1)).sum(1)
+    assert outward.min() >= -1e-12 and (outward > 0).mean() > 0.97  # counter-clockwise seen from outside
+    tip = np.argmax(egg.points[:, 0])
+    np.testing.assert_allclose(egg.normals[tip], [1, 0, 0], atol=1e-6)
+    mi = load_mitsuba()
+    d = scene_dict(scene)
+    d.pop("sensor", None)
+    shapes = mi.load_dict(to_mitsuba(d)).shapes()
+    boxes = sorted((np.array(s.bbox().max) - np.array(s.bbox().min)).round(3).tolist() for s in shapes)
+    assert boxes == [[0.5, 0.5, 0.5], [4.0, 1.0, 2.0]]

@@ -1,0 +1,165 @@
+"""Read UsdLux prims into :class:`~usdrelight.stage.records.LightRecord` (renderer-neutral light records).
+
+Radiance L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled), per UsdLux; sizes in
+the light's own units (its world matrix, metres, applied by the renderers); every animatable attribute read at
+one time code. Files that predate UsdLux 21.02 name the inputs without ``inputs:`` (``intensity``, ``radius``,
+``texture:file``): those are read too, with one warning line. Matrices: column-vector convention (see records).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from ..imageio import check_image_size
+from ..safe_paths import check_read, stage_folder
+from .records import LightRecord, TextureRecord
+
+
+OLD_LUX_NAMES = "pre-21.02 UsdLux attribute names, without 'inputs:' (read)"
+
+
+def lux_get(attr, t, warnings=None):
+    """A UsdLux attribute's value at time code ``t``; where only its pre-21.02 name (``intensity`` for
+    ``inputs:intensity``, as older files and exporters write) is authored, that one's (counted in ``warnings``)."""
+    name = attr.GetName()
+    if name.startswith("inputs:") and not attr.HasAuthoredValue():
+        old = attr.GetPrim().GetAttribute(name[len("inputs:"):])
+        if old and old.HasAuthoredValue():
+            if warnings is not None:
+                warnings[OLD_LUX_NAMES] += 1
+            return old.Get(t)
+    return attr.Get(t)
+
+
+def light_radiance(prim, t=None, warnings=None) -> np.ndarray:
+    """UsdLux: L = intensity * 2^exposure * color (* blackbody(colorTemperature) when enabled), at time code ``t``
+    (a ``Usd.TimeCode``; None: the default time); pre-21.02 attribute names are read too (:func:`lux_get`)."""
+    from pxr import Usd, UsdLux
+
+    t = Usd.TimeCode.Default() if t is None else t
+    api = UsdLux.LightAPI(prim)
+    intensity = float(lux_get(api.GetIntensityAttr(), t, warnings))
+    exposure = float(lux_get(api.GetExposureAttr(), t, warnings))
+    color = np.asarray(lux_get(api.GetColorAttr(), t, warnings), dtype=np.float64)
+    try:
+        L = intensity * 2.0 ** exposure * color
+    except OverflowError:  # 2^exposure beyond a double
+        L = np.full(3, np.inf)
+    if lux_get(api.GetEnableColorTemperatureAttr(), t, warnings):
+        kelvin = float(lux_get(api.GetColorTemperatureAttr(), t, warnings))
+        L = L * np.asarray(UsdLux.BlackbodyTemperatureAsRgb(kelvin), np.float64)
+    if not np.all(np.isfinite(L)):
+        raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
+    if np.any(L < 0):
+        raise UsdRelightError(f"light {prim.GetPath()} has a negative intensity or color (radiance {L.tolist()})")
+    return L
+
+
+def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0, t=None) -> LightRecord | None:
+    """The light record of a UsdLux prim at time code ``t`` (a ``Usd.TimeCode``; None: the default time; None
+    returned for kinds not converted); non-finite or negative sizes and radiance are errors. ``area``: the
+    world-space area of a mesh light's mesh. Every animatable attribute (intensity, exposure, colour, colour
+    temperature, radius, size, angle, cone) is read at ``t``; ``xf`` is the light's world matrix at ``t``."""
+    from pxr import Usd
+
+    rec = _light_record(prim, xf, warnings, area, Usd.TimeCode.Default() if t is None else t)
+    if rec is not None:
+        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg, rec.area)
+                 if v is not None]
+        if not all(np.isfinite(sizes)) or any(v < 0 for v in sizes):
+            raise UsdRelightError(f"light {prim.GetPath()} has a negative or non-finite size or angle")
+    return rec
+
+
+def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord | None:
+    from pxr import UsdGeom, UsdLux
+
+    L = light_radiance(prim, t, warnings)
+    common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
+              "normalize": bool(lux_get(UsdLux.LightAPI(prim).GetNormalizeAttr(), t, warnings))}
+    path = common["path"]
+    if prim.HasAPI(UsdLux.ShapingAPI):
+        sh = UsdLux.ShapingAPI(prim)
+        angle = float(lux_get(sh.GetShapingConeAngleAttr(), t, warnings))
+        if angle < 180.0:
+            common["cone_angle_deg"] = angle
+            common["cone_softness"] = float(lux_get(sh.GetShapingConeSoftnessAttr(), t, warnings))
+        if float(lux_get(sh.GetShapingFocusAttr(), t, warnings) or 0.0) != 0.0:
+            warnings["ShapingAPI focus (ignored)"] += 1
+        ies = lux_get(sh.GetShapingIesFileAttr(), t, warnings)
+        if ies and ies.path:
+            warnings["ShapingAPI IES profile (ignored)"] += 1
+    _ignored_lux(prim, warnings)
+    typ = prim.GetTypeName()
+    if prim.IsA(UsdGeom.Mesh):
+        return LightRecord(kind="mesh", area=area, **common)
+    if typ == "SphereLight":
+        s = UsdLux.SphereLight(prim)
+        r = float(lux_get(s.GetRadiusAttr(), t, warnings))
+        point = bool(lux_get(s.GetTreatAsPointAttr(), t, warnings)) or r == 0.0
+        a = xf[:3, :3].T @ xf[:3, :3]
+        if not point and np.abs(a - np.trace(a) / 3 * np.eye(3)).max() > 1e-6 * np.trace(a) / 3:
+            warnings["SphereLight under a non-uniform scale (rendered as a sphere, not an ellipsoid)"] += 1
+        return LightRecord(kind="sphere", radius=r, treat_as_point=point,
+                           **common)
+    if typ == "DiskLight":
+        radius = float(lux_get(UsdLux.DiskLight(prim).GetRadiusAttr(), t, warnings))
+        return LightRecord(kind="disk", radius=radius, **common)
+    if typ == "RectLight":
+        r = UsdLux.RectLight(prim)
+        tex = lux_get(r.GetTextureFileAttr(), t, warnings)
+        if tex and tex.path:
+            warnings["RectLight texture (ignored; uniform radiance used)"] += 1
+        return LightRecord(kind="rect", width=float(lux_get(r.GetWidthAttr(), t, warnings)),
+                           height=float(lux_get(r.GetHeightAttr(), t, warnings)),
+                           **common)
+    if typ == "DistantLight":
+        angle = float(lux_get(UsdLux.DistantLight(prim).GetAngleAttr(), t, warnings))
+        return LightRecord(kind="distant", angle_deg=angle, **common)
+    if typ in ("DomeLight", "DomeLight_1"):
+        d = UsdLux.DomeLight(prim) if typ == "DomeLight" else UsdLux.DomeLight_1(prim)
+        tex = None
+        asset = lux_get(d.GetTextureFileAttr(), t, warnings)
+        if asset is not None and asset.path:
+            if not asset.resolvedPath:
+                raise UsdRelightError(f"DomeLight texture not found: {asset.path} ({path})")
+            fmt = lux_get(d.GetTextureFormatAttr(), t, warnings)
+            if fmt not in ("automatic", "latlong"):
+                warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
+            check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
+            if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
+                check_image_size(asset.resolvedPath)
+            tex = TextureRecord(asset.resolvedPath, "auto")
+        pole = lux_get(d.GetPoleAxisAttr(), t, warnings) if typ == "DomeLight_1" else "Y"
+        if pole == "scene":  # the fallback: the stage's up axis
+            pole = str(UsdGeom.GetStageUpAxis(prim.GetStage()))
+        if pole == "Z":
+            common["to_world"] = xf @ _rot_x(90.0)
+        return LightRecord(kind="dome", texture=tex, **common)
+    warnings[f"light type {typ} (not converted)"] += 1
+    return None
+
+
+def _ignored_lux(prim, warnings) -> None:
+    """UsdLux controls no renderer here represents: diffuse/specular multipliers, ShadowAPI, light/shadow
+    linking (one warning line per kind; README "UsdLux attributes not represented")."""
+    from pxr import UsdLux
+
+    api = UsdLux.LightAPI(prim)
+    if any(a.HasAuthoredValue() and float(a.Get()) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
+        warnings["UsdLux diffuse/specular multipliers (ignored: 1 used)"] += 1
+    if prim.HasAPI(UsdLux.ShadowAPI):
+        sh = UsdLux.ShadowAPI(prim)
+        if sh.GetShadowEnableAttr().Get() is False or any(sh.GetShadowColorAttr().Get() or (0, 0, 0)):
+            warnings["ShadowAPI shadow:enable off or shadow:color (ignored: black shadows cast)"] += 1
+    for coll in (api.GetLightLinkCollectionAPI(), api.GetShadowLinkCollectionAPI()):
+        expr = coll.GetMembershipExpressionAttr().Get()
+        if coll.GetIncludeRootAttr().Get() is False or coll.GetIncludesRel().GetTargets() or \
+                coll.GetExcludesRel().GetTargets() or (expr is not None and not expr.IsEmpty()):
+            warnings["UsdLux light/shadow linking (ignored: every light lights and shadows everything)"] += 1
+            break
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]], dtype=np.float64)
