@@ -27,7 +27,7 @@ import numpy as np
 from usdrelight.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
-from usdrelight.stage.layout import LIGHTS, ROOT, USER_LIGHTS_SCOPE
+from usdrelight.stage.layout import FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import emitted_radiance, set_light_rgb
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
@@ -250,10 +250,17 @@ def _author_time_range(stage, anim: dict | None, meta: dict | None) -> None:
         stage.SetTimeCodesPerSecond(float(meta["timeCodesPerSecond"]))
 
 
+#: Counted for each of the stage's own fitted lights a .blend carries (not read back: lights_fitted.usda has them).
+FITTED_LEFT_OUT = ("fitted light of the stage (left out: it stays in lights_fitted.usda; a copy of it made in "
+                   "Blender, Shift D, comes back as your own)")
+
+
 def read_from_file(path, **options) -> ReadReport:
     """The .blend's lights as a UsdLux layer ``def "Scene" { Lights { User { ... } } }`` in the units and up axis
     of the stage the .blend was made from (recorded by :func:`write_to_file`), so that sublayered into that stage
-    every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres.
+    every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres. The stage's own fitted
+    lights, as :func:`write_to_file` put them in the .blend, are left out (counted in the warnings): the layer is
+    for ``lights_user.usda``, beside ``lights_fitted.usda``, which already holds them.
 
     Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
@@ -278,6 +285,9 @@ def read_from_file(path, **options) -> ReadReport:
             b = next((k for _, k in keys if not k.get("hidden")), b)
         if b.get("hidden"):
             warnings["Blender light hidden from render (not read)"] += 1
+            continue
+        if b.get("as_written") and str(b.get("usd_path", "")).startswith(FITTED_LIGHTS_SCOPE + "/"):
+            warnings[FITTED_LEFT_OUT] += 1  # the stage has it already: read back, it would light the scene twice
             continue
         u = _usd_record(b, up, mpu)
         name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"

@@ -5,7 +5,10 @@ from pxr import Gf, UsdGeom, UsdLux
 
 from conftest import EXAMPLES
 from usd_scenes import add_closed_form_light, asymmetric_latlong, camera, looking_down_at_floor, new_stage
-from usdrelight.converters.blender import blender_lights, render_blend
+from usdrelight.converters.blender import blender_lights, render_blend, run_blender
+from usdrelight.stage.lux import emitted_radiance
+from usdrelight.stage.read import read_scene
+from usdrelight.stage.validate import open_stage
 from usdrelight.imageio import read_map
 from usdrelight.intrinsics import Intrinsics
 
@@ -64,6 +67,25 @@ def test_built_stage_with_fitted_lights_renders_like_mitsuba(cli, tmp_path):
     rel_rmse = np.sqrt(np.mean((cycles[valid] - mitsuba[valid]) ** 2)) / m
     print(f"Cycles vs Mitsuba: mean {c:.4f} vs {m:.4f}, per-pixel relative RMSE {rel_rmse:.3f}")
     assert rel_rmse < 0.15  # two noisy renders (256 spp each) of the same scene; measured 0.06
+    # Back from Blender for lights_user.usda: the stage's fitted lights are not read again (they would light
+    # the scene twice); a copy of one made in Blender (Shift D copies its custom properties) is the user's.
+    copy = tmp_path / "copy.py"
+    copy.write_text("import bpy, sys\nargs = sys.argv[sys.argv.index('--') + 1:] if '--' in sys.argv else sys.argv[1:]\n"
+                    "bpy.ops.wm.open_mainfile(filepath=args[0])\n"
+                    "ob = next(o for o in bpy.context.scene.objects if o.type == 'LIGHT')\n"
+                    "dup = ob.copy(); dup.data = ob.data.copy(); dup.location.x += 1.0\n"
+                    "ob.users_collection[0].objects.link(dup)\n"
+                    "bpy.ops.wm.save_as_mainfile(filepath=args[1])\n")
+    run_blender(copy, str(tmp_path / "s.blend"), str(tmp_path / "copied.blend"))
+    for blend, n in (("s.blend", 0), ("copied.blend", 1)):
+        rc, _, err = cli("convert", tmp_path / blend, tmp_path / f"{blend}.usda")
+        assert rc == 0 and "fitted light of the stage (left out" in err, err
+        back = read_scene(open_stage(tmp_path / f"{blend}.usda")).lights
+        assert len(back) == n and all(l.path.startswith("/Scene/Lights/User/") for l in back)
+    fitted = [l for l in read_scene(open_stage(out / "scene.usda")).lights if l.kind == "sphere"]
+    mine = back[0]
+    assert any(np.allclose(mine.to_world[:3, 3] - [1.0, 0, 0], f.to_world[:3, 3], atol=1e-5) and
+               np.allclose(emitted_radiance(mine), emitted_radiance(f), rtol=1e-4) for f in fitted)
 
 
 def test_blender_lights_come_back_to_usd(cli, tmp_path):
