@@ -1,16 +1,25 @@
 """USD stage <-> mesh files for tools that do not read USD: glTF binary (.glb), PLY and OBJ, through trimesh.
 
-``write_to_file(stage, "X.glb") -> WriteReport``: every mesh of the stage in world space (metres; Y up, as glTF
-wants), with its normals, UVs and material as glTF PBR: metallic, roughness and the base colour, a factor
-or the albedo texture embedded as an sRGB 8-bit PNG (a Lambertian UsdPreviewSurface becomes metallic 0,
-roughness 1). ``.ply`` / ``.obj`` carry geometry, normals and UVs only (the material is named in a warning).
-Cameras and lights have no place in these formats and are named in a warning.
+Units and axes: every file is written, and read, as metres with +Y up (glTF's convention by its spec; OBJ and
+PLY have no unit or up axis of their own, so they follow glTF). The writer applies the stage's metersPerUnit
+and turns a Z-up stage Y-up, (x, y, z) -> (x, z, -y) (:data:`Z_UP_TO_Y_UP`, a rotation: windings and normals
+stay right-handed); the reader makes a Y-up stage in metres, so Z-up cm USD -> glb -> USD gives the same
+shapes in metres, Y up.
+
+``write_to_file(stage, "X.glb") -> WriteReport``: every mesh of the stage in world space, with its normals,
+UVs and material as glTF PBR (:mod:`.mesh_materials`): metallic, roughness, emissive and the base colour, a
+factor or the albedo texture embedded as an sRGB 8-bit PNG times baseColorFactor (UsdUVTexture scale; a bias
+is baked into the texels), a Lambertian UsdPreviewSurface as metallic 0, roughness 1. ``.ply`` / ``.obj``
+carry geometry, normals and UVs only (the material is named in a warning). Cameras and lights have no place
+in these formats and are named in a warning.
 
 ``read_from_file("X.glb", usd_path=None) -> ReadReport``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
-points, triangles, normals and ``st``, and a UsdPreviewSurface from its PBR material; an embedded base-colour
-texture is written as ``textures/<mesh>_baseColor.png`` beside ``usd_path`` (kept as a constant mean colour,
-with a warning, for an in-memory stage). Neither takes any other option (:data:`READ_OPTIONS`,
-:data:`WRITE_OPTIONS`); the formats are binary, so there are no ``*_string`` twins.
+points, triangles, normals and ``st``, and a UsdPreviewSurface from its glTF PBR or OBJ/MTL material (base
+colour factor x texture, emissive, metallic/roughness factors) and its vertex colours
+(``primvars:displayColor``); an embedded or MTL texture is written as ``textures/<mesh>_baseColor.png`` beside
+``usd_path`` (kept as a constant mean colour, with a warning, for an in-memory stage). Neither takes any other
+option (:data:`READ_OPTIONS`, :data:`WRITE_OPTIONS`); the formats are binary, so there are no ``*_string``
+twins.
 
 UVs: USD's st, trimesh's uv and OBJ's vt all have t = 0 at the bottom of the image (trimesh flips for glTF).
 """
@@ -22,15 +31,14 @@ from pathlib import Path
 import numpy as np
 
 from usdrelight import schemas
-from usdrelight.atomic import atomic_path, write_bytes_atomic
+from usdrelight.atomic import write_bytes_atomic
 from usdrelight.errors import UsdRelightError
-from usdrelight.imageio import linear_to_srgb, read_map, read_photo, srgb_to_linear
-from usdrelight.stage.create import author_lambertian, author_uv_texture, create_stage, define_preview_material
+from usdrelight.stage.create import create_stage
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
-from usdrelight.stage.records import MaterialRecord, TextureRecord
 from usdrelight.stage.validate import check_finite
 
+from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "mesh files"
@@ -40,6 +48,9 @@ READ_OPTIONS = {"usd_path": None}
 #: Writer options: none (the formats carry no render settings).
 WRITE_OPTIONS: dict = {"time": None}
 ROOT = "/World"
+#: Z-up stage -> Y-up file, on column vectors: (x, y, z) -> (x, z, -y), -90 degrees about X (as Blender's
+#: glTF exporter does); the identity for a Y-up stage.
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 def _trimesh():
@@ -50,35 +61,9 @@ def _trimesh():
     return trimesh
 
 
-def _srgb8(linear: np.ndarray) -> np.ndarray:
-    return np.round(linear_to_srgb(linear) * 255.0).astype(np.uint8)
-
-
-def _pbr_material(trimesh, mat: MaterialRecord, warnings: Counter):
-    """The glTF PBR material closest to a UsdPreviewSurface record."""
-    from PIL import Image
-
-    kw = {"name": mat.path.strip("/").replace("/", "_") or "default"}
-    if isinstance(mat.diffuse, TextureRecord):
-        tex = read_map(mat.diffuse.path, 3) if mat.diffuse.linear else read_photo(mat.diffuse.path)
-        kw["baseColorTexture"] = Image.fromarray(_srgb8(np.clip(tex, 0.0, 1.0)))
-    else:
-        kw["baseColorFactor"] = [float(c) for c in np.clip(mat.diffuse, 0.0, 1.0)] + [1.0]
-    if mat.is_lambertian:
-        kw.update(metallicFactor=0.0, roughnessFactor=1.0)
-    else:
-        for key, value in (("metallicFactor", mat.metallic), ("roughnessFactor", mat.roughness)):
-            if isinstance(value, TextureRecord):
-                warnings[f"textured {key} in glTF (constant used)"] += 1
-                value = 0.0 if key == "metallicFactor" else 0.5
-            kw[key] = float(value)
-        if mat.use_specular_workflow:
-            warnings["UsdPreviewSurface specular workflow in glTF (metallic-roughness used)"] += 1
-    return trimesh.visual.material.PBRMaterial(**kw)
-
-
 def write_to_file(stage, path, **options) -> WriteReport:
-    """Write the stage's meshes to ``path`` (.glb, .ply or .obj); the report names what the format cannot hold."""
+    """Write the stage's meshes to ``path`` (.glb, .ply or .obj) in metres, Y up (a Z-up stage rotated by
+    :data:`Z_UP_TO_Y_UP`); the report names what the format cannot hold."""
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     trimesh = _trimesh()
     path = Path(path).absolute()
@@ -90,15 +75,20 @@ def write_to_file(stage, path, **options) -> WriteReport:
         if n:
             warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     fmt = path.suffix.lower().lstrip(".")
+    if fmt == "glb":
+        warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
+    axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)
     scene = trimesh.Scene()
     for m in rec.meshes:
         if fmt == "glb":
-            visual = trimesh.visual.TextureVisuals(uv=m.uv, material=_pbr_material(trimesh, m.material, warnings))
+            visual = trimesh.visual.TextureVisuals(uv=texture_uv(m), material=pbr_material(trimesh, m.material,
+                                                                                         warnings))
         else:
             visual = trimesh.visual.TextureVisuals(uv=m.uv) if m.uv is not None else None
             warnings[f"materials in a .{fmt} file (not exported)"] += 1
         # the visual goes in with the normals: assigning it later would drop the given normals from trimesh's cache
-        mesh = trimesh.Trimesh(m.points, m.faces, vertex_normals=m.normals, visual=visual, process=False,
+        normals = None if m.normals is None else m.normals @ axes.T
+        mesh = trimesh.Trimesh(m.points @ axes.T, m.faces, vertex_normals=normals, visual=visual, process=False,
                                validate=False)
         scene.add_geometry(mesh, node_name=m.path.strip("/").replace("/", "_"),
                            geom_name=m.path.strip("/").replace("/", "_"))
@@ -113,39 +103,10 @@ def write_to_file(stage, path, **options) -> WriteReport:
     return WriteReport([str(path)], dict(warnings))  # logged by the CLI, a line per kind
 
 
-def _author_material(stage, mesh_prim, name: str, material, usd_dir: Path | None, warnings: Counter) -> None:
-    from pxr import Gf, Sdf, UsdShade
-
-    mat, surf = define_preview_material(stage, f"{ROOT}/Looks/{name}")
-    image = getattr(material, "baseColorTexture", None)
-    factor = getattr(material, "baseColorFactor", None)
-    factor = np.ones(4) if factor is None else np.asarray(factor, np.float64) / (255.0 if np.max(factor) > 1 else 1.0)
-    metallic = float(getattr(material, "metallicFactor", None) or 0.0)
-    roughness = getattr(material, "roughnessFactor", None)
-    roughness = 1.0 if roughness is None else float(roughness)
-    if metallic == 0.0 and roughness == 1.0:
-        author_lambertian(surf)
-    else:
-        surf.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(metallic)
-        surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(roughness)
-    if image is not None and usd_dir is not None:
-        rel = f"textures/{name}_baseColor.png"
-        with atomic_path(usd_dir / rel) as tmp:
-            image.convert("RGB").save(tmp, format="PNG")
-        author_uv_texture(stage, surf, "diffuseColor", "./" + rel, "sRGB", f"{ROOT}/Looks/{name}/BaseColorTexture",
-                          f"{ROOT}/Looks/{name}/StReader", wrap="repeat")  # glTF's default sampler wrap
-    else:
-        rgb = factor[:3]
-        if image is not None:
-            warnings["embedded texture in an in-memory stage (its mean colour used)"] += 1
-            rgb = rgb * srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0).reshape(-1, 3).mean(0)
-        surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, rgb)))
-    UsdShade.MaterialBindingAPI.Apply(mesh_prim).Bind(mat)
-
-
 def read_from_file(path, **options) -> ReadReport:
-    """The meshes of a .glb/.ply/.obj file as a Usd.Stage (at the ``usd_path`` option when given, else in
-    memory); the report names what USD did not get (non-mesh geometry, embedded textures of a stage in memory)."""
+    """The meshes of a .glb/.ply/.obj file as a Usd.Stage in metres, Y up (at the ``usd_path`` option when
+    given, else in memory); the report names what USD did not get (non-mesh geometry, material parts with no
+    UsdPreviewSurface input, embedded textures of a stage in memory)."""
     from pxr import Gf, Kind, Sdf, UsdGeom, Vt
 
     usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
@@ -195,6 +156,7 @@ def read_from_file(path, **options) -> ReadReport:
         if uv is not None and len(uv) == len(pts) and np.all(np.isfinite(uv)):
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
-        _author_material(stage, m.GetPrim(), name, getattr(mesh.visual, "material", None), usd_dir, warnings)
+        author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, path.suffix.lower() != ".glb",
+                        warnings)
     check_finite(stage, path.name)
     return ReadReport(stage, dict(warnings))
