@@ -4,6 +4,7 @@ leave nothing but their outputs. Each asserts the exit status, the one line and 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -84,6 +85,24 @@ def test_a_usdz_stage_renders_relights_and_converts_and_refuses_fit(cli, fitted,
     rc, _, err = cli("fit", usdz)
     _one_error(rc, err, "scene.usdz", "read-only")
     assert sorted(p.name for p in usdz.parent.iterdir()) == before
+
+
+def test_a_usdz_packages_private_folder_is_gone_after_the_command(fitted, tmp_path):
+    """The package is unpacked into a private temporary folder, removed at exit: the folder itself, not only the
+    package's folder inside it (an empty usdrelight-usdz-* folder was left per run)."""
+    import subprocess
+    import sys
+
+    from pxr import UsdUtils
+
+    usdz = tmp_path / "scene.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(fitted)), str(usdz))
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    p = subprocess.run([sys.executable, "-m", "usdrelight", "convert", str(usdz), str(tmp_path / "x.xml")],
+                       capture_output=True, text=True, timeout=300, env={**os.environ, "TMPDIR": str(temp)})
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "x.xml").is_file() and not [q.name for q in temp.iterdir() if "usdz" in q.name]
 
 
 def test_a_huge_sample_count_is_one_clear_line(cli, fitted, tmp_path):

@@ -17,7 +17,7 @@ import numpy as np
 from ..atomic import stage_lock
 from ..errors import UsdRelightError
 from ..imageio import write_image
-from ..mitsuba.render import check_spp, render_record
+from ..mitsuba.render import MAX_SPP, check_spp, render_record
 from ..safe_paths import writable_parent
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
@@ -158,7 +158,11 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
     method, lights, env_res, iterations = settings.method, settings.lights, settings.env_res, settings.iterations
     max_side, verify_spp, seed, fast_settings = settings.max_side, settings.verify_spp, settings.seed, settings.fast
     if verify_spp:
-        check_spp(verify_spp, "--verify-spp")
+        try:
+            check_spp(verify_spp, "--verify-spp")
+        except UsdRelightError:  # 0 is valid too: no verification render
+            raise UsdRelightError(f"--verify-spp must be 0 (no verification render) or an integer in "
+                                  f"[1, {MAX_SPP}], got {verify_spp!r}") from None
     if lights < 0 or lights > 256:
         raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
     if report_dir is not None:  # before the fit publishes anything: a bad folder fails first, not after

@@ -24,6 +24,8 @@ MAX_BYTES = 4 << 30
 """Most bytes of one package's files, unpacked."""
 USD_LAYER_SUFFIXES = (".usd", ".usda", ".usdc")
 _UNPACKED: dict[tuple, Path] = {}
+#: The private temporary folders made by :func:`unpack_usdz` (removed at exit).
+_TEMP_DIRS: list[Path] = []
 
 
 def is_usdz(path) -> bool:
@@ -39,8 +41,9 @@ def refuse_usdz(path, command: str) -> None:
 
 
 def _cleanup() -> None:
-    for folder in _UNPACKED.values():
-        shutil.rmtree(folder.parent, ignore_errors=True)
+    for temp in _TEMP_DIRS:  # the private folders themselves, not only the packages' folders inside them
+        shutil.rmtree(temp, ignore_errors=True)
+    _TEMP_DIRS.clear()
     _UNPACKED.clear()
 
 
@@ -63,7 +66,9 @@ def unpack_usdz(path) -> Path:
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
     if key in _UNPACKED:
         return _UNPACKED[key]
-    folder = Path(tempfile.mkdtemp(prefix="usdrelight-usdz-")) / path.stem
+    temp = Path(tempfile.mkdtemp(prefix="usdrelight-usdz-"))
+    _TEMP_DIRS.append(temp)
+    folder = temp / path.stem
     try:
         with zipfile.ZipFile(path) as z:
             infos = z.infolist()
@@ -88,7 +93,7 @@ def unpack_usdz(path) -> Path:
                 with z.open(info) as src, open(target, "wb") as dst:
                     shutil.copyfileobj(src, dst)
     except (zipfile.BadZipFile, ValueError, OSError, NotImplementedError, EOFError) as exc:
-        shutil.rmtree(folder.parent, ignore_errors=True)
+        shutil.rmtree(temp, ignore_errors=True)
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__
         raise UsdRelightError(f"cannot open stage {path}: not a usable .usdz package ({reason})") from None
     _UNPACKED[key] = folder / root
