@@ -29,11 +29,17 @@ def test_closed_forms_in_cycles(cli, tmp_path, light):
     np.testing.assert_allclose(_centre(img), expected, rtol=0.05)
 
 
-def test_textured_dome_orientation_in_cycles(cli, tmp_path):
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_textured_dome_orientation_in_cycles(cli, tmp_path, mirrored):
+    """A turned dome, and one mirrored too (a scale of -1: its rotation was read as Euler angles of a
+    reflection, and Cycles showed another part of the sky)."""
     from usd_scenes import dome_view_stage, expected_dome_view
 
     tex = asymmetric_latlong()
-    dome_view_stage(tmp_path / "s.usda", tex, yaw_deg=30.0)
+    stage = dome_view_stage(tmp_path / "s.usda", tex, yaw_deg=30.0)
+    if mirrored:
+        UsdGeom.Xformable(stage.GetPrimAtPath("/World/Sky")).AddScaleOp().Set(Gf.Vec3f(-1, 1, 1))
+        stage.GetRootLayer().Save()
     assert cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")[0] == 0
     img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "s.exr", spp=16), 3)
     assert np.abs(img - expected_dome_view(tmp_path / "s.usda", tex)).mean() < 0.03
