@@ -38,7 +38,7 @@ from usdrelight.stage.validate import check_finite
 from .blender_materials import EMISSIVE_WARNING, material_spec
 from .blender_photo import photo_stage_payload, script_text
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
-from .blender_animation import author_keys, light_keys
+from .blender_animation import author_keys, light_keys, object_keys, scene_animation
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
                             light_to_blender, spot_blend, stage_units)
 from .report import ReadReport, WriteReport, check_options
@@ -150,6 +150,12 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
     animation = light_keys(stage, lights, rec.up_axis, rec.warnings) if time is None else None
+    if time is None:  # the camera and rigid meshes follow their transforms' samples
+        for m in meshes:
+            m["baked"] = True
+        codes = object_keys(stage, meshes + ([cam] if cam else []), conv, frame_time(stage, None), rec.warnings)
+        if codes and animation is None:
+            animation = scene_animation(stage, codes)
     if set(mesh_lights) - emitting:
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for l in rec.lights:

@@ -8,6 +8,11 @@ interpolation (USD's default); a light invisible at a time code is ``hide_render
 stage's start/end time codes (else the keys' span) and framesPerSecond. An animated DomeLight keeps its first
 sample (the World's strength is not keyed; one warning).
 
+The camera and the meshes follow their transforms the same way (:func:`object_keys`): a keyframe of the object's
+world matrix at every time code where its transform or an ancestor's has a sample (location, rotation as a
+quaternion, scale; linear). A mesh's points are written once, at the first frame; a mesh whose points
+themselves are time-sampled (a deforming cache) keeps that shape (one warning).
+
 Blender -> USD (:func:`author_keys`): a light whose object or data has keyframes is read at each keyframe's
 frame (Blender evaluates its fcurves) and written as time samples at that time code: the transform, intensity
 and colour, cone, radius / size / angle; the layer gets the scene's frame range and frames per second, and the
@@ -21,7 +26,7 @@ import math
 import numpy as np
 
 from usdrelight.stage.lux import split_rgb
-from usdrelight.stage.read import read_lights
+from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
 from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range
 
 from .blender_units import light_to_blender
@@ -58,10 +63,69 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None
                 warnings[DOME_WARNING] += 1
                 continue
             by_path[path]["keys"] = seq
+    return scene_animation(stage, codes)
+
+
+def scene_animation(stage, codes: list[float]) -> dict:
+    """The scene's animation settings {frame_start, frame_end, fps, time_codes_per_second}: the stage's
+    start/end time codes, else the span of ``codes`` (sorted time codes)."""
     rng = stage_time_range(stage)
     start, end = (rng.start, rng.end) if rng is not None else (codes[0], codes[-1])
     return {"frame_start": int(math.floor(start)), "frame_end": int(math.ceil(end)), "fps": stage_fps(stage),
             "time_codes_per_second": float(stage.GetTimeCodesPerSecond())}
+
+
+DEFORMING_WARNING = "time-sampled mesh points in Blender (the first frame's shape is kept, not keyed)"
+
+
+def _xform_codes(prim) -> set[float]:
+    """The time codes of every transform op sample on ``prim`` and its ancestors."""
+    from pxr import UsdGeom
+
+    codes: set[float] = set()
+    while prim and prim.IsA(UsdGeom.Xformable):
+        for attr in prim.GetAttributes():
+            if attr.GetName().startswith("xformOp:"):
+                codes.update(attr.GetTimeSamples())
+        prim = prim.GetParent()
+    return codes
+
+
+def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> list[float]:
+    """Add ``keys`` ([{frame, matrix}], Blender world matrices, Z up) to each camera or mesh payload record of
+    ``records`` (``usd_path``; ``"baked": True`` for a mesh, whose points were written in world space at ``t0``,
+    a ``Usd.TimeCode``: its keys are then W(t) W(t0)^-1 in Blender's frame) whose transform is time-sampled;
+    ``conv``: USD world -> Blender world (4 x 4). Returns the time codes keyed."""
+    from pxr import Usd, UsdGeom
+
+    mpu = stage_meters_per_unit(stage)
+
+    def world(prim, t):
+        m = gf_to_np(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
+        m[:3, :] *= mpu
+        return m
+
+    keyed: set[float] = set()
+    for rec in records:
+        prim = stage.GetPrimAtPath(rec["usd_path"])
+        if prim and prim.IsA(UsdGeom.Subset):
+            prim = prim.GetParent()
+        if not prim:
+            continue
+        if rec.get("baked") and prim.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples():
+            warnings[DEFORMING_WARNING] += 1
+        codes = sorted(_xform_codes(prim))
+        if len(codes) < 2:
+            continue
+        base = np.linalg.pinv(world(prim, t0)) if rec.get("baked") else np.eye(4)
+        inv_conv = np.linalg.inv(conv)
+        keys = [{"frame": float(t), "matrix": (conv @ world(prim, Usd.TimeCode(t)) @ base
+                                               @ (inv_conv if rec.get("baked") else np.eye(4))).tolist()}
+                for t in codes]
+        if any(not np.allclose(k["matrix"], keys[0]["matrix"]) for k in keys[1:]):
+            rec["keys"] = keys
+            keyed.update(codes)
+    return sorted(keyed)
 
 
 def author_keys(light, keys: list[tuple[float, dict]]) -> None:

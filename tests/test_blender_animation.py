@@ -2,6 +2,8 @@
 with Mitsuba at those time codes; keyframes of a .blend -> USD time samples equal to them."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,63 @@ bpy.ops.wm.save_as_mainfile(filepath=args[0])
         np.testing.assert_allclose(rec.to_world[:3, 3], [x, 1.5, -2.0], atol=1e-6)
         np.testing.assert_allclose(rec.radiance, p / (4 * np.pi), rtol=1e-6)
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode(), stage.GetFramesPerSecond()) == (1, 9, 30)
+
+
+PROBE = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+sc = bpy.context.scene
+out = {}
+for f in (1, 13, 24):
+    sc.frame_set(f)
+    cube = next(o for o in sc.objects if o.type == "MESH")
+    vs = [cube.matrix_world @ v.co for v in cube.data.vertices]
+    out[f] = {"camera": list(sc.camera.matrix_world.translation),
+              "cube": [sum(v[i] for v in vs) / len(vs) for i in range(3)],
+              "size": max(v[0] for v in vs) - min(v[0] for v in vs)}
+json.dump(out, open(args[1], "w"))
+'''
+
+
+def test_the_camera_and_a_rigid_mesh_follow_their_transform_samples_in_blender(cli, tmp_path):
+    """An animated camera (dolly in) and a cube that slides and grows, in a Y-up stage in centimetres: the .blend
+    keys both (they were frozen at frame 1 while only the lights moved); Blender is Z up, in metres."""
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 0.01
+    startTimeCode = 1
+    endTimeCode = 24
+)
+def Camera "Cam" {
+    double3 xformOp:translate.timeSamples = { 1: (0, 100, 500), 24: (0, 100, 200) }
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+def Xform "Rig" {
+    double3 xformOp:translate.timeSamples = { 1: (-200, 0, 0), 24: (200, 0, 0) }
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+    def Cube "Box" {
+        double size = 50
+        float3 xformOp:scale.timeSamples = { 1: (1, 1, 1), 24: (2, 2, 2) }
+        uniform token[] xformOpOrder = ["xformOp:scale"]
+    }
+}
+def SphereLight "Lamp" {
+    float inputs:intensity = 10
+    bool treatAsPoint = 1
+}
+''')
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
+    assert rc == 0, err
+    probe = tmp_path / "probe.py"
+    probe.write_text(PROBE)
+    run_blender(probe, str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
+    got = {int(k): v for k, v in json.loads((tmp_path / "p.json").read_text()).items()}
+    # USD (x, y, z) cm, Y up -> Blender (x, -z, y) m, Z up
+    np.testing.assert_allclose(got[1]["camera"], [0, -5.0, 1.0], atol=1e-4)
+    np.testing.assert_allclose(got[24]["camera"], [0, -2.0, 1.0], atol=1e-4)
+    np.testing.assert_allclose(got[13]["camera"], [0, -5.0 + 3.0 * 12 / 23, 1.0], atol=1e-4)  # linear
+    np.testing.assert_allclose(got[1]["cube"], [-2.0, 0, 0], atol=1e-4)
+    np.testing.assert_allclose(got[24]["cube"], [2.0, 0, 0], atol=1e-4)
+    assert got[1]["size"] == pytest.approx(0.5, rel=1e-4) and got[24]["size"] == pytest.approx(1.0, rel=1e-4)
