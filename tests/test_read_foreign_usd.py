@@ -206,3 +206,26 @@ def Sphere "Ball" {
     shapes = mi.load_dict(to_mitsuba(d)).shapes()
     boxes = sorted((np.array(s.bbox().max) - np.array(s.bbox().min)).round(3).tolist() for s in shapes)
     assert boxes == [[0.5, 0.5, 0.5], [4.0, 1.0, 2.0]]
+
+
+def test_display_color_without_a_material_and_the_unrendered_camera_and_light_controls(tmp_path):
+    path = _stage(tmp_path, '''
+def Mesh "Red" {
+    int[] faceVertexCounts = [3]
+    int[] faceVertexIndices = [0, 1, 2]
+    point3f[] points = [(0,0,0), (1,0,0), (0,1,0)]
+    color3f[] primvars:displayColor = [(0.8, 0.1, 0.1)]
+}
+def Camera "Cam" {
+    float fStop = 2.8
+    float focusDistance = 300
+}
+def LightFilter "Gobo" {
+}
+def SphereLight "Key" {
+    float inputs:intensity = 5
+    rel light:filters = </Gobo>
+}''')
+    scene = read_scene(path)
+    assert scene.meshes[0].material.diffuse == pytest.approx((0.8, 0.1, 0.1))  # as USD viewers show it
+    assert any("fStop" in w for w in scene.warnings) and any("light filters" in w for w in scene.warnings)

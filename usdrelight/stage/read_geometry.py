@@ -140,7 +140,7 @@ def read_material(prim, warnings) -> MaterialRecord:
     if not mat:  # only a preview binding (material:binding:preview): better than grey
         mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.preview)
     if not mat:
-        return MaterialRecord()
+        return _display_color_material(prim, warnings)
     surf = mat.ComputeSurfaceSource()[0]
     if not surf or surf.GetIdAttr().Get() != "UsdPreviewSurface":
         warnings[f"material without a UsdPreviewSurface ({mat.GetPath()}): grey diffuse used"] += 1
@@ -169,6 +169,25 @@ def read_material(prim, warnings) -> MaterialRecord:
     if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
         warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
     return rec
+
+
+def _display_color_material(prim, warnings) -> MaterialRecord:
+    """No material bound: the gprim's ``displayColor`` as its diffuse colour, as USD viewers show it (its mean
+    where it varies over the surface, warned); the grey default without one."""
+    from pxr import UsdGeom
+
+    gprim = UsdGeom.Gprim(prim)
+    pv = gprim.GetDisplayColorPrimvar() if gprim else None
+    vals = pv.ComputeFlattened() if pv and pv.HasAuthoredValue() else None
+    if vals is None or len(vals) == 0:
+        return MaterialRecord()
+    rgb = np.asarray(vals, np.float64).reshape(-1, 3)
+    if not np.all(np.isfinite(rgb)):
+        warnings["non-finite displayColor (grey used)"] += 1
+        return MaterialRecord()
+    if len(rgb) > 1:
+        warnings["displayColor varying over a surface (its mean used)"] += 1
+    return MaterialRecord(diffuse=tuple(float(c) for c in np.clip(rgb.mean(0), 0.0, 1.0)))
 
 
 def _st_primvar(mat, warnings) -> str:

@@ -152,6 +152,8 @@ def _ignored_lux(prim, warnings) -> None:
         sh = UsdLux.ShadowAPI(prim)
         if sh.GetShadowEnableAttr().Get() is False or any(sh.GetShadowColorAttr().Get() or (0, 0, 0)):
             warnings["ShadowAPI shadow:enable off or shadow:color (ignored: black shadows cast)"] += 1
+    if api.GetFiltersRel().GetTargets():
+        warnings["UsdLux light filters (ignored)"] += 1
     for coll in (api.GetLightLinkCollectionAPI(), api.GetShadowLinkCollectionAPI()):
         expr = coll.GetMembershipExpressionAttr().Get()
         if coll.GetIncludeRootAttr().Get() is False or coll.GetIncludesRel().GetTargets() or \
