@@ -10,10 +10,11 @@ integrator) take precedence when the stage carries them.
 ``read_from_file(path, **options) -> ReadReport`` / ``read_from_string(text, base_dir, **options) ->
 ReadReport``: a Mitsuba scene file as people write them -> a USD stage, created at the ``usd_path`` option or
 in memory (:data:`READ_OPTIONS`); the report carries what USD cannot hold, one warning per kind (:mod:`.parse`
-reads the XML, :mod:`.to_usd` and :mod:`.materials` author the stage).
+reads the XML, :mod:`.to_usd`, :mod:`.area_lights` and :mod:`.materials` author the stage).
 
-Modules: ``common`` (tags, the Plugin record, paths, prim names, sensor field of view) is shared; the others import it, never
-each other, except that ``to_usd`` drives ``parse`` and ``materials``.
+Modules: ``common`` (tags, the Plugin record, paths, prim names, sensor field of view, the customData keys of area
+lights) is shared; the others import it, never each other, except that ``to_usd`` drives ``parse``, ``materials``
+and ``area_lights`` (which reads texels through ``materials``).
 """
 from __future__ import annotations
 

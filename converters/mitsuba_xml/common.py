@@ -36,6 +36,11 @@ for _tag, _types in {
         TAG_OF[_t] = _tag
 #: Property names written as <vector> (the rest of the 3-tuples are <point>).
 VECTOR_KEYS = {"direction", "up"}
+#: Keys of a light's ``customData["mitsuba"]`` (JSON) that the XML reader writes and the XML export reads back:
+#: a textured radiance UsdLux cannot hold ({"file", "mean", "raw", "filter_type"}: the light's colour is the
+#: texture's mean), and a rectangle, disk or sphere emitter that had ``flip_normals`` (see ``area_lights``).
+AREA_TEXTURE_KEY = "area_texture"
+FLIP_NORMALS_KEY = "flip_normals"
 
 
 @dataclass

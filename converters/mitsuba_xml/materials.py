@@ -5,7 +5,8 @@ workflow with roughness sqrt(alpha), ior int_ior / ext_ior and specularColor = F
 (the spec's normal-incidence colour), the BSDF kept in customData; conductor/roughconductor -> metallic 1 with
 the normal-incidence Fresnel colour F0 = ((eta-1)^2 + k^2) / ((eta+1)^2 + k^2) (eta/k of a named
 ``material`` read from Mitsuba itself) times the specular reflectance as base colour (bitmap eta/k: F0 per texel
-baked into ``textures/<material>_f0_<hash>.exr`` next to the USD file, the only file this reader writes); dielectric/
+baked into ``textures/<material>_f0_<hash>.exr`` next to the USD file; the reader's only other file is a
+rectangle emitter's mirrored texture, :mod:`.area_lights`); dielectric/
 roughdielectric/thindielectric -> opacity 0, black base colour, ior int_ior / ext_ior, the Mitsuba BSDF
 itself kept in the Material's ``customData["mitsuba"]["bsdf"]`` for the XML export; principled -> metallic
 workflow; mask -> opacity with opacityThreshold > 0 (presence, the spec's cutout mode: a texture's red channel

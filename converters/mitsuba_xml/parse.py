@@ -8,6 +8,7 @@ refused, so no entity is ever expanded.
 from __future__ import annotations
 
 import functools
+import math
 import re
 import xml.etree.ElementTree as ET
 from collections import Counter
@@ -261,14 +262,31 @@ class XmlReader:
             elif op.tag == "lookat":
                 def p3(a):
                     return [float(x) for x in re.split(r"[,\s]+", self.sub(op.get(a)).strip()) if x]
-                T = mi.ScalarTransform4f().look_at(origin=p3("origin"), target=p3("target"),
-                                                   up=p3("up") if op.get("up") else [0, 1, 0])
+                origin, target = p3("origin"), p3("target")
+                up = p3("up") if (self.sub(op.get("up")) or "").strip() else [0.0, 0.0, 0.0]
+                if not np.any(up):  # as Mitsuba's parser: no (or a zero) up -> its own, from the view direction
+                    up = lookat_default_up(np.subtract(target, origin, dtype=np.float64))
+                T = mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up)
             else:
                 self.warnings[f"transform op <{op.tag}> (ignored)"] += 1
                 continue
             with np.errstate(all="ignore"):  # NaN/Inf from a degenerate op: refused by value()'s finite check
                 M = np.array(T.matrix, dtype=np.float64) @ M
         return M
+
+
+def lookat_default_up(direction) -> list[float]:
+    """The up vector Mitsuba 3's XML parser gives a ``<lookat>`` without ``up`` (or with a zero one): the first
+    tangent of its ``coordinate_system(normalize(target - origin))`` (the branchless orthonormal basis of Duff et
+    al. 2017, as in src/core/xml.cpp and drjit's ``coordinate_system``). Not (0, 1, 0): a view looking along -Y
+    comes out rolled, not degenerate."""
+    d = np.asarray(direction, np.float64)
+    with np.errstate(all="ignore"):  # target == origin: NaN, refused by value()'s finite check
+        n = d / np.linalg.norm(d)
+    sign = math.copysign(1.0, n[2])
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    return [float(1.0 + sign * n[0] * n[0] * a), float(sign * b), float(-sign * n[0])]
 
 
 @functools.lru_cache(maxsize=1)

@@ -1,5 +1,7 @@
 """Parsed Mitsuba objects -> a USD stage: shapes (meshes loaded by Mitsuba itself, so their conventions are
-Mitsuba's), emitters as UsdLux lights, the perspective sensor as a camera with RenderSettings.
+Mitsuba's; ``flip_normals`` as reversed winding and negated normals), emitters as UsdLux lights (area emitters:
+:mod:`.area_lights`), perspective sensors as cameras, the first with RenderSettings (Mitsuba renders
+``scene.sensors()[0]``).
 
 Frames and units as in :mod:`usdrelight.mitsuba.scene_dict` (FLIP_Z, CAMERA_FLIP) and
 :mod:`usdrelight.stage.lux`. What USD cannot hold is named in one warning per kind and, where useful for a
@@ -23,9 +25,10 @@ from usdrelight.mitsuba.scene_dict import CAMERA_FLIP, FLIP_Z
 from usdrelight.stage.aovs import AOVS
 from usdrelight.stage.camera import author_usd_camera
 from usdrelight.stage.create import author_render_settings, create_stage
-from usdrelight.stage.lux import frame_pointing_along, set_light_rgb
+from usdrelight.stage.lux import frame_pointing_along
 from usdrelight.stage.validate import check_finite
 
+from .area_lights import AreaLights
 from .common import Plugin, PrimNamer, horizontal_fov, rel_path, spot_texture_mean
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
@@ -35,11 +38,12 @@ ROOT = "/World"
 MESH_TYPES = ("obj", "ply", "serialized", "cube")
 
 
-class UsdBuilder:
+class UsdBuilder(AreaLights):
     """Defines prims for parsed Mitsuba objects on a stage made by :func:`create_stage` (default prim /World)."""
 
     def __init__(self, stage, usd_dir: Path | None, warnings: Counter):
         self.stage = stage
+        self.root = ROOT
         self.dir = usd_dir
         self.warnings = warnings
         self.unique = PrimNamer()
@@ -79,6 +83,7 @@ class UsdBuilder:
                 self.warnings[f"area emitter on a '{p.type}' shape (geometry kept, emission dropped)"] += 1
                 emitter = None
         path = self.unique(ROOT, p.id or p.type)
+        flip = bool(p.props.get("flip_normals", False))  # the other side faces out (reflects, emits)
         if p.type in ("obj", "ply", "serialized") or (p.type == "cube" and emitter is not None):
             pts, faces, normals, uv = self.load_mesh(p, M)
             m = UsdGeom.Mesh.Define(self.stage, path)
@@ -105,30 +110,35 @@ class UsdBuilder:
             T[:3, 3] = c
             self.set_xform(s.GetPrim(), M @ T @ np.diag([r, r, r, 1.0]))
             prim = s.GetPrim()
+            if flip:
+                self.warnings["flip_normals on a non-emitting sphere or cube (ignored)"] += 1
         elif p.type == "cube":
             c = UsdGeom.Cube.Define(self.stage, path)
             c.CreateSizeAttr(2.0)
             c.CreateExtentAttr([(-1, -1, -1), (1, 1, 1)])
             self.set_xform(c.GetPrim(), M)
             prim = c.GetPrim()
+            if flip:
+                self.warnings["flip_normals on a non-emitting sphere or cube (ignored)"] += 1
         elif p.type in ("rectangle", "disk"):
             m = UsdGeom.Mesh.Define(self.stage, path)
             if p.type == "rectangle":
                 pts = [(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)]
                 m.CreateFaceVertexCountsAttr([4])
-                m.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+                m.CreateFaceVertexIndicesAttr([0, 3, 2, 1] if flip else [0, 1, 2, 3])
                 uvs = [(0, 1), (1, 1), (1, 0), (0, 0)]  # st = (u, 1 - v) of Mitsuba's rectangle, uv = (x + 1) / 2
             else:
                 n = 64
                 ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
                 pts = [(0.0, 0.0, 0.0)] + [(float(np.cos(a)), float(np.sin(a)), 0.0) for a in ang]
                 m.CreateFaceVertexCountsAttr([3] * n)
-                m.CreateFaceVertexIndicesAttr([i for k in range(n) for i in (0, 1 + k, 1 + (k + 1) % n)])
+                tri = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)]
+                m.CreateFaceVertexIndicesAttr([i for t in tri for i in (t[::-1] if flip else t)])
                 uvs = [(0.5, 0.5)] + [(0.5 + 0.5 * float(np.cos(a)), 0.5 + 0.5 * float(np.sin(a))) for a in ang]
             m.CreatePointsAttr(pts)
             m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             m.CreateExtentAttr([(-1, -1, 0), (1, 1, 0)])
-            m.CreateNormalsAttr([(0, 0, 1)] * len(pts))
+            m.CreateNormalsAttr([(0, 0, -1 if flip else 1)] * len(pts))
             m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
                                                  UsdGeom.Tokens.vertex).Set(uvs)
@@ -145,7 +155,8 @@ class UsdBuilder:
 
     def load_mesh(self, p: Plugin, M: np.ndarray):
         """Let Mitsuba load obj/ply/serialized (its own conventions) or make its cube mesh, and read the
-        buffers back."""
+        buffers back: (points, triangles, vertex normals or None, uv or None). ``flip_normals`` (which Mitsuba
+        applies when shading, not to these buffers) reverses each triangle's winding and negates the normals."""
         mi = load_mitsuba()
         props = {"type": p.type, "to_world": mi.ScalarTransform4f(M.tolist())}
         if p.type != "cube":
@@ -169,64 +180,12 @@ class UsdBuilder:
             normals = np.array(params["vertex_normals"], dtype=np.float64).reshape(-1, 3)
         if "vertex_texcoords" in params and len(params["vertex_texcoords"]) == 2 * len(pts):
             uv = np.array(params["vertex_texcoords"], dtype=np.float64).reshape(-1, 2)
+        if p.props.get("flip_normals"):
+            faces = faces[:, ::-1]
+            normals = None if normals is None else -normals
         return pts, faces, normals, uv
 
-    # ---- lights ---------------------------------------------------------------------------
-    def _light_common(self, light, rgb, extra: dict | None = None):
-        if np.any(np.asarray(rgb, np.float64) < 0):
-            raise UsdRelightError(f"emitter {light.GetPath().name}: negative radiance/intensity "
-                                  f"{np.atleast_1d(rgb).tolist()}")
-        set_light_rgb(light, rgb)
-        if extra:
-            light.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(extra))
-
-    def _decompose(self, M):
-        """Rigid part of M (rotation columns normalized) and the column scales."""
-        s = np.linalg.norm(M[:3, :3], axis=0)
-        R = M.copy()
-        R[:3, :3] = M[:3, :3] / np.where(s > 0, s, 1.0)
-        return R, s
-
-    def area_light(self, p: Plugin, emitter: Plugin, M):
-        from pxr import UsdLux
-
-        rgb = emitter.props.get("radiance", (1.0, 1.0, 1.0))
-        path = self.unique(ROOT, p.id or (p.type + "Light"))
-        R, s = self._decompose(M)
-        if p.type == "rectangle":
-            light = UsdLux.RectLight.Define(self.stage, path)
-            light.CreateWidthAttr(float(2 * s[0]))
-            light.CreateHeightAttr(float(2 * s[1]))
-            self.set_xform(light.GetPrim(), R @ FLIP_Z)
-        elif p.type == "disk":
-            light = UsdLux.DiskLight.Define(self.stage, path)
-            light.CreateRadiusAttr(float(s[0]))
-            if abs(s[0] - s[1]) > 1e-6 * s[0]:
-                self.warnings["elliptic disk emitter (radius from its x axis)"] += 1
-            self.set_xform(light.GetPrim(), R @ FLIP_Z)
-        else:
-            light = UsdLux.SphereLight.Define(self.stage, path)
-            c = np.asarray(p.props.get("center", (0, 0, 0)), np.float64)
-            light.CreateRadiusAttr(float(p.props.get("radius", 1.0)) * float(np.cbrt(np.prod(s))))
-            T = R.copy()
-            T[:3, 3] = (M @ np.r_[c, 1.0])[:3]
-            self.set_xform(light.GetPrim(), T)
-        light.CreateNormalizeAttr(False)
-        self._light_common(light, rgb)
-
-    def mesh_light(self, prim, emitter: Plugin) -> None:
-        """UsdLux MeshLightAPI on an emitting mesh: its radiance as intensity * color, not normalized, emission
-        independent of the bound material (which is kept for what the mesh reflects)."""
-        from pxr import UsdLux
-
-        UsdLux.MeshLightAPI.Apply(prim)
-        light = UsdLux.LightAPI(prim)
-        light.CreateNormalizeAttr(False)
-        light.CreateMaterialSyncModeAttr(UsdLux.Tokens.independent)
-        if any(c.tag == "texture" for c in emitter.children):
-            self.warnings["textured area emitter radiance (not converted; radiance 1 used)"] += 1
-        self._light_common(light, emitter.props.get("radiance", (1.0, 1.0, 1.0)))
-
+    # ---- lights (area emitters: area_lights.AreaLights) ------------------------------------
     def emitter(self, p: Plugin) -> None:
         from pxr import Sdf, UsdLux
 
@@ -307,6 +266,10 @@ class UsdBuilder:
         author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)),
                           focal_mm)
         self.set_xform(cam.GetPrim(), p.props.get("to_world", np.eye(4)) @ CAMERA_FLIP)
+        if self.settings is not None:  # Mitsuba renders the first <sensor> (scene.sensors()[0]): it keeps the settings
+            self.warnings["more than one <sensor> (the first is the RenderSettings camera, as Mitsuba renders it; the "
+                          "others kept as cameras)"] += 1
+            return
         self.settings = author_render_settings(self.stage, str(cam.GetPath()), cw, ch, [AOVS["color"]])
         sampler = next((c for c in p.children if c.tag == "sampler"), None)
         self.spp = int(sampler.props.get("sample_count", 4)) if sampler else None

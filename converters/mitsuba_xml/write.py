@@ -7,7 +7,8 @@ opacityThreshold is baked instead, thresholded (:mod:`usdrelight.mitsuba.cutout`
 ``textures/<name>_cutout_<hash>.exr`` (the source is not copied); units
 and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
 XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator, a rough BSDF's microfacet
-distribution) are put back.
+distribution, an area light's texture or flip_normals) are put back; a RectLight's ``inputs:texture:file`` is
+written as the rectangle's bitmap radiance (:func:`_restore_area_lights`).
 """
 from __future__ import annotations
 
@@ -23,8 +24,9 @@ import numpy as np
 from usdrelight.atomic import write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import read_photo, write_image
+from usdrelight.safe_paths import check_read, stage_folder
 from usdrelight.mitsuba.cutout import presence_map
-from usdrelight.mitsuba.scene_dict import Matrix, rgb_value, safe_name, scene_dict, texture_value
+from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, scene_dict, texture_value
 from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
@@ -32,7 +34,7 @@ from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
 from ..report import WriteReport, check_options
-from .common import TAG_OF, VECTOR_KEYS, rel_path
+from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, VECTOR_KEYS, rel_path
 
 #: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
 #: integrator's path length as in Mitsuba (2 = direct light only, 3 = one indirect bounce). A sampler or
@@ -67,8 +69,20 @@ def _local_file(path: str, base: Path, files: list) -> str:
     return rel_path(str(dst), base)
 
 
-#: bitmap dict keys whose texels are computed, not read: key -> (file label, texels(d) -> float image)
-_BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("bake", "baked", baked_texels))
+_FLOAT_IMAGES = (".exr", ".hdr", ".pfm")
+
+
+def _mirrored_texels(d: dict) -> np.ndarray:
+    """A bitmap's texels (decoded as Mitsuba does: sRGB for 8-bit files unless ``raw``) mirrored left-right."""
+    linear = d.get("raw") is True or d["filename"].lower().endswith(_FLOAT_IMAGES)
+    unit = {"channel": "rgb", "linear": linear, "scale": [1.0] * 4, "bias": [0.0] * 4}
+    return np.ascontiguousarray(baked_texels({"filename": d["filename"], "bake": unit})[:, ::-1])
+
+
+#: bitmap dict keys whose texels are computed, not read: key -> (file label, texels(d) -> float image), in order
+#: (a RectLight's scaled texture is baked first, then mirrored: :func:`_restore_area_lights`)
+_BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("bake", "baked", baked_texels),
+                  ("mirror_u", "mirrored", _mirrored_texels))
 
 
 def _baked_bitmap(d: dict, key: str, label: str, texels, base: Path, files: list) -> dict:
@@ -153,6 +167,7 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     if hides_emitters(stage) and isinstance(d.get("integrator"), dict):  # a photo stage (usdrelight.stage.backplate)
         d["integrator"]["hide_emitters"] = True
     _restore_extras(stage, d)
+    _restore_area_lights(stage, rec, d)
     _restore_material_extras(stage, rec, d)
     files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]
     root = ET.Element("scene", version="3.0.0")
@@ -216,6 +231,8 @@ def _restore_extras(stage, d: dict) -> None:
             continue
         key = safe_name(str(prim.GetPath()))
         if key in d and isinstance(d[key], dict):
+            for k in (AREA_TEXTURE_KEY, FLIP_NORMALS_KEY):  # area lights: _restore_area_lights
+                extra.pop(k, None)
             mean = extra.pop("texture_mean", None)
             props = extra.pop("texture_props", None)  # the bitmap's raw / wrap_mode / filter_type
             for k, v in extra.items():
@@ -229,6 +246,78 @@ def _restore_extras(stage, d: dict) -> None:
                     isinstance(d[key].get("intensity"), dict):  # the UsdLux colour was the texture's mean
                 value = np.asarray(d[key]["intensity"]["value"], np.float64)
                 d[key]["intensity"]["value"] = [float(v / m) if m > 0 else 0.0 for v, m in zip(value, mean)]
+
+
+#: What the stage reader says of a RectLight texture; the XML export writes the texture, so it takes the warning back.
+RECT_TEXTURE_WARNING = "RectLight texture (ignored; uniform radiance used)"
+
+
+def _restore_area_lights(stage, rec, d: dict) -> None:
+    """Area lights' textures and sides, as the XML reader wrote them (``area_lights``): a RectLight's
+    ``inputs:texture:file`` (any stage's) becomes the rectangle's bitmap radiance, scaled by the light's radiance
+    (colour x intensity, normalize applied) and mirrored left-right (``textures/<stem>_mirrored_<hash>.exr``): UsdLux
+    puts the file's first texel (top-left) at the light's (+X, +Y), Mitsuba's bitmap has it at the rectangle's uv
+    (0, 0), its local (-1, -1), the light's (-X, +Y) (the light frame is FLIP_Z). (Not the bitmap's ``to_uv``
+    u -> 1 - u: Mitsuba importance-samples the texels ignoring to_uv, unbiased but far noisier; nor a flipped
+    rectangle turned round: Mitsuba 3.9 renders a flipped rectangle with a textured radiance nearly black.) A disk,
+    sphere or mesh light whose customData keeps a texture (``area_texture``: its colour is the texture's mean) gets
+    the texture back, scaled by radiance / mean; a disk or sphere marked ``flip_normals`` is written as that shape
+    with flip_normals, as it was read."""
+    from pxr import UsdLux
+
+    root = stage_folder(stage)
+    for light in rec.lights:
+        entry = d.get(safe_name(light.path))
+        if light.kind not in ("rect", "disk", "sphere", "mesh") or not isinstance(entry, dict) or \
+                not isinstance(entry.get("emitter"), dict):
+            continue
+        prim = stage.GetPrimAtPath(light.path)
+        try:
+            extra = json.loads(prim.GetCustomDataByKey("mitsuba") or "{}")
+        except (TypeError, ValueError):
+            extra = {}
+        extra = extra if isinstance(extra, dict) else {}
+        flip = extra.get(FLIP_NORMALS_KEY) is True and light.kind in ("disk", "sphere")
+        if flip:
+            if light.kind != "sphere":  # the USD frame is Mitsuba's (x, y, z): undo the writer's FLIP_Z
+                entry["to_world"] = Matrix(entry["to_world"].m @ FLIP_Z)
+            entry["flip_normals"] = True
+        radiance = np.asarray(entry["emitter"]["radiance"]["value"], np.float64)
+        kept = extra.get(AREA_TEXTURE_KEY)
+        if light.kind == "rect":
+            asset = UsdLux.RectLight(prim).GetTextureFileAttr().Get()
+            if asset is None or not asset.path:
+                continue
+            if not asset.resolvedPath:
+                raise UsdRelightError(f"RectLight texture not found: {asset.path} ({light.path})")
+            path = str(check_read(asset.resolvedPath, root, f"RectLight texture ({light.path})"))
+            entry["emitter"]["radiance"] = {**_radiance_bitmap(path, radiance, {}), "mirror_u": True}
+            if rec.warnings.get(RECT_TEXTURE_WARNING, 0) > 1:
+                rec.warnings[RECT_TEXTURE_WARNING] -= 1
+            else:
+                rec.warnings.pop(RECT_TEXTURE_WARNING, None)
+        elif isinstance(kept, dict) and isinstance(kept.get("file"), str) and isinstance(kept.get("mean"), list) \
+                and len(kept["mean"]) == 3:
+            path = str(check_read(stage.GetRootLayer().ComputeAbsolutePath(kept["file"]), root,
+                                  f"area light texture ({light.path})"))
+            mean = np.asarray(kept["mean"], np.float64)
+            scale = np.divide(radiance, mean, out=np.zeros(3), where=mean > 0)
+            entry["emitter"]["radiance"] = _radiance_bitmap(path, scale, kept)
+
+
+def _radiance_bitmap(path: str, scale, props: dict) -> dict:
+    """A bitmap radiance: the file's texels (decoded as Mitsuba does: sRGB for 8-bit files unless ``raw``) x
+    ``scale`` (RGB), the file itself when the scale is 1, else baked (textures/<stem>_baked_<hash>.exr)."""
+    raw = props.get("raw") is True
+    d = {"type": "bitmap", "filename": path, "raw": raw}
+    if isinstance(props.get("filter_type"), str):
+        d["filter_type"] = props["filter_type"]
+    scale = np.asarray(scale, np.float64)
+    if not np.allclose(scale, 1.0, rtol=1e-6, atol=0.0):
+        d["raw"] = True
+        d["bake"] = {"channel": "rgb", "linear": raw or path.lower().endswith(_FLOAT_IMAGES),
+                     "scale": [float(x) for x in scale] + [1.0], "bias": [0.0, 0.0, 0.0, 0.0]}
+    return d
 
 
 def _restore_material_extras(stage, rec, d: dict) -> None:
