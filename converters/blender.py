@@ -256,9 +256,11 @@ def _author_time_range(stage, anim: dict | None, meta: dict | None) -> None:
         stage.SetTimeCodesPerSecond(float(meta["timeCodesPerSecond"]))
 
 
-#: Counted for each of the stage's own fitted lights a .blend carries (not read back: lights_fitted.usda has them).
-FITTED_LEFT_OUT = ("fitted light of the stage (left out: it stays in lights_fitted.usda; a copy of it made in "
-                   "Blender, Shift D, comes back as your own)")
+#: Counted for each of the stage's own fitted lights a .blend carries unchanged (lights_fitted.usda has them).
+FITTED_LEFT_OUT = ("fitted light of the stage, unchanged (left out: it stays in lights_fitted.usda; a copy of it "
+                   "made in Blender, Shift D, comes back as your own)")
+#: Counted for each fitted light edited in Blender: read back as an override of it, at its own path.
+FITTED_EDITED = "fitted light edited in Blender (read back as an override of it, at its path in lights_fitted.usda)"
 
 
 def read_from_file(path, **options) -> ReadReport:
@@ -266,7 +268,8 @@ def read_from_file(path, **options) -> ReadReport:
     of the stage the .blend was made from (recorded by :func:`write_to_file`), so that sublayered into that stage
     every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres. The stage's own fitted
     lights, as :func:`write_to_file` put them in the .blend, are left out (counted in the warnings): the layer is
-    for ``lights_user.usda``, beside ``lights_fitted.usda``, which already holds them.
+    for ``lights_user.usda``, beside ``lights_fitted.usda``, which already holds them; one edited in Blender
+    comes back as an ``over`` at its own path, which the user layer (stronger) applies to it.
 
     Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
@@ -292,20 +295,26 @@ def read_from_file(path, **options) -> ReadReport:
         if b.get("hidden"):
             warnings["Blender light hidden from render (not read)"] += 1
             continue
-        if b.get("as_written") and str(b.get("usd_path", "")).startswith(FITTED_LIGHTS_SCOPE + "/"):
+        fitted = b.get("as_written") and str(b.get("usd_path", "")).startswith(FITTED_LIGHTS_SCOPE + "/")
+        if fitted and not b.get("edited"):
             warnings[FITTED_LEFT_OUT] += 1  # the stage has it already: read back, it would light the scene twice
             continue
         u = _usd_record(b, up, mpu)
-        name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
-        if name[0].isdigit():
-            name = "_" + name
-        while name in used:
-            name += "_"
-        used.add(name)
-        p = f"{USER_LIGHTS_SCOPE}/{name}"
         cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
                "DistantLight": UsdLux.DistantLight}[u["kind"]]
-        light = cls.Define(stage, p)
+        if fitted:  # edited in Blender: an override of that fitted light (this layer is the stronger one)
+            warnings[FITTED_EDITED] += 1
+            light = cls(stage.OverridePrim(b["usd_path"]))
+            light.CreateExposureAttr(0.0)
+            light.CreateEnableColorTemperatureAttr(False)
+        else:
+            name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
+            if name[0].isdigit():
+                name = "_" + name
+            while name in used:
+                name += "_"
+            used.add(name)
+            light = cls.Define(stage, f"{USER_LIGHTS_SCOPE}/{name}")
         set_light_rgb(light, float(u["intensity"]) * np.asarray(u["color"], np.float64))
         light.CreateNormalizeAttr(False)
         for key, attr in (("diffuse", light.CreateDiffuseAttr), ("specular", light.CreateSpecularAttr)):

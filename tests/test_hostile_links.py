@@ -101,6 +101,9 @@ def test_a_failed_conversion_leaves_no_empty_folder(cli, tmp_path):
     # a destination through ``..`` makes two folders (``new`` and ``x``): both go
     _refused(cli, "convert", bad, f"{tmp_path}/new/../x/scene.usda", words="")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.xml"]
+    (tmp_path / "mine").mkdir()  # a folder the user had, reached through a name that did not exist: kept
+    _refused(cli, "convert", bad, f"{tmp_path}/new/../mine/scene.usda", words="")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.xml", "mine"]
 
 
 @pytest.mark.parametrize("args", [["fit", "s.usda", "--max-side", "-5"], ["relight", "s.usda", "--max-side", "0"],

@@ -13,6 +13,8 @@ from usdrelight.converters.convert import convert
 from usdrelight.imageio import read_map
 from usdrelight.relight.composite import ratio_guard
 from usdrelight.stage.backplate import HIDE_EMITTERS, hides_emitters
+from usdrelight.stage.lux import emitted_radiance
+from usdrelight.stage.read import read_scene
 from usdrelight.stage.validate import open_stage
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -90,9 +92,21 @@ def test_f12_gives_the_relit_photo(photo_stage):
     assert psnr(ref, photo) < 30  # the move is visible
     assert f12.mean() == pytest.approx(ref.mean(), rel=0.03)
     assert psnr(f12, ref) >= 35
-    back = read_from_file(blend).stage
-    lights = {p.GetName(): p for p in back.Traverse() if p.GetTypeName() == "SphereLight"}
-    assert len(lights) == 2
+    # back as lights_user.usda: the moved fitted light as an override of itself, the unchanged ones left out, so
+    # the stage has each fitted light once, the moved one where Blender has it (they came back as user lights
+    # too, and lit the scene twice)
+    import shutil
+
+    copy = d / "stage_copy"
+    shutil.copytree(stage.parent, copy, symlinks=True)
+    rep = read_from_file(blend, usd_path=str(d / "back.usda"))
+    rep.stage.GetRootLayer().Save()
+    shutil.copyfile(d / "back.usda", copy / "lights_user.usda")
+    got = {l.path: l for l in read_scene(open_stage(copy / "scene.usda")).lights}
+    assert sorted(got) == sorted(l.path for l in photo_stage["fitted"])
+    np.testing.assert_allclose(got[point.path].to_world[:3, 3], moved.to_world[:3, 3], atol=1e-4)
+    np.testing.assert_allclose(emitted_radiance(got[point.path]), emitted_radiance(point), rtol=1e-4)
+    assert sum("edited in Blender" in w for w in rep.warnings) == 1
     # the guard k in the node tree is usdrelight's, computed from the photo and the baked F
     script = d / "k.py"
     script.write_text("import bpy, sys\nbpy.ops.wm.open_mainfile(filepath=sys.argv[-2])\n"

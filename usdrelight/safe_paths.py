@@ -51,24 +51,39 @@ def writable_parent(path: str | os.PathLike, what: str = "output") -> Path:
 @contextmanager
 def made_folders(folder: str | os.PathLike):
     """Make ``folder`` (and missing parents); on an exception inside the block remove the ones made here if they
-    are still empty, so a failed command leaves no empty output folder behind (``..`` in ``folder`` included:
-    ``new/../x`` made ``new`` and ``x``, and both go)."""
+    are still empty, so a failed command leaves no empty output folder behind. Each level is made by its own
+    ``mkdir`` and only the ones that call made are removed: with ``..`` in ``folder`` (``new/../x``) a name that
+    did not exist before may be a folder the user had (``x``), which is never removed."""
     folder = Path(folder).absolute()
-    prefixes = [Path(*folder.parts[:i]) for i in range(2, len(folder.parts) + 1)]
-    missing = [p for p in prefixes if p.name not in ("..", ".") and not os.path.lexists(p)]
+    made = []
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        for i in range(2, len(folder.parts) + 1):
+            p = Path(*folder.parts[:i])
+            if p.name in ("..", "."):
+                continue
+            try:
+                os.mkdir(p)
+                made.append(p)
+            except FileExistsError:
+                if not p.is_dir():
+                    raise NotADirectoryError(20, "Not a directory", str(p)) from None
     except OSError as exc:
+        _remove_empty(made)
         raise UsdRelightError(f"cannot make the folder {folder}: {exc.strerror or exc}") from None
     try:
         yield folder
     except BaseException:
-        for p in reversed(missing):  # deepest first; one still holding files keeps its parents too
-            try:
-                p.rmdir()
-            except OSError:
-                pass
+        _remove_empty(made)
         raise
+
+
+def _remove_empty(made: list[Path]) -> None:
+    """rmdir the folders in ``made`` (made in that order), deepest first; one still holding files stays."""
+    for p in reversed(made):
+        try:
+            p.rmdir()
+        except OSError:
+            pass
 
 
 # ---- read confinement ----------------------------------------------------------------------------
