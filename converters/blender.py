@@ -32,7 +32,7 @@ from usdrelight.stage.lux import emitted_radiance, set_light_rgb
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
-from usdrelight.stage.timing import frame_time
+from usdrelight.stage.timing import frame_time, light_time_codes
 from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
@@ -51,6 +51,11 @@ READ_OPTIONS = {"usd_path": None}
 WRITE_OPTIONS = {"spp": 64, "max_depth": 3, "time": None}
 ANIMATED = True
 """A .blend carries the lights' animation itself (keyframes): ``convert --frames`` does not apply."""
+
+
+#: UsdGeom.Camera attributes the .blend's camera takes once, at the first frame (its transform is keyed).
+CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
+                     "verticalApertureOffset", "clippingRange")
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
@@ -148,14 +153,18 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
                "matrix": (conv @ rec.camera.to_world).tolist()}
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
+        lens = stage.GetPrimAtPath(rec.camera.path)
+        if time is None and lens and any(lens.GetAttribute(n).GetNumTimeSamples() for n in CAMERA_LENS_ATTRS):
+            rec.warnings["animated camera lens (focal length, apertures, clipping) in Blender (the first "
+                         "frame's used)"] += 1
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
     animation = light_keys(stage, lights, rec.up_axis, rec.warnings) if time is None else None
     if time is None:  # the camera and rigid meshes follow their transforms' samples
         for m in meshes:
             m["baked"] = True
         codes = object_keys(stage, meshes + ([cam] if cam else []), conv, frame_time(stage, None), rec.warnings)
-        if codes and animation is None:
-            animation = scene_animation(stage, codes)
+        if codes:  # the scene's range spans the lights' samples and these
+            animation = scene_animation(stage, sorted(set(codes) | set(light_time_codes(stage))))
     if set(mesh_lights) - emitting:
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for l in rec.lights:

@@ -25,6 +25,7 @@ import math
 
 import numpy as np
 
+from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
 from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range
@@ -78,24 +79,46 @@ def scene_animation(stage, codes: list[float]) -> dict:
 DEFORMING_WARNING = "time-sampled mesh points in Blender (the first frame's shape is kept, not keyed)"
 
 
-def _xform_codes(prim) -> set[float]:
-    """The time codes of every transform op sample on ``prim`` and its ancestors."""
+#: Most keyframes one object gets when its transform rotates or scales between samples (one per frame).
+MAX_OBJECT_KEYS = 10_000
+SINGULAR_WARNING = "a mesh whose transform is singular at the first frame (not keyed in Blender)"
+
+
+def _xform_codes(prim) -> tuple[set[float], bool]:
+    """The time codes of every transform op sample on ``prim`` and its ancestors (up to the root, through
+    Scopes), and whether any sampled op is other than a translate (then USD's per-op interpolation between two
+    samples is not Blender's linear one of location / quaternion / scale)."""
     from pxr import UsdGeom
 
     codes: set[float] = set()
-    while prim and prim.IsA(UsdGeom.Xformable):
-        for attr in prim.GetAttributes():
-            if attr.GetName().startswith("xformOp:"):
-                codes.update(attr.GetTimeSamples())
+    curved = False
+    while prim and not prim.IsPseudoRoot():
+        if prim.IsA(UsdGeom.Xformable):
+            for attr in prim.GetAttributes():
+                if attr.GetName().startswith("xformOp:") and attr.GetNumTimeSamples():
+                    codes.update(attr.GetTimeSamples())
+                    curved |= not attr.GetName().startswith("xformOp:translate")
         prim = prim.GetParent()
-    return codes
+    return codes, curved
+
+
+def _key_frames(codes: list[float], curved: bool) -> list[float]:
+    """The frames to key: the sample codes, and every whole frame between them when the motion is not a
+    translation (so Blender's interpolation between keys one frame apart matches USD's to a frame)."""
+    if not curved or len(codes) < 2:
+        return codes
+    whole = np.arange(math.ceil(codes[0]), math.floor(codes[-1]) + 1, dtype=np.float64)
+    if len(whole) > MAX_OBJECT_KEYS:
+        whole = np.linspace(codes[0], codes[-1], MAX_OBJECT_KEYS)
+    return sorted(set(codes) | set(whole.tolist()))
 
 
 def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> list[float]:
     """Add ``keys`` ([{frame, matrix}], Blender world matrices, Z up) to each camera or mesh payload record of
     ``records`` (``usd_path``; ``"baked": True`` for a mesh, whose points were written in world space at ``t0``,
     a ``Usd.TimeCode``: its keys are then W(t) W(t0)^-1 in Blender's frame) whose transform is time-sampled;
-    ``conv``: USD world -> Blender world (4 x 4). Returns the time codes keyed."""
+    ``conv``: USD world -> Blender world (4 x 4). Returns the time codes keyed. Non-finite matrices are an
+    error; a mesh singular at ``t0`` is not keyed (warned)."""
     from pxr import Usd, UsdGeom
 
     mpu = stage_meters_per_unit(stage)
@@ -103,9 +126,12 @@ def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> l
     def world(prim, t):
         m = gf_to_np(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
         m[:3, :] *= mpu
+        if not np.all(np.isfinite(m)):
+            raise UsdRelightError(f"{prim.GetPath()} has a non-finite transform at time code {t.GetValue():g}")
         return m
 
     keyed: set[float] = set()
+    inv_conv = np.linalg.inv(conv)
     for rec in records:
         prim = stage.GetPrimAtPath(rec["usd_path"])
         if prim and prim.IsA(UsdGeom.Subset):
@@ -114,17 +140,22 @@ def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> l
             continue
         if rec.get("baked") and prim.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(prim).GetPointsAttr().GetNumTimeSamples():
             warnings[DEFORMING_WARNING] += 1
-        codes = sorted(_xform_codes(prim))
-        if len(codes) < 2:
+        codes, curved = _xform_codes(prim)
+        frames = _key_frames(sorted(codes), curved)
+        if len(frames) < 2:
             continue
-        base = np.linalg.pinv(world(prim, t0)) if rec.get("baked") else np.eye(4)
-        inv_conv = np.linalg.inv(conv)
-        keys = [{"frame": float(t), "matrix": (conv @ world(prim, Usd.TimeCode(t)) @ base
-                                               @ (inv_conv if rec.get("baked") else np.eye(4))).tolist()}
-                for t in codes]
+        left, right = np.eye(4), np.eye(4)
+        if rec.get("baked"):
+            w0 = world(prim, t0)
+            if abs(np.linalg.det(w0[:3, :3])) < 1e-300:
+                warnings[SINGULAR_WARNING] += 1
+                continue
+            left, right = np.linalg.inv(w0), inv_conv
+        keys = [{"frame": float(t), "matrix": (conv @ world(prim, Usd.TimeCode(t)) @ left @ right).tolist()}
+                for t in frames]
         if any(not np.allclose(k["matrix"], keys[0]["matrix"]) for k in keys[1:]):
             rec["keys"] = keys
-            keyed.update(codes)
+            keyed.update(frames)
     return sorted(keyed)
 
 

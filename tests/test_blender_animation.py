@@ -187,3 +187,37 @@ def SphereLight "Lamp" {
     np.testing.assert_allclose(got[1]["cube"], [-2.0, 0, 0], atol=1e-4)
     np.testing.assert_allclose(got[24]["cube"], [2.0, 0, 0], atol=1e-4)
     assert got[1]["size"] == pytest.approx(0.5, rel=1e-4) and got[24]["size"] == pytest.approx(1.0, rel=1e-4)
+
+
+def test_a_camera_under_a_scope_under_a_turning_xform_follows_the_turn_in_blender(cli, tmp_path):
+    """Samples at frames 1 and 24 only, a rotation between: USD turns the camera along the circle, so Blender
+    needs a key per frame (keys at the samples alone cut the chord: radius 1.41 halfway); an animated Xform above
+    a Scope still moves what is below it (it was not keyed at all)."""
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+def Xform "World" {
+    float xformOp:rotateY.timeSamples = { 1: 0, 24: 90 }
+    uniform token[] xformOpOrder = ["xformOp:rotateY"]
+    def Scope "Geo" {
+        def Camera "Cam" {
+            double3 xformOp:translate = (2, 0, 0)
+            uniform token[] xformOpOrder = ["xformOp:translate"]
+        }
+    }
+}
+''')
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
+    assert rc == 0, err
+    probe = tmp_path / "probe.py"
+    probe.write_text("import bpy, json, sys\nargs = sys.argv[sys.argv.index('--') + 1:] if '--' in sys.argv "
+                     "else sys.argv[1:]\nbpy.ops.wm.open_mainfile(filepath=args[0])\nsc = bpy.context.scene\n"
+                     "out = {}\nfor f in (1, 12, 24):\n    sc.frame_set(f)\n"
+                     "    out[f] = list(sc.camera.matrix_world.translation)\njson.dump(out, open(args[1], 'w'))\n")
+    run_blender(probe, str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
+    got = {int(k): np.asarray(v) for k, v in json.loads((tmp_path / "p.json").read_text()).items()}
+    for f in (1, 12, 24):  # USD: rotateY(a) of (2, 0, 0) = (2 cos a, 0, -2 sin a); Blender (x, -z, y)
+        a = np.radians(90.0 * (f - 1) / 23)
+        np.testing.assert_allclose(got[f], [2 * np.cos(a), 2 * np.sin(a), 0.0], atol=1e-4, err_msg=str(f))

@@ -83,7 +83,8 @@ def _settings_prim(stage):
 
 def _conform(settings, warnings) -> tuple[float, str]:
     """RenderSettings' pixelAspectRatio (finite, > 0; else 1, warned) and aspectRatioConformPolicy."""
-    par = float(settings.GetPixelAspectRatioAttr().Get() or 1.0)
+    v = settings.GetPixelAspectRatioAttr().Get()
+    par = 1.0 if v is None else float(v)
     if not (math.isfinite(par) and par > 0):
         warnings[f"pixelAspectRatio {par:g} (1 used)"] += 1
         par = 1.0
@@ -126,8 +127,9 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
     if not all(math.isfinite(v) and v > 0 for v in (ha, va, f)):
         raise UsdRelightError(f"camera {cam_prim.GetPath()}: focalLength and apertures must be finite and positive "
                               f"(got {f:g}, {ha:g} x {va:g})")
-    if resolution is None:
-        resolution = check_resolution(640, max(1, round(640 * va / ha)), f"camera {cam_prim.GetPath()}")
+    if resolution is None:  # the aperture's aspect in pixels of the settings' aspect: no conforming
+        resolution = check_resolution(640, max(1, round(640 * va * conform[0] / ha)),
+                                      f"camera {cam_prim.GetPath()}")
     W, H = resolution
     intr = intrinsics_from_usd_camera(cam, W, H, t, *conform)
     near, far = cam.GetClippingRangeAttr().Get(t)

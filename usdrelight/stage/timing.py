@@ -110,8 +110,9 @@ def light_time_codes(stage) -> list[float]:
             continue
         chain = [prim]
         parent = prim.GetParent()
-        while parent and parent.IsA(UsdGeom.Xformable):
-            chain.append(parent)
+        while parent and not parent.IsPseudoRoot():  # through Scopes too: an Xform above one still moves it
+            if parent.IsA(UsdGeom.Xformable):
+                chain.append(parent)
             parent = parent.GetParent()
         for p in chain:
             for attr in p.GetAttributes():
