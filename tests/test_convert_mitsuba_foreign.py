@@ -315,3 +315,43 @@ def test_rect_light_texture_from_usd_is_written_in_usdlux_orientation(cli, tmp_p
     left, right = im[4:12, :8, 1].mean(), im[4:12, 8:, 1].mean()
     assert top > 1.5 and bottom < 0.1, (top, bottom)  # the file's top rows at the light's +Y, up in view
     assert left > 0.8 and right < 0.1, (left, right)  # st s = 0 at +X: the viewer's left when facing the light
+
+
+OLD_SCENE = """<scene version="{version}">
+  <integrator type="path"><integer name="{max_depth}" value="2"/></integrator>
+  <sensor type="perspective">
+    <float name="fov" value="45"/>
+    <string name="{fov_axis}" value="y"/>
+    <transform name="{to_world}"><{lookat} origin="0, 1, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
+  </sensor>
+  <shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+  <emitter type="point"><point name="position" x="2" y="3" z="2"/><rgb name="intensity" value="20"/></emitter>
+</scene>"""
+
+
+def test_a_mitsuba_0_5_scene_is_read_with_mitsuba_3s_names(cli, tmp_path):
+    """A Mitsuba 0.5-era file (camelCase names, toWorld, lookAt) reads as its Mitsuba 3 spelling does: the same
+    camera (at (0, 1, 5), 45 degrees vertically) and light; it used to lose its camera transform and field of
+    view with only "lookAt ignored"."""
+    from usdrelight.stage.read import read_scene
+
+    old = OLD_SCENE.format(version="0.5.0", max_depth="maxDepth", fov_axis="fovAxis", to_world="toWorld",
+                           lookat="lookAt")
+    new = OLD_SCENE.format(version="3.0.0", max_depth="max_depth", fov_axis="fov_axis", to_world="to_world",
+                           lookat="lookat")
+    scenes = {}
+    for name, text in (("old", old), ("new", new)):
+        (tmp_path / f"{name}.xml").write_text(text)
+        rc, _, err = cli("convert", tmp_path / f"{name}.xml", tmp_path / f"{name}.usda")
+        assert rc == 0, err
+        assert ("names upgraded to Mitsuba 3's" in err) == (name == "old"), err
+        scenes[name] = read_scene(open_stage(tmp_path / f"{name}.usda"))
+    a, b = scenes["old"], scenes["new"]
+    np.testing.assert_allclose(a.camera.to_world, b.camera.to_world, atol=1e-9)
+    np.testing.assert_allclose(a.camera.to_world[:3, 3], [0, 1, 5], atol=1e-9)
+    k = a.camera.intrinsics
+    assert np.degrees(2 * np.arctan(k.height / 2 / k.fy)) == pytest.approx(45.0, abs=1e-4)
+    assert k == b.camera.intrinsics
+    np.testing.assert_allclose(a.lights[0].radiance, b.lights[0].radiance)
+    np.testing.assert_allclose(a.lights[0].to_world[:3, 3], [2, 3, 2])

@@ -91,7 +91,25 @@ class XmlReader:
             raise UsdRelightError(f"{source}: malformed XML ({exc})") from None
         if root.tag != "scene":
             raise UsdRelightError(f"{source}: the root element must be <scene>, found <{root.tag}>")
+        self.upgrade(root)
         return root
+
+    def upgrade(self, root: ET.Element) -> None:
+        """A scene of Mitsuba 0.x (``version`` below 2.0.0, as many public scene sets still ship): its names
+        upgraded as Mitsuba 3's parser upgrades them (camelCase -> snake_case: ``toWorld`` -> ``to_world``,
+        ``maxDepth`` -> ``max_depth``), and ``<lookAt>`` read as ``<lookat>`` (which Mitsuba 3 itself refuses);
+        one warning line."""
+        m = re.match(r"\s*(\d+)", root.get("version", ""))
+        if not m or int(m.group(1)) >= 2:
+            return
+        for el in root.iter():
+            name = el.get("name")
+            if name:
+                el.set("name", re.sub(r"(?<=[a-z0-9])([A-Z])", lambda c: "_" + c.group(1).lower(), name))
+            if el.tag == "lookAt":
+                el.tag = "lookat"
+        self.warnings[f"Mitsuba {root.get('version')} scene (names upgraded to Mitsuba 3's: camelCase -> "
+                      f"snake_case, lookAt -> lookat)"] += 1
 
     def resolve(self, name: str, here: Path) -> Path:
         p = Path(name)
