@@ -1,14 +1,16 @@
 """``usdrelight convert SRC DST``: dispatch by suffix through the registry of :mod:`usdrelight.converters`.
 
 USD files (.usd/.usda/.usdc/.usdz) are opened by USD itself; other formats go through the converter
-registered for their suffix. USD -> USD flattens the composed stage; X -> USD saves the reader's layer at DST;
+registered for their suffix. USD -> USD flattens the composed stage (:mod:`.usd_copy`); X -> USD saves the
+reader's layer at DST; a .usdz DST is that layer as .usdc packaged with the files it references;
 X -> Y reads into a stage in memory and writes it. The options are the writer's (``spp``, ``max_depth``: see
 :mod:`usdrelight.converters`); writing USD takes none.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+import tempfile
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from usdrelight.atomic import atomic_path
@@ -19,6 +21,7 @@ from usdrelight.stage.validate import check_finite, open_stage
 from usdrelight.stage.versions import STAGE_LAYERS, VERSIONS, is_stage_folder
 
 from . import USD_SUFFIXES, check_options, converter_for
+from .usd_copy import write_copy, write_package
 
 
 def _is_usd(path: Path) -> bool:
@@ -93,14 +96,17 @@ def check_destination(dst: Path) -> None:
 
 
 def _convert(src: Path, dst: Path, reader, writer, options: dict) -> ConvertReport:
+    if writer is None and dst.suffix.lower() == ".usdz":  # USD writes no package layer: a .usdc, packaged
+        with tempfile.TemporaryDirectory(prefix="usdrelight-usdz-out-") as td:
+            inner = Path(td) / f"{dst.stem}.usdc"
+            report = _convert(src, inner, reader, None, options)
+            write_package(inner, dst)
+        return replace(report, files=[str(dst)])
     if reader is None:
         stage = open_stage(src)
         if writer is None:
             check_finite(stage, str(src))  # a flattened copy carries no NaN/Inf either
-            with atomic_path(dst) as tmp:
-                if not stage.Flatten().Export(str(tmp)):
-                    raise UsdRelightError(f"cannot write {dst}")
-            return ConvertReport([str(dst)])
+            return ConvertReport(write_copy(stage, dst))
         out = writer.write_to_file(stage, dst, **options)
         return ConvertReport(list(out.files), write_warnings=dict(out.warnings))
     if writer is None:

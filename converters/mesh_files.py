@@ -16,8 +16,8 @@ in these formats and are named in a warning.
 ``read_from_file("X.glb", usd_path=None) -> ReadReport``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
 points, triangles, normals and ``st``, and a UsdPreviewSurface from its glTF PBR or OBJ/MTL material (base
 colour factor x texture, emissive, metallic/roughness factors) and its vertex colours
-(``primvars:displayColor``); an embedded or MTL texture is written as ``textures/<mesh>_baseColor.png`` beside
-``usd_path`` (kept as a constant mean colour, with a warning, for an in-memory stage). Neither takes any other
+(``primvars:displayColor``); an embedded or MTL texture is written as
+``textures/<mesh>_baseColor_<sha8>.png`` (the digest of its bytes) beside ``usd_path`` (kept as a constant mean colour, with a warning, for an in-memory stage). Neither takes any other
 option (:data:`READ_OPTIONS`, :data:`WRITE_OPTIONS`); the formats are binary, so there are no ``*_string``
 twins.
 

@@ -10,12 +10,14 @@ What has no counterpart is counted in ``warnings`` (one line per kind), never dr
 """
 from __future__ import annotations
 
+import hashlib
+import io
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from usdrelight.atomic import atomic_path
+from usdrelight.atomic import write_bytes_atomic
 from usdrelight.imageio import linear_to_srgb, read_map, read_photo, srgb_to_linear
 from usdrelight.stage.create import author_lambertian, author_uv_texture, define_preview_material
 from usdrelight.stage.records import MaterialRecord, MeshRecord, TextureRecord
@@ -168,7 +170,7 @@ def vertex_colors(mesh, srgb: bool):
 
 
 def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings) -> None:
-    """``surf.input_name`` = factor x image: an sRGB PNG ``textures/<mesh>_<label>.png`` beside the USD file
+    """``surf.input_name`` = factor x image: an sRGB PNG ``textures/<mesh>_<label>_<sha8>.png`` beside the USD file
     whose UsdUVTexture ``scale`` is the factor (a stage in memory: the image's mean colour times the factor,
     warned); no image: the constant factor."""
     from pxr import Gf, Sdf
@@ -176,9 +178,11 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
     rgb = np.asarray(factor, np.float64)[:3]
     if image is not None and usd_dir is not None:
         name = look.rsplit("/", 1)[1]
-        rel = f"textures/{name}_{label}.png"
-        with atomic_path(Path(usd_dir) / rel) as tmp:
-            image.convert("RGB").save(tmp, format="PNG")
+        buf = io.BytesIO()
+        image.convert("RGB").save(buf, format="PNG")
+        # the digest of its bytes in the name: another file's texture of the same name never overwrites it
+        rel = f"textures/{name}_{label}_{hashlib.sha256(buf.getvalue()).hexdigest()[:8]}.png"
+        write_bytes_atomic(Path(usd_dir) / rel, buf.getvalue())
         tex = author_uv_texture(stage, surf, input_name, "./" + rel, "sRGB", f"{look}/{label[0].upper()}"
                                 f"{label[1:]}Texture", f"{look}/StReader", wrap="repeat")  # glTF's default wrap
         if np.any(rgb != 1.0):

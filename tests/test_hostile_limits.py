@@ -4,6 +4,7 @@ leave nothing but their outputs. Each asserts the exit status, the one line and 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import os
 import shutil
 
@@ -142,3 +143,34 @@ def test_a_blend_export_leaves_no_backup_or_hidden_file(cli, fitted, tmp_path):
         rc, _, err = cli("convert", fitted, out / "y.blend")
         assert rc == 0, err
     assert sorted(p.name for p in out.iterdir()) == ["y.blend"]
+
+
+def test_usd_packages_are_written_and_unpacked_ones_are_copied_not_referenced(cli, fitted, tmp_path):
+    """.usdz as a destination was an unexpected exception (exit 1): it is now the flattened layer packaged with
+    every file it references, and it opens, validates and reads as its source does. A .usdz source converted to
+    .usda pointed at files in the private folder removed at exit: they are now copied beside the copy."""
+    import subprocess
+    import sys
+
+    from usdrelight.stage.read import read_scene
+    from usdrelight.stage.validate import open_stage
+
+    pkg = tmp_path / "out" / "scene.usdz"
+    rc, out, err = cli("convert", fitted, pkg, "--json")
+    assert rc == 0, err
+    assert json.loads(out)["files"] == [str(pkg)]
+    src, back = read_scene(open_stage(fitted)), read_scene(open_stage(pkg))
+    assert [m.points.shape for m in back.meshes] == [m.points.shape for m in src.meshes]
+    tex = Path(back.meshes[0].material.diffuse.path)  # the albedo texture came inside the package
+    assert tex.parent.name == "textures" and tex.name.startswith("albedo_") and tex.is_file()
+    np.testing.assert_allclose([l.radiance for l in back.lights], [l.radiance for l in src.lights])
+    copy = tmp_path / "copy" / "scene.usda"
+    p = subprocess.run([sys.executable, "-m", "usdrelight", "convert", str(pkg), str(copy)],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "usdrelight-usdz" not in copy.read_text()  # nothing points into the removed folder
+    assert list((copy.parent / "textures").iterdir())
+    for path in (pkg, copy):  # in a fresh process: every dependency resolves
+        p = subprocess.run([sys.executable, "-m", "usdrelight", "validate", str(path), "--json"],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0 and json.loads(p.stdout)["errors"] == 0, (path, p.stdout[-800:], p.stderr)

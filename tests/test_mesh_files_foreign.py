@@ -171,3 +171,24 @@ def test_glb_writer_bakes_the_st_transform_into_uvs_and_writes_emissive(tmp_path
     np.testing.assert_allclose(np.sort(uv, 0), [[0.5, 0], [0.5, 0], [2.5, 2], [2.5, 2]], atol=1e-6)
     np.testing.assert_allclose(pbr.emissiveFactor, (0.5, 0.25, 0.0))
     assert out.warnings == {}
+
+
+def test_two_files_with_one_material_name_keep_their_own_textures_in_one_folder(tmp_path):
+    """Textures were written as textures/<material>_baseColor.png: a second file whose material has the same
+    name overwrote the first one's texture, and the first USD file showed the second's colours."""
+    from usdrelight.imageio import read_map
+
+    means = {}
+    for name, colour in (("green", (0, 255, 0)), ("red", (255, 0, 0))):
+        q = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 1, 2]], process=False)
+        img = Image.new("RGB", (4, 4), colour)
+        q.visual = trimesh.visual.TextureVisuals(uv=[[0, 0], [1, 0], [1, 1]], material=trimesh.visual.material.
+                                                 PBRMaterial(name="q", baseColorTexture=img))
+        q.export(tmp_path / f"{name}.glb")
+        (tmp_path / "out").mkdir(exist_ok=True)
+        read = mesh_files.read_from_file(tmp_path / f"{name}.glb", usd_path=tmp_path / "out" / f"{name}.usda")
+        read.stage.GetRootLayer().Save()
+    for name in ("green", "red"):
+        tex = read_scene(tmp_path / "out" / f"{name}.usda").meshes[0].material.diffuse
+        means[name] = read_map(tex.path, 3).reshape(-1, 3).mean(0)
+    assert means["green"][1] > 0.9 > means["green"][0] and means["red"][0] > 0.9 > means["red"][1]

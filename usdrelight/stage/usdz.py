@@ -28,6 +28,12 @@ _UNPACKED: dict[tuple, Path] = {}
 _TEMP_DIRS: list[Path] = []
 
 
+def unpacked_folders() -> tuple[Path, ...]:
+    """The private temporary folders this process unpacked .usdz packages into (removed at exit): a file under
+    one must be copied, never referenced, by anything written."""
+    return tuple(_TEMP_DIRS)
+
+
 def is_usdz(path) -> bool:
     """Whether ``path`` names a .usdz package (by its suffix)."""
     return Path(path).suffix.lower() == ".usdz"
