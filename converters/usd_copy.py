@@ -18,6 +18,7 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
+from usdrelight.safe_paths import check_read
 from usdrelight.stage.usdz import unpacked_folders
 
 #: The folder beside a copy (or inside a package) that copied files go to.
@@ -29,10 +30,12 @@ def _copied_name(path: Path) -> str:
     return f"{path.stem}_{digest}{path.suffix.lower()}"
 
 
-def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None) -> list[Path]:
+def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None, root: Path | None = None) -> list[Path]:
     """Copy the files the layer at ``layer_path`` references by absolute path (only those under one of
     ``under``; None: all) into ``ASSETS/`` beside it and point the layer at the copies (relative paths); returns
-    the files written. Asset values at the default time and in time samples, scalars and arrays."""
+    the files written. Asset values at the default time and in time samples, scalars and arrays. ``root``: the
+    source's folder: a file outside it (and outside ``--allow-path``) is one error, never copied
+    (:func:`usdrelight.safe_paths.check_read`)."""
     from pxr import Sdf
 
     layer = Sdf.Layer.FindOrOpen(str(layer_path))
@@ -49,6 +52,8 @@ def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None) -> 
             if under is not None and not any(d == src or d in src.parents for d in under):
                 return value
             if value.path not in written:
+                if root is not None:
+                    check_read(src, root, "file referenced by the stage")
                 folder.mkdir(exist_ok=True)
                 dst = folder / _copied_name(src)
                 if not dst.exists():
@@ -86,13 +91,14 @@ def write_copy(stage, dst: Path) -> list[str]:
     return [str(dst)] + [str(p) for p in copies]
 
 
-def write_package(inner: Path, dst: Path) -> Path:
+def write_package(inner: Path, dst: Path, root: Path | None) -> Path:
     """A .usdz package at ``dst`` of the layer ``inner`` (a .usdc in a private folder): the files it references
-    by absolute path copied beside it first (relative ones the packager finds itself), then packaged by USD;
-    written whole or not at all."""
+    by absolute path copied beside it first (only from inside ``root``, the source's folder, or an allowed
+    one; relative ones, which usdrelight's readers wrote after the same check, the packager finds itself), then
+    packaged by USD; written whole or not at all."""
     from pxr import Sdf, UsdUtils
 
-    localize_assets(inner)
+    localize_assets(inner, root=root)
     with atomic_path(dst) as tmp:
         if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(inner)), str(tmp)):
             raise UsdRelightError(f"cannot write the package {dst}")

@@ -174,3 +174,30 @@ def test_usd_packages_are_written_and_unpacked_ones_are_copied_not_referenced(cl
         p = subprocess.run([sys.executable, "-m", "usdrelight", "validate", str(path), "--json"],
                            capture_output=True, text=True, timeout=300)
         assert p.returncode == 0 and json.loads(p.stdout)["errors"] == 0, (path, p.stdout[-800:], p.stderr)
+
+
+def test_a_package_never_takes_in_a_file_from_outside_the_scene_folder(cli, tmp_path):
+    """A stage naming /some/other/place/secret.png as a texture: convert to .usdz would copy that file into the
+    package. It is refused as every scene read outside the scene's folder is, unless --allow-path allows it."""
+    from PIL import Image
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    Image.new("RGB", (2, 2), (200, 10, 10)).save(outside / "secret.png")
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "s.usda").write_text(f'''#usda 1.0
+def Material "M" {{
+    def Shader "T" {{
+        uniform token info:id = "UsdUVTexture"
+        asset inputs:file = @{outside / "secret.png"}@
+    }}
+}}
+''')
+    rc, _, err = cli("convert", scene / "s.usda", tmp_path / "out" / "s.usdz")
+    _one_error(rc, err, "secret.png", "outside")
+    assert not (tmp_path / "out").exists()
+    rc, _, err = cli("convert", scene / "s.usda", tmp_path / "out" / "s.usdz", "--allow-path", outside)
+    assert rc == 0, err
+    import zipfile
+    assert any(n.endswith(".png") for n in zipfile.ZipFile(tmp_path / "out" / "s.usdz").namelist())
