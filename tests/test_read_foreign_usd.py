@@ -229,3 +229,14 @@ def SphereLight "Key" {
     scene = read_scene(path)
     assert scene.meshes[0].material.diffuse == pytest.approx((0.8, 0.1, 0.1))  # as USD viewers show it
     assert any("fStop" in w for w in scene.warnings) and any("light filters" in w for w in scene.warnings)
+
+
+def test_multipliers_and_shadow_controls_under_the_old_names_are_warned(tmp_path):
+    path = _stage(tmp_path, '''
+def SphereLight "Old" {
+    float intensity = 5
+    float diffuse = 0.5
+    bool shadow:enable = 0
+}''')
+    w = read_scene(path).warnings
+    assert any("diffuse/specular multipliers" in k for k in w) and any("shadow:enable off" in k for k in w)

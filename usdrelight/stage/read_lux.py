@@ -143,14 +143,16 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
 def _ignored_lux(prim, warnings) -> None:
     """UsdLux controls no renderer here represents: diffuse/specular multipliers, ShadowAPI, light/shadow
     linking (one warning line per kind; README "UsdLux attributes not represented")."""
-    from pxr import UsdLux
+    from pxr import Usd, UsdLux
 
+    t = Usd.TimeCode.Default()
     api = UsdLux.LightAPI(prim)
-    if any(a.HasAuthoredValue() and float(a.Get()) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
+    if any(float(lux_get(a, t, warnings) or 1.0) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
         warnings["UsdLux diffuse/specular multipliers (ignored: 1 used)"] += 1
-    if prim.HasAPI(UsdLux.ShadowAPI):
-        sh = UsdLux.ShadowAPI(prim)
-        if sh.GetShadowEnableAttr().Get() is False or any(sh.GetShadowColorAttr().Get() or (0, 0, 0)):
+    sh = UsdLux.ShadowAPI(prim)  # applied, or authored under the names before 21.02 (shadow:enable ...)
+    if prim.HasAPI(UsdLux.ShadowAPI) or prim.GetAttribute("shadow:enable") or prim.GetAttribute("shadow:color"):
+        if lux_get(sh.GetShadowEnableAttr(), t, warnings) is False or \
+                any(lux_get(sh.GetShadowColorAttr(), t, warnings) or (0, 0, 0)):
             warnings["ShadowAPI shadow:enable off or shadow:color (ignored: black shadows cast)"] += 1
     if api.GetFiltersRel().GetTargets():
         warnings["UsdLux light filters (ignored)"] += 1
