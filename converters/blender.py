@@ -29,14 +29,14 @@ from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.layout import FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import emitted_radiance, set_light_rgb
-from usdrelight.stage.read import read_scene
+from usdrelight.stage.read import ellipsoid_mesh, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.timing import frame_time, light_time_codes
 from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
-from .blender_photo import photo_stage_payload, script_text
+from .blender_photo import photo_stage_payload, script_text, with_snapshot
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
 from .blender_animation import author_keys, light_keys, object_keys, scene_animation
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
@@ -60,16 +60,12 @@ CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "h
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
 def _shape_mesh(shape) -> MeshRecord:
-    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere: a 4-times subdivided icosphere, 5120
-    triangles, smooth normals; its area is 0.12% short of the sphere's)."""
+    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
+    :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
+    0.12% short of the sphere's)."""
     if shape.kind == "sphere":  # an icosphere: no poles (a UV sphere's pole showed a ring in Cycles)
-        import trimesh
-
-        ico = trimesh.creation.icosphere(subdivisions=4)
-        unit, faces = np.asarray(ico.vertices, np.float64), np.asarray(ico.faces, np.int64)
-        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-        normals = unit
-    elif shape.kind == "cube":
+        return ellipsoid_mesh(shape)
+    if shape.kind == "cube":
         unit, faces = [], []
         for axis in range(3):
             for sign in (-1.0, 1.0):
@@ -80,18 +76,14 @@ def _shape_mesh(shape) -> MeshRecord:
                 k = len(unit) * 4
                 faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]] if sign > 0 else [[k, k + 2, k + 1], [k, k + 3, k + 2]]
                 unit.append(quad)
-        unit, faces, normals = np.concatenate(unit), np.asarray(faces), None
+        unit, faces = np.concatenate(unit), np.asarray(faces)
     else:  # rectangle [-1, 1]^2 in z = 0, normal +Z
-        unit, faces, normals = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), \
-            np.array([[0, 1, 2], [0, 2, 3]]), None
+        unit, faces = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]])
     m = shape.to_world
     pts = unit @ m[:3, :3].T + m[:3, 3]
-    if normals is not None:
-        normals = normals @ np.linalg.inv(m[:3, :3])
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     if np.linalg.det(m[:3, :3]) < 0:
         faces = faces[:, ::-1]
-    return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), normals, None, shape.material)
+    return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), None, None, shape.material)
 
 
 def _lux_warnings(light, warnings) -> None:
@@ -230,7 +222,7 @@ def blender_lights(path) -> BlenderLights:
         raise UsdRelightError(f"file not found: {path}")
     with tempfile.TemporaryDirectory() as td:
         script = Path(td) / "dump.py"
-        script.write_text(DUMP_SCRIPT.read_text())
+        script.write_text(with_snapshot(DUMP_SCRIPT.read_text()))
         out = Path(td) / "lights.json"
         run_blender(script, str(path.absolute()), str(out))
         dump = json.loads(out.read_text())

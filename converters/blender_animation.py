@@ -28,7 +28,7 @@ import numpy as np
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
-from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range
+from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range, xformable_ancestors
 
 from .blender_units import light_to_blender
 
@@ -88,17 +88,13 @@ def _xform_codes(prim) -> tuple[set[float], bool]:
     """The time codes of every transform op sample on ``prim`` and its ancestors (up to the root, through
     Scopes), and whether any sampled op is other than a translate (then USD's per-op interpolation between two
     samples is not Blender's linear one of location / quaternion / scale)."""
-    from pxr import UsdGeom
-
     codes: set[float] = set()
     curved = False
-    while prim and not prim.IsPseudoRoot():
-        if prim.IsA(UsdGeom.Xformable):
-            for attr in prim.GetAttributes():
-                if attr.GetName().startswith("xformOp:") and attr.GetNumTimeSamples():
-                    codes.update(attr.GetTimeSamples())
-                    curved |= not attr.GetName().startswith("xformOp:translate")
-        prim = prim.GetParent()
+    for p in [prim] + xformable_ancestors(prim):
+        for attr in p.GetAttributes():
+            if attr.GetName().startswith("xformOp:") and attr.GetNumTimeSamples():
+                codes.update(attr.GetTimeSamples())
+                curved |= not attr.GetName().startswith("xformOp:translate")
     return codes, curved
 
 
@@ -122,9 +118,12 @@ def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> l
     from pxr import Usd, UsdGeom
 
     mpu = stage_meters_per_unit(stage)
+    caches: dict[float, UsdGeom.XformCache] = {}  # one per time code, shared by every object keyed there
 
     def world(prim, t):
-        m = gf_to_np(UsdGeom.XformCache(t).GetLocalToWorldTransform(prim))
+        if t.GetValue() not in caches:
+            caches[t.GetValue()] = UsdGeom.XformCache(t)
+        m = gf_to_np(caches[t.GetValue()].GetLocalToWorldTransform(prim))
         m[:3, :] *= mpu
         if not np.all(np.isfinite(m)):
             raise UsdRelightError(f"{prim.GetPath()} has a non-finite transform at time code {t.GetValue():g}")

@@ -49,7 +49,16 @@ def photo_stage_payload(stage, rec, data_dir: Path) -> dict | None:
     return spec
 
 
+SNAPSHOT = Path(__file__).resolve().parent / "blender_snapshot.py.txt"
+"""``snapshot(obj)``, which the scene script and the light dump share (put in at their ``# __SNAPSHOT__`` line)."""
+
+
+def with_snapshot(script: str) -> str:
+    """A Blender script's text with the shared ``snapshot`` function put in at its ``# __SNAPSHOT__`` line."""
+    return script.replace("# __SNAPSHOT__", SNAPSHOT.read_text().strip("\n"))
+
+
 def script_text(payload: dict) -> str:
     """The scene script for ``payload`` (bpy; builds the .blend, bakes F for a photo stage)."""
-    text = TEMPLATE.read_text().replace("# __PHOTO_STAGE__", COMPOSITE.read_text().strip("\n"))
+    text = with_snapshot(TEMPLATE.read_text()).replace("# __PHOTO_STAGE__", COMPOSITE.read_text().strip("\n"))
     return text.replace("__SCENE_JSON__", json.dumps(payload))

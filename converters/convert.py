@@ -15,8 +15,9 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
-from usdrelight.safe_paths import confined_path, made_folders, stage_folder, writable_parent
+from usdrelight.safe_paths import confined_path, made_folders, writable_parent
 from usdrelight.stage.timing import parse_frames
+from usdrelight.stage.usdz import is_usdz, unpack_usdz
 from usdrelight.stage.validate import check_finite, open_stage
 from usdrelight.stage.versions import STAGE_LAYERS, VERSIONS, is_stage_folder
 
@@ -100,7 +101,7 @@ def _convert(src: Path, dst: Path, reader, writer, options: dict) -> ConvertRepo
         with tempfile.TemporaryDirectory(prefix="usdrelight-usdz-out-") as td:
             inner = Path(td) / f"{dst.stem}.usdc"
             report = _convert(src, inner, reader, None, options)
-            root = stage_folder(open_stage(src)) if reader is None else src.resolve().parent
+            root = unpack_usdz(src).parent if is_usdz(src) else src.resolve().parent  # the source's folder
             write_package(inner, dst, root)
         return replace(report, files=[str(dst)])
     if reader is None:

@@ -30,18 +30,17 @@ def _copied_name(path: Path) -> str:
     return f"{path.stem}_{digest}{path.suffix.lower()}"
 
 
-def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None, root: Path | None = None) -> list[Path]:
-    """Copy the files the layer at ``layer_path`` references by absolute path (only those under one of
-    ``under``; None: all) into ``ASSETS/`` beside it and point the layer at the copies (relative paths); returns
-    the files written. Asset values at the default time and in time samples, scalars and arrays. ``root``: the
-    source's folder: a file outside it (and outside ``--allow-path``) is one error, never copied
-    (:func:`usdrelight.safe_paths.check_read`)."""
+def localize_assets(layer, beside: Path, under: tuple[Path, ...] | None = None, root: Path | None = None,
+                    made: list[Path] | None = None) -> list[Path]:
+    """Copy the files the Sdf ``layer`` (in memory) references by absolute path (only those under one of
+    ``under``; None: all) into ``ASSETS/`` in the folder ``beside``, where the layer will be saved, and point the
+    layer at the copies (relative paths); returns the files written. Asset values at the default time and in
+    time samples, scalars and arrays. ``root``: the source's folder: a file outside it (and outside
+    ``--allow-path``) is one error, never copied (:func:`usdrelight.safe_paths.check_read`). ``made``: gets the
+    copies this call created (not those already there, of the same bytes)."""
     from pxr import Sdf
 
-    layer = Sdf.Layer.FindOrOpen(str(layer_path))
-    if layer is None:
-        raise UsdRelightError(f"cannot read back {layer_path}")
-    folder = layer_path.parent / ASSETS
+    folder = beside / ASSETS
     written: dict[str, Path] = {}
 
     def local(value):
@@ -58,6 +57,8 @@ def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None, roo
                 dst = folder / _copied_name(src)
                 if not dst.exists():
                     shutil.copyfile(src, dst)
+                    if made is not None:
+                        made.append(dst)
                 written[value.path] = dst
             return Sdf.AssetPath(f"./{ASSETS}/{written[value.path].name}")
         if isinstance(value, Sdf.AssetPathArray):
@@ -76,18 +77,23 @@ def localize_assets(layer_path: Path, under: tuple[Path, ...] | None = None, roo
             layer.SetTimeSample(path, t, local(layer.QueryTimeSample(path, t)))
 
     layer.Traverse(Sdf.Path.absoluteRootPath, visit)
-    if written:
-        layer.Save()
     return sorted(set(written.values()))
 
 
 def write_copy(stage, dst: Path) -> list[str]:
     """The flattened ``stage`` at ``dst`` (.usda/.usdc/.usd), files of a .usdz source copied beside it. Returns
     the files written, ``dst`` first."""
-    with atomic_path(dst) as tmp:
-        if not stage.Flatten(False).Export(str(tmp)):  # no comment naming the source file
-            raise UsdRelightError(f"cannot write {dst}")
-        copies = localize_assets(tmp, unpacked_folders())
+    flat = stage.Flatten(False)  # no comment naming the source file
+    made: list[Path] = []
+    try:
+        copies = localize_assets(flat, dst.parent, unpacked_folders(), made=made)
+        with atomic_path(dst) as tmp:
+            if not flat.Export(str(tmp)):
+                raise UsdRelightError(f"cannot write {dst}")
+    except BaseException:
+        for p in made:  # a copy that failed leaves none of the files it made behind
+            p.unlink(missing_ok=True)
+        raise
     return [str(dst)] + [str(p) for p in copies]
 
 
@@ -98,7 +104,11 @@ def write_package(inner: Path, dst: Path, root: Path | None) -> Path:
     packaged by USD; written whole or not at all."""
     from pxr import Sdf, UsdUtils
 
-    localize_assets(inner, root=root)
+    layer = Sdf.Layer.FindOrOpen(str(inner))
+    if layer is None:
+        raise UsdRelightError(f"cannot read back {inner}")
+    if localize_assets(layer, inner.parent, root=root):
+        layer.Save()
     with atomic_path(dst) as tmp:
         if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(inner)), str(tmp)):
             raise UsdRelightError(f"cannot write the package {dst}")

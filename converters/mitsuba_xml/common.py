@@ -6,6 +6,7 @@ never each other.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -63,6 +64,17 @@ class Plugin:
     """Folder of the file that declared it (relative file names resolve against it)."""
     resolved: str | None = None
     """Absolute path of its ``filename`` property once resolved (see parse.attach_paths)."""
+
+
+def kept_extra(prim) -> dict:
+    """What the XML reader kept of a Mitsuba-only value on ``prim``: its ``customData["mitsuba"]`` JSON object
+    ({} when there is none, or it is not a JSON object)."""
+    data = prim.GetCustomDataByKey("mitsuba") if prim else None
+    try:
+        extra = json.loads(data) if isinstance(data, str) else {}
+    except ValueError:
+        return {}
+    return extra if isinstance(extra, dict) else {}
 
 
 def rel_path(path: str, base: Path) -> str:

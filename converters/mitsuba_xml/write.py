@@ -30,11 +30,12 @@ from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, 
 from usdrelight.mitsuba.textures import baked_texels
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
+from usdrelight.stage.read_lux import RECT_TEXTURE_WARNING  # the XML export writes it: it takes it back
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
 from ..report import WriteReport, check_options
-from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, VECTOR_KEYS, rel_path
+from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, VECTOR_KEYS, kept_extra, rel_path
 
 #: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
 #: integrator's path length as in Mitsuba (2 = direct light only, 3 = one indirect bounce). A sampler or
@@ -199,14 +200,7 @@ def _custom_mitsuba(stage, rec) -> dict:
 
     path = stage.GetMetadata("renderSettingsPrimPath") or ""
     prim = stage.GetPrimAtPath(path) if path else None
-    if prim and prim.IsA(UsdRender.Settings):
-        data = prim.GetCustomDataByKey("mitsuba")
-        if data:
-            try:
-                return json.loads(data)
-            except (TypeError, ValueError):
-                return {}
-    return {}
+    return kept_extra(prim) if prim and prim.IsA(UsdRender.Settings) else {}
 
 
 def _restore_sampling(extra: dict, d: dict) -> None:
@@ -222,12 +216,8 @@ def _restore_sampling(extra: dict, d: dict) -> None:
 def _restore_extras(stage, d: dict) -> None:
     """Put back Mitsuba-only properties kept in customData['mitsuba'] by the XML reader."""
     for prim in stage.Traverse():
-        data = prim.GetCustomDataByKey("mitsuba")
-        if not data:
-            continue
-        try:
-            extra = json.loads(data)
-        except (TypeError, ValueError):
+        extra = kept_extra(prim)
+        if not extra:
             continue
         key = safe_name(str(prim.GetPath()))
         if key in d and isinstance(d[key], dict):
@@ -246,10 +236,6 @@ def _restore_extras(stage, d: dict) -> None:
                     isinstance(d[key].get("intensity"), dict):  # the UsdLux colour was the texture's mean
                 value = np.asarray(d[key]["intensity"]["value"], np.float64)
                 d[key]["intensity"]["value"] = [float(v / m) if m > 0 else 0.0 for v, m in zip(value, mean)]
-
-
-#: What the stage reader says of a RectLight texture; the XML export writes the texture, so it takes the warning back.
-RECT_TEXTURE_WARNING = "RectLight texture (ignored; uniform radiance used)"
 
 
 def _restore_area_lights(stage, rec, d: dict) -> None:
@@ -272,11 +258,7 @@ def _restore_area_lights(stage, rec, d: dict) -> None:
                 not isinstance(entry.get("emitter"), dict):
             continue
         prim = stage.GetPrimAtPath(light.path)
-        try:
-            extra = json.loads(prim.GetCustomDataByKey("mitsuba") or "{}")
-        except (TypeError, ValueError):
-            extra = {}
-        extra = extra if isinstance(extra, dict) else {}
+        extra = kept_extra(prim)
         flip = extra.get(FLIP_NORMALS_KEY) is True and light.kind in ("disk", "sphere")
         if flip:
             if light.kind != "sphere":  # the USD frame is Mitsuba's (x, y, z): undo the writer's FLIP_Z

@@ -30,6 +30,14 @@ def world_scale(m: np.ndarray) -> np.ndarray:
     return np.linalg.norm(m[:3, :3], axis=0)
 
 
+def uniform_scale(m: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether the 3x3 part of ``m`` is a rotation (or a reflection) times one scale: no stretch, no shear
+    (M^T M = s I to ``tol`` relative)."""
+    g = m[:3, :3].T @ m[:3, :3]
+    s = np.trace(g) / 3.0
+    return bool(s > 0 and np.abs(g - s * np.eye(3)).max() <= tol * s)
+
+
 def world_area(light: LightRecord) -> float:
     """World-space emitting area used by ``normalize``."""
     sx, sy, sz = world_scale(light.to_world)

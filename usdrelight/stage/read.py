@@ -31,6 +31,7 @@ from ..errors import UsdRelightError
 from ..imageio import check_resolution
 from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, read_material, read_mesh
+from .lux import uniform_scale
 from .read_lux import read_light
 from .validate import open_stage
 from .records import CameraRecord, LightRecord, MeshRecord, ProductRecord, RenderVarRecord, SceneRecord, \
@@ -165,14 +166,6 @@ def _shape(prim, xf, mat, t) -> ShapeRecord | None:
     return None
 
 
-def _similarity(m: np.ndarray, tol: float = 1e-6) -> bool:
-    """Whether the 3x3 part of ``m`` is a rotation (or reflection) times one uniform scale."""
-    a = m[:3, :3]
-    g = a.T @ a
-    s = np.trace(g) / 3.0
-    return bool(s > 0 and np.abs(g - s * np.eye(3)).max() <= tol * s)
-
-
 def ellipsoid_mesh(shape: ShapeRecord, subdivisions: int = 4) -> MeshRecord:
     """A sphere gprim under a non-uniform scale as the ellipsoid it is: a unit icosphere (``subdivisions`` times
     subdivided: 5120 triangles at 4; no poles, whose thin triangles show a ring in Cycles) mapped by
@@ -274,7 +267,7 @@ def read_scene(stage, time=None) -> SceneRecord:
             raise UsdRelightError(f"{prim.GetPath()} has a non-finite size")
         if shape is None:
             warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
-        elif shape.kind == "sphere" and not _similarity(shape.to_world):
+        elif shape.kind == "sphere" and not uniform_scale(shape.to_world):
             meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
         else:
             shapes.append(shape)

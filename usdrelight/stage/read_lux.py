@@ -12,9 +12,12 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import check_image_size
 from ..safe_paths import check_read, stage_folder
+from .lux import uniform_scale
 from .records import LightRecord, TextureRecord
 
 
+#: Counted for a RectLight with a texture (the renderers use its uniform radiance; the Mitsuba XML export writes it).
+RECT_TEXTURE_WARNING = "RectLight texture (ignored; uniform radiance used)"
 OLD_LUX_NAMES = "pre-21.02 UsdLux attribute names, without 'inputs:' (read)"
 
 
@@ -97,8 +100,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         s = UsdLux.SphereLight(prim)
         r = float(lux_get(s.GetRadiusAttr(), t, warnings))
         point = bool(lux_get(s.GetTreatAsPointAttr(), t, warnings)) or r == 0.0
-        a = xf[:3, :3].T @ xf[:3, :3]
-        if not point and np.abs(a - np.trace(a) / 3 * np.eye(3)).max() > 1e-6 * np.trace(a) / 3:
+        if not point and not uniform_scale(xf):
             warnings["SphereLight under a non-uniform scale (rendered as a sphere, not an ellipsoid)"] += 1
         return LightRecord(kind="sphere", radius=r, treat_as_point=point,
                            **common)
@@ -109,7 +111,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         r = UsdLux.RectLight(prim)
         tex = lux_get(r.GetTextureFileAttr(), t, warnings)
         if tex and tex.path:
-            warnings["RectLight texture (ignored; uniform radiance used)"] += 1
+            warnings[RECT_TEXTURE_WARNING] += 1
         return LightRecord(kind="rect", width=float(lux_get(r.GetWidthAttr(), t, warnings)),
                            height=float(lux_get(r.GetHeightAttr(), t, warnings)),
                            **common)

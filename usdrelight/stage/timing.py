@@ -98,23 +98,31 @@ def parse_frames(text: str | None, stage=None) -> list[float]:
     return [start + i * step for i in range(count)]
 
 
+def xformable_ancestors(prim) -> list:
+    """The Xformable prims above ``prim``, nearest first, up to the root: through Scopes and other prims that do
+    not transform (an animated Xform above a Scope still moves what is below it)."""
+    from pxr import UsdGeom
+
+    out = []
+    parent = prim.GetParent()
+    while parent and not parent.IsPseudoRoot():
+        if parent.IsA(UsdGeom.Xformable):
+            out.append(parent)
+        parent = parent.GetParent()
+    return out
+
+
 def light_time_codes(stage) -> list[float]:
     """Every time code at which any light attribute or transform of ``stage`` has a sample, sorted (for
     tools that key what a stage authors, e.g. the Blender converter)."""
-    from pxr import UsdGeom, UsdLux
+    from pxr import UsdLux
 
     codes: set[float] = set()
     for prim in stage.Traverse():
         if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
                 prim.IsA(UsdLux.NonboundableLightBase)):
             continue
-        chain = [prim]
-        parent = prim.GetParent()
-        while parent and not parent.IsPseudoRoot():  # through Scopes too: an Xform above one still moves it
-            if parent.IsA(UsdGeom.Xformable):
-                chain.append(parent)
-            parent = parent.GetParent()
-        for p in chain:
+        for p in [prim] + xformable_ancestors(prim):
             for attr in p.GetAttributes():
                 codes.update(attr.GetTimeSamples())
     return sorted(codes)
