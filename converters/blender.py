@@ -91,6 +91,8 @@ def _lux_warnings(light, warnings) -> None:
     sc = np.linalg.norm(light.to_world[:3, :3], axis=0)
     if light.kind == "sphere" and not light.treat_as_point and np.ptp(sc) > 1e-6 * sc.max():
         warnings["SphereLight under a non-uniform scale (Cycles: a sphere of the geometric-mean radius)"] += 1
+    if light.kind == "rect" and light.texture is not None:
+        warnings["RectLight texture (Cycles: a uniform area light of the texture's mean radiance, same power)"] += 1
     if light.cone_angle_deg is not None and light.kind != "sphere":
         warnings["ShapingAPI on a disk, rect, distant, dome or mesh light in the Blender converter (ignored)"] += 1
     elif light.cone_angle_deg is not None and light.cone_softness > 0.5 and \

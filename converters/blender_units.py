@@ -7,7 +7,7 @@
 | + ShapingAPI | SPOT | P = 4 pi I, spot_size = 2 coneAngle, spot_blend: the fade sending the same cone power | spot |
 | SphereLight radius r | POINT, radius r | P = 4 pi^2 r^2 L | sphere + area, radiance L |
 | DiskLight radius r | AREA DISK, size 2r (ELLIPSE 2r sx x 2r sy under a non-uniform scale) | P = pi L (pi r^2 sx sy) | disk + area |
-| RectLight w x h | AREA RECTANGLE w x h | P = pi L w h | rectangle + area |
+| RectLight w x h | AREA RECTANGLE w x h (a texture: its mean) | P = pi L w h | rectangle + area (bitmap) |
 | DistantLight | SUN, angle = angle | strength E = L (W/m^2) | directional, irradiance L |
 | DomeLight | World Background | colour L, or env texture x L | constant / envmap |
 
@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
+from usdrelight.imageio import read_texture_rgb
 from usdrelight.stage.lux import emitted_radiance, split_rgb, world_scale
 from usdrelight.stage.records import LightRecord
 
@@ -89,8 +90,11 @@ def cone_softness(half_angle: float, blend: float) -> float:
 
 
 def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
-    """Plain description of the Blender light for a UsdLux light record."""
+    """Plain description of the Blender light for a UsdLux light record (a textured RectLight: uniform, the
+    texture's mean radiance, so that it sends the same power)."""
     L = emitted_radiance(light)
+    if light.kind == "rect" and light.texture is not None:
+        L = L * read_texture_rgb(light.texture.path, light.texture.linear).reshape(-1, 3).mean(0)
     peak, color = split_rgb(L)
     color = list(color)
     conv = Y_UP_TO_Z_UP if up_axis == "Y" else np.eye(4)

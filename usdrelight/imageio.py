@@ -155,6 +155,16 @@ def read_photo(path: str | os.PathLike) -> np.ndarray:
     return np.ascontiguousarray(np.maximum(rgb, 0.0), dtype=np.float32)
 
 
+def read_texture_rgb(path: str | os.PathLike, linear: bool) -> np.ndarray:
+    """A light's texture as (H, W, 3) float32 linear RGB: texels sRGB-decoded unless ``linear`` (as
+    :attr:`usdrelight.stage.records.TextureRecord.linear` decides and Mitsuba decodes), grey replicated, alpha
+    dropped; NaN, Inf and negative texels read as 0 (no light)."""
+    pixels, _ = read_raw(path)
+    rgb = np.repeat(pixels[:, :, :1], 3, axis=2) if pixels.shape[2] <= 2 else pixels[:, :, :3]
+    rgb = rgb if linear else srgb_to_linear(rgb)
+    return np.ascontiguousarray(np.maximum(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), 0.0), np.float32)
+
+
 def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
     """Read a data map (depth, point map, albedo, mask) without colour conversion.
 

@@ -8,7 +8,7 @@ opacityThreshold is baked instead, thresholded (:mod:`usdrelight.mitsuba.cutout`
 and frames as in :mod:`usdrelight.stage.lux` and :mod:`usdrelight.mitsuba.scene_dict`. Mitsuba-only values the
 XML reader kept in ``customData["mitsuba"]`` (a spot's projected texture, the integrator, a rough BSDF's microfacet
 distribution, an area light's texture or flip_normals) are put back; a RectLight's ``inputs:texture:file`` is
-written as the rectangle's bitmap radiance (:func:`_restore_area_lights`).
+written as the rectangle's bitmap radiance (:func:`usdrelight.mitsuba.textures.rect_radiance_bitmap`).
 """
 from __future__ import annotations
 
@@ -27,10 +27,9 @@ from usdrelight.imageio import read_photo, write_image
 from usdrelight.safe_paths import check_read, stage_folder
 from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, scene_dict, texture_value
-from usdrelight.mitsuba.textures import baked_texels
+from usdrelight.mitsuba.textures import baked_texels, mirrored_texels
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
-from usdrelight.stage.read_lux import RECT_TEXTURE_WARNING  # the XML export writes it: it takes it back
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
@@ -73,17 +72,10 @@ def _local_file(path: str, base: Path, files: list) -> str:
 _FLOAT_IMAGES = (".exr", ".hdr", ".pfm")
 
 
-def _mirrored_texels(d: dict) -> np.ndarray:
-    """A bitmap's texels (decoded as Mitsuba does: sRGB for 8-bit files unless ``raw``) mirrored left-right."""
-    linear = d.get("raw") is True or d["filename"].lower().endswith(_FLOAT_IMAGES)
-    unit = {"channel": "rgb", "linear": linear, "scale": [1.0] * 4, "bias": [0.0] * 4}
-    return np.ascontiguousarray(baked_texels({"filename": d["filename"], "bake": unit})[:, ::-1])
-
-
 #: bitmap dict keys whose texels are computed, not read: key -> (file label, texels(d) -> float image), in order
 #: (a RectLight's scaled texture is baked first, then mirrored: :func:`_restore_area_lights`)
 _BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("bake", "baked", baked_texels),
-                  ("mirror_u", "mirrored", _mirrored_texels))
+                  ("mirror_u", "mirrored", mirrored_texels))
 
 
 def _baked_bitmap(d: dict, key: str, label: str, texels, base: Path, files: list) -> dict:
@@ -239,18 +231,13 @@ def _restore_extras(stage, d: dict) -> None:
 
 
 def _restore_area_lights(stage, rec, d: dict) -> None:
-    """Area lights' textures and sides, as the XML reader wrote them (``area_lights``): a RectLight's
-    ``inputs:texture:file`` (any stage's) becomes the rectangle's bitmap radiance, scaled by the light's radiance
-    (colour x intensity, normalize applied) and mirrored left-right (``textures/<stem>_mirrored_<hash>.exr``): UsdLux
-    puts the file's first texel (top-left) at the light's (+X, +Y), Mitsuba's bitmap has it at the rectangle's uv
-    (0, 0), its local (-1, -1), the light's (-X, +Y) (the light frame is FLIP_Z). (Not the bitmap's ``to_uv``
-    u -> 1 - u: Mitsuba importance-samples the texels ignoring to_uv, unbiased but far noisier; nor a flipped
-    rectangle turned round: Mitsuba 3.9 renders a flipped rectangle with a textured radiance nearly black.) A disk,
-    sphere or mesh light whose customData keeps a texture (``area_texture``: its colour is the texture's mean) gets
-    the texture back, scaled by radiance / mean; a disk or sphere marked ``flip_normals`` is written as that shape
-    with flip_normals, as it was read."""
-    from pxr import UsdLux
-
+    """Area lights' textures and sides, as the XML reader wrote them (``area_lights``). A disk, sphere or mesh
+    light whose customData keeps a texture (``area_texture``: its colour is the texture's mean) gets the texture
+    back, scaled by radiance / mean; a disk or sphere marked ``flip_normals`` is written as that shape with
+    flip_normals, as it was read. (A RectLight's ``inputs:texture:file``, any stage's, is already the rectangle's
+    bitmap radiance in the scene dict, :func:`usdrelight.mitsuba.textures.rect_radiance_bitmap`: scaled by the
+    light's radiance and mirrored left-right into ``textures/<stem>_mirrored_<hash>.exr``; not a flipped rectangle
+    turned round: Mitsuba 3.9 renders a flipped rectangle with a textured radiance nearly black.)"""
     root = stage_folder(stage)
     for light in rec.lights:
         entry = d.get(safe_name(light.path))
@@ -264,21 +251,11 @@ def _restore_area_lights(stage, rec, d: dict) -> None:
             if light.kind != "sphere":  # the USD frame is Mitsuba's (x, y, z): undo the writer's FLIP_Z
                 entry["to_world"] = Matrix(entry["to_world"].m @ FLIP_Z)
             entry["flip_normals"] = True
+        if light.kind == "rect":  # its texture, if any, is the scene dict's already (rect_radiance_bitmap)
+            continue
         radiance = np.asarray(entry["emitter"]["radiance"]["value"], np.float64)
         kept = extra.get(AREA_TEXTURE_KEY)
-        if light.kind == "rect":
-            asset = UsdLux.RectLight(prim).GetTextureFileAttr().Get()
-            if asset is None or not asset.path:
-                continue
-            if not asset.resolvedPath:
-                raise UsdRelightError(f"RectLight texture not found: {asset.path} ({light.path})")
-            path = str(check_read(asset.resolvedPath, root, f"RectLight texture ({light.path})"))
-            entry["emitter"]["radiance"] = {**_radiance_bitmap(path, radiance, {}), "mirror_u": True}
-            if rec.warnings.get(RECT_TEXTURE_WARNING, 0) > 1:
-                rec.warnings[RECT_TEXTURE_WARNING] -= 1
-            else:
-                rec.warnings.pop(RECT_TEXTURE_WARNING, None)
-        elif isinstance(kept, dict) and isinstance(kept.get("file"), str) and isinstance(kept.get("mean"), list) \
+        if isinstance(kept, dict) and isinstance(kept.get("file"), str) and isinstance(kept.get("mean"), list) \
                 and len(kept["mean"]) == 3:
             path = str(check_read(stage.GetRootLayer().ComputeAbsolutePath(kept["file"]), root,
                                   f"area light texture ({light.path})"))

@@ -187,7 +187,7 @@ class FastRenderer:
         if light.kind == "sphere":
             return sphere_light(tr, light, s, rng)
         if light.kind in ("disk", "rect"):
-            return planar_light(tr, light, s, rng)
+            return planar_light(tr, light, s, rng, self.textures)
         if light.kind == "distant":
             return distant_light(tr, light, s, rng)
         if light.kind == "dome":

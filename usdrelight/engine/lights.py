@@ -10,7 +10,9 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
 * sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
-* disk / rect: stratified area sampling, one-sided emission towards the light's -Z;
+* disk / rect: stratified area sampling, one-sided emission towards the light's -Z; a RectLight's texture
+  weights each sample by its texel (UsdLux: the file's top-left texel at the light's local (+X, +Y) corner,
+  bottom-right at (-X, -Y); bilinear, wrapping and decoded as the Mitsuba scene's bitmap);
 * distant: irradiance L along the light's -Z, sharp (angle 0) or spread over the cone of its angular diameter;
 * dome: through the cached environment basis (cell radiances: the latlong texture averaged over each world
   cell, with the dome's rotation), so unoccluded cosine-weighted visibility is exact per cell.
@@ -22,9 +24,9 @@ import math
 
 import numpy as np
 
-from ..imageio import read_photo
+from ..imageio import read_photo, read_texture_rgb
 from ..stage.lux import emitted_radiance, light_direction, world_area, world_scale
-from ..stage.records import LightRecord
+from ..stage.records import LightRecord, TextureRecord
 from ..transport.basis import LightTransport
 from ..transport.sampling import direction_to_cell, shifted_grid, stratified, tangent_frames
 
@@ -107,8 +109,34 @@ def _sphere_weight(tr, o, w, dist, n, radius, u) -> np.ndarray:
     return 2.0 * (1.0 - cos_max) * np.mean(vis * cos_x, axis=1)
 
 
-def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
-    """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``)."""
+def light_texels(tex: TextureRecord, textures: dict) -> np.ndarray:
+    """(H, W, 3) float64 linear texels of a RectLight's texture (:func:`usdrelight.imageio.read_texture_rgb`),
+    read once into ``textures``."""
+    key = ("rect", tex.path, tex.linear)
+    if key not in textures:
+        textures[key] = read_texture_rgb(tex.path, tex.linear).astype(np.float64)
+    return textures[key]
+
+
+def rect_texture_at(light: LightRecord, local: np.ndarray, textures: dict) -> np.ndarray:
+    """(S, 3) texel values at points ``local`` (S, 3) of a textured rect light in its own frame: image column
+    (1/2 - x / width) W, row (1/2 - y / height) H, bilinear between texel centres, wrapping round at the edges
+    as Mitsuba's bitmap does by default (the reference renderer's lookup)."""
+    img = light_texels(light.texture, textures)
+    h, w = img.shape[:2]
+    cx = (0.5 - local[:, 0] / light.width) * w - 0.5
+    cy = (0.5 - local[:, 1] / light.height) * h - 0.5
+    fx, fy = (cx - np.floor(cx))[:, None], (cy - np.floor(cy))[:, None]
+    x0, y0 = np.floor(cx).astype(int) % w, np.floor(cy).astype(int) % h
+    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
+    """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``); a rect's
+    texture weights each point by its texel (:func:`rect_texture_at`; texels read once into ``textures``)."""
     surf = tr.surface
     u1, u2 = stratified(1, samples, rng)
     u1, u2 = u1[0], u2[0]
@@ -118,10 +146,12 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
     else:
         local = np.stack([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, np.zeros_like(u1)], 1)
     ys = local @ light.to_world[:3, :3].T + light.to_world[:3, 3]
+    textured = light.kind == "rect" and light.texture is not None
+    texel = rect_texture_at(light, local, {} if textures is None else textures) if textured else None
     n_l = light_direction(light)
     o = tr.origins
-    acc = np.zeros(surf.n_pixels)
-    for y in ys:  # one shadow-ray batch per light sample: memory stays at N rays
+    acc = np.zeros((surf.n_pixels, 3) if textured else surf.n_pixels)
+    for i, y in enumerate(ys):  # one shadow-ray batch per light sample: memory stays at N rays
         v = y[None] - o
         dist = np.linalg.norm(v, axis=1)
         om = v / np.maximum(dist, 1e-300)[:, None]
@@ -129,9 +159,15 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
         live = g > 0
         if live.any():
             vis = tr.visible(o[live], om[live], dist[live])
-            acc[np.nonzero(live)[0][vis]] += g[live][vis]
+            hit = np.nonzero(live)[0][vis]
+            if textured:
+                acc[hit] += g[live][vis][:, None] * texel[i][None, :]
+            else:
+                acc[hit] += g[live][vis]
     scale = world_area(light) / (np.pi * samples)
-    return (acc * scale)[:, None] * emitted_radiance(light)[None, :]
+    if not textured:
+        acc = acc[:, None]
+    return acc * scale * emitted_radiance(light)[None, :]
 
 
 def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:

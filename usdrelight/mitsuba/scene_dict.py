@@ -26,7 +26,7 @@ from ..stage.lux import emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .cutout import cutout_spec, presence_map
-from .textures import baked_texels, texture_dict
+from .textures import baked_texels, mirrored_texels, rect_radiance_bitmap, texture_dict
 from .runtime import load_mitsuba
 
 log = logging.getLogger(__name__)
@@ -245,6 +245,8 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         return {name: {"type": "disk", "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([r, r, 1.0, 1.0])),
                        "emitter": emitter, "bsdf": black}}
     if light.kind == "rect":
+        if light.texture is not None:
+            emitter["radiance"] = rect_radiance_bitmap(light.texture, L)
         return {name: {"type": "rectangle", "emitter": emitter, "bsdf": black,
                        "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([light.width / 2, light.height / 2, 1, 1]))}}
     if light.kind == "distant":
@@ -355,8 +357,9 @@ def to_mitsuba(d, mi=None, name: str = "root"):
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}
             out["bitmap"] = mi.Bitmap((bmp * np.asarray(d["tint"], np.float32)).astype(np.float32))
             return out
-        if d.get("type") == "bitmap" and ("cutout" in d or "bake" in d):  # baked in memory (cutout, textures)
-            out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("cutout", "bake", "filename")}
-            return {**out, "bitmap": mi.Bitmap(presence_map(d) if "cutout" in d else baked_texels(d))}
+        if d.get("type") == "bitmap" and ("cutout" in d or "bake" in d or "mirror_u" in d):  # computed in memory
+            out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("cutout", "bake", "filename", "mirror_u")}
+            texels = presence_map(d) if "cutout" in d else mirrored_texels(d) if d.get("mirror_u") else baked_texels(d)
+            return {**out, "bitmap": mi.Bitmap(texels)}
         return {k: to_mitsuba(v, mi, k) for k, v in d.items()}
     return d

@@ -121,3 +121,27 @@ def baked_texels(spec: dict) -> np.ndarray:
             v = _decode(tx[..., 0] if c <= 2 else tx[..., i], b["linear"])
         out = np.repeat((v * scale[i] + bias[i])[..., None], 3, axis=2)
     return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def rect_radiance_bitmap(tex: TextureRecord, radiance) -> dict:
+    """A RectLight's texture x its radiance (RGB, ``normalize`` applied) as the plain-data bitmap ``radiance`` of
+    its Mitsuba rectangle: baked (``bake``, decoded as :func:`baked_texels` does) and mirrored left-right
+    (``mirror_u``: to_mitsuba in memory, the XML writer to a file). UsdLux puts the file's first texel (top-left)
+    at the light's local (+X, +Y) corner; Mitsuba's rectangle (light frame x FLIP_Z) has its bitmap's first texel
+    at uv (0, 0), the light's (-X, +Y). Not the bitmap's ``to_uv`` u -> 1 - u: Mitsuba importance-samples the
+    texels ignoring to_uv (unbiased, far noisier)."""
+    scale = [float(x) for x in np.asarray(radiance, np.float64)[:3]] + [1.0]
+    d = {"type": "bitmap", "filename": tex.path, "raw": tex.linear, "mirror_u": True}
+    if scale != [1.0] * 4:
+        d["raw"] = True
+        d["bake"] = {"channel": "rgb", "linear": tex.linear, "scale": scale, "bias": [0.0] * 4}
+    return d
+
+
+def mirrored_texels(d: dict) -> np.ndarray:
+    """A bitmap dict's texels (baked when it has ``bake``, else decoded as Mitsuba does: sRGB for 8-bit files
+    unless ``raw``) mirrored left-right."""
+    if "bake" not in d:
+        linear = d.get("raw") is True or str(d["filename"]).lower().endswith((".exr", ".hdr", ".pfm"))
+        d = {**d, "bake": {"channel": "rgb", "linear": linear, "scale": [1.0] * 4, "bias": [0.0] * 4}}
+    return np.ascontiguousarray(baked_texels(d)[:, ::-1])

@@ -16,8 +16,6 @@ from .lux import uniform_scale
 from .records import LightRecord, TextureRecord
 
 
-#: Counted for a RectLight with a texture (the renderers use its uniform radiance; the Mitsuba XML export writes it).
-RECT_TEXTURE_WARNING = "RectLight texture (ignored; uniform radiance used)"
 OLD_LUX_NAMES = "pre-21.02 UsdLux attribute names, without 'inputs:' (read)"
 
 
@@ -80,7 +78,6 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
     L = light_radiance(prim, t, warnings)
     common = {"path": str(prim.GetPath()), "to_world": xf, "radiance": L,
               "normalize": bool(lux_get(UsdLux.LightAPI(prim).GetNormalizeAttr(), t, warnings))}
-    path = common["path"]
     if prim.HasAPI(UsdLux.ShapingAPI):
         sh = UsdLux.ShapingAPI(prim)
         angle = float(lux_get(sh.GetShapingConeAngleAttr(), t, warnings))
@@ -109,11 +106,10 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         return LightRecord(kind="disk", radius=radius, **common)
     if typ == "RectLight":
         r = UsdLux.RectLight(prim)
-        tex = lux_get(r.GetTextureFileAttr(), t, warnings)
-        if tex and tex.path:
-            warnings[RECT_TEXTURE_WARNING] += 1
+        asset = lux_get(r.GetTextureFileAttr(), t, warnings)
+        tex = _light_texture(prim, asset, "RectLight") if asset is not None and asset.path else None
         return LightRecord(kind="rect", width=float(lux_get(r.GetWidthAttr(), t, warnings)),
-                           height=float(lux_get(r.GetHeightAttr(), t, warnings)),
+                           height=float(lux_get(r.GetHeightAttr(), t, warnings)), texture=tex,
                            **common)
     if typ == "DistantLight":
         angle = float(lux_get(UsdLux.DistantLight(prim).GetAngleAttr(), t, warnings))
@@ -123,15 +119,10 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         tex = None
         asset = lux_get(d.GetTextureFileAttr(), t, warnings)
         if asset is not None and asset.path:
-            if not asset.resolvedPath:
-                raise UsdRelightError(f"DomeLight texture not found: {asset.path} ({path})")
+            tex = _light_texture(prim, asset, "DomeLight")
             fmt = lux_get(d.GetTextureFormatAttr(), t, warnings)
             if fmt not in ("automatic", "latlong"):
                 warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
-            check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"DomeLight texture ({path})")
-            if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
-                check_image_size(asset.resolvedPath)
-            tex = TextureRecord(asset.resolvedPath, "auto")
         pole = lux_get(d.GetPoleAxisAttr(), t, warnings) if typ == "DomeLight_1" else "Y"
         if pole == "scene":  # the fallback: the stage's up axis
             pole = str(UsdGeom.GetStageUpAxis(prim.GetStage()))
@@ -140,6 +131,17 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         return LightRecord(kind="dome", texture=tex, **common)
     warnings[f"light type {typ} (not converted)"] += 1
     return None
+
+
+def _light_texture(prim, asset, what: str) -> TextureRecord:
+    """A DomeLight's or RectLight's ``inputs:texture:file`` as a texture record (8-bit files sRGB-decoded, float
+    files as they are); one clear error for a file that is missing or outside the stage's folder."""
+    if not asset.resolvedPath:
+        raise UsdRelightError(f"{what} texture not found: {asset.path} ({prim.GetPath()})")
+    check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"{what} texture ({prim.GetPath()})")
+    if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
+        check_image_size(asset.resolvedPath)
+    return TextureRecord(asset.resolvedPath, "auto")
 
 
 def _ignored_lux(prim, warnings) -> None:
