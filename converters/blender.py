@@ -40,7 +40,7 @@ from .blender_photo import photo_stage_payload, script_text, with_snapshot
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
 from .blender_animation import author_keys, light_keys, object_keys, scene_animation
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
-                            light_to_blender, spot_blend, stage_units)
+                            foreign_unit_scale, light_to_blender, spot_blend, stage_units)
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "Blender"
@@ -231,14 +231,15 @@ def blender_lights(path) -> BlenderLights:
     lights = BlenderLights(dump["lights"])
     lights.stage = dump["stage"]
     lights.animation = dump.get("animation")
+    lights.unit_scale = dump.get("unit_scale", 1.0)
     return lights
 
 
-def _usd_record(b: dict, up: str, mpu: float) -> dict:
+def _usd_record(b: dict, up: str, mpu: float, unit_scale: float = 1.0) -> dict:
     """:func:`blender_light_to_usd` of one dumped Blender light, checked (one clear error for bad values)."""
     try:
         with np.errstate(all="ignore"):  # a zero size gives Inf: refused by check_light below
-            u = blender_light_to_usd(b, up, mpu)
+            u = blender_light_to_usd(b, up, mpu, unit_scale)
     except ValueError as exc:
         raise UsdRelightError(str(exc)) from None
     except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
@@ -285,6 +286,12 @@ def read_from_file(path, **options) -> ReadReport:
     lights = blender_lights(path)
     up, mpu = stage_units(getattr(lights, "stage", None))
     warnings = Counter()
+    unit = foreign_unit_scale(lights)
+    if unit != 1.0:  # a .blend made otherwise, modelled in its own unit: the layer is in that unit
+        mpu = unit
+        warnings[f"Blender scene unit scale {unit:g}: the layer is in that unit (metersPerUnit {unit:g}); a point "
+                 "or spot light's intensity x its square, so that it lights as Cycles shows it (Cycles ignores the "
+                 "unit scale)"] += 1
     stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {Path(path).name} by usdrelight.",
                          up_axis=up, meters_per_unit=mpu)
     if any(not b.get("hidden") for b in lights):
@@ -302,7 +309,7 @@ def read_from_file(path, **options) -> ReadReport:
         if fitted and not b.get("edited"):
             warnings[FITTED_LEFT_OUT] += 1  # the stage has it already: read back, it would light the scene twice
             continue
-        u = _usd_record(b, up, mpu)
+        u = _usd_record(b, up, mpu, unit)
         cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
                "DistantLight": UsdLux.DistantLight}[u["kind"]]
         if fitted:  # edited in Blender: an override of that fitted light (this layer is the stronger one)
@@ -341,7 +348,7 @@ def read_from_file(path, **options) -> ReadReport:
             light.CreateAngleAttr(float(u["angle"]))
         UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
         if keys:  # keyframes -> time samples at the same time codes (blender_animation)
-            author_keys(light, [(f, _usd_record(k, up, mpu)) for f, k in keys if not k.get("hidden")])
+            author_keys(light, [(f, _usd_record(k, up, mpu, unit)) for f, k in keys if not k.get("hidden")])
             if any(k.get("hidden") for _, k in keys):
                 vis = UsdGeom.Imageable(light).CreateVisibilityAttr()
                 for f, k in keys:

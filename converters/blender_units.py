@@ -163,8 +163,9 @@ def blender_emission(b: dict, area: float) -> float:
 class BlenderLights(list):
     """:func:`usdrelight.converters.blender.blender_lights`' answer: the list of light records, and ``stage``: the
     source stage's ``{"metersPerUnit", "upAxis"}`` that our writer recorded in the Blender scene
-    (``scene["usdrelight_stage"]``), None for a .blend made otherwise."""
+    (``scene["usdrelight_stage"]``), None for a .blend made otherwise; ``unit_scale``: the scene's unit scale."""
     stage: dict | None = None
+    unit_scale: float = 1.0
 
 
 def stage_units(meta) -> tuple[str, float]:
@@ -183,12 +184,28 @@ def stage_units(meta) -> tuple[str, float]:
     return up, mpu
 
 
-def blender_light_to_usd(b: dict, up_axis: str = "Y", meters_per_unit: float = 1.0) -> dict:
+def foreign_unit_scale(lights) -> float:
+    """The unit scale (metres per Blender unit, ``scene.unit_settings.scale_length``) of a .blend made otherwise
+    than by usdrelight's writer; 1 for one made by it (written in metres) or a scale that is not a positive finite
+    number."""
+    if getattr(lights, "stage", None) is not None:
+        return 1.0
+    try:
+        unit = float(getattr(lights, "unit_scale", 1.0))
+    except (TypeError, ValueError):
+        return 1.0
+    return unit if math.isfinite(unit) and unit > 0 else 1.0
+
+
+def blender_light_to_usd(b: dict, up_axis: str = "Y", meters_per_unit: float = 1.0, unit_scale: float = 1.0) -> dict:
     """Inverse of :func:`light_to_blender` for lights edited in Blender (see converters.blender): a UsdLux light
     (normalize off) emitting what the Blender light renders in Cycles (:func:`blender_emission`), in a stage of
     ``up_axis`` ("Y": Blender's Z-up turned Y-up; "Z": as it is) and ``meters_per_unit``: the position and the
-    sizes (radius, width, height) divided by it, the rotation unscaled (read_scene scales the world matrix by
-    metersPerUnit, giving Blender's metres back). Intensities are unit free (radiance, or W/sr at metres)."""
+    sizes (radius, width, height) in metres (Blender units x ``unit_scale``, the scene's unit scale) divided by
+    it, the rotation unscaled (read_scene scales the world matrix by metersPerUnit, giving metres back).
+    Radiance and irradiance are unit free; Cycles renders a Blender unit as a metre whatever the unit scale, so a
+    point or spot light (radius 0: W/sr at metres) gets ``unit_scale^2`` x its Cycles intensity, which lights the
+    scene in metres as Cycles shows it in Blender units."""
     m = (Z_UP_TO_Y_UP if up_axis == "Y" else np.eye(4)) @ np.asarray(b["matrix"], np.float64)
     s = np.linalg.norm(m[:3, :3], axis=0)
     rot = m.copy()
@@ -218,10 +235,12 @@ def blender_light_to_usd(b: dict, up_axis: str = "Y", meters_per_unit: float = 1
         out = {"kind": "DistantLight", "angle": math.degrees(b.get("angle", 0.0)), "intensity": blender_emission(b, 0.0)}
     else:
         raise ValueError(f"unsupported Blender light type {t}")
-    rot[:3, 3] /= meters_per_unit
+    rot[:3, 3] = rot[:3, 3] * unit_scale / meters_per_unit
     for key in ("radius", "width", "height"):
         if key in out:
-            out[key] /= meters_per_unit
+            out[key] = out[key] * unit_scale / meters_per_unit
+    if out.get("treatAsPoint"):
+        out["intensity"] *= unit_scale ** 2
     out.update(color=color, matrix=rot.tolist(), name=b["name"])
     return out
 

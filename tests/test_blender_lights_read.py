@@ -29,6 +29,9 @@ args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
 for job in json.load(open(args[0])):
     bpy.ops.wm.open_mainfile(filepath=job["base"])
     scene = bpy.context.scene
+    if job.get("unit_scale"):  # a .blend modelled in other units, not made by usdrelight
+        scene.unit_settings.scale_length = job["unit_scale"]
+        del scene["usdrelight_stage"]
     for s in job["lights"]:
         l = bpy.data.lights.new(s["name"], s["type"])
         l.energy, l.normalize, l.exposure = s["energy"], s["normalize"], s["exposure"]
@@ -119,6 +122,10 @@ EXTRA = [{"name": "Narrow", "type": "AREA", **N, "exposure": 0.0, "energy": 1.0,
          {"name": "Hidden", "type": "POINT", **N, "exposure": 0.0, "energy": 1.0, "hide_render": True}]
 
 
+#: cases also read from a .blend made otherwise with unit scale 0.01 (1 Blender unit = 1 cm)
+IN_CENTIMETRES = ("PointN", "SpotU1", "SphereN1", "RectN1", "DiskN", "SunN0")
+
+
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     from usdrelight.cli import main
@@ -133,7 +140,9 @@ def built(tmp_path_factory):
     jobs = [{"base": str(d / "floor.blend"), "save": str(d / "cases.blend"), "lights": cases, "each": str(d / "c_")},
             {"base": str(d / "floor.blend"), "save": str(d / "lit.blend"), "lights": RENDERED,
              "exr": str(d / "cycles.exr"), "spp": 128},
-            {"base": str(d / "floor.blend"), "save": str(d / "extra.blend"), "lights": EXTRA}]
+            {"base": str(d / "floor.blend"), "save": str(d / "extra.blend"), "lights": EXTRA},
+            {"base": str(d / "floor.blend"), "save": str(d / "centimetres.blend"), "unit_scale": 0.01,
+             "lights": [c for c in cases if c["name"] in IN_CENTIMETRES], "each": str(d / "cm_")}]
     (d / "jobs.json").write_text(json.dumps(jobs))
     (d / "build.py").write_text(BUILD)
     run_blender(d / "build.py", str(d / "jobs.json"))
@@ -162,15 +171,17 @@ def test_every_kind_normalize_and_exposure(cli, built):
     assert got["SunU"].angle_deg == pytest.approx(10.0, rel=1e-5)
 
 
-def _centre_irradiance(rec, h=1.0):
-    """Irradiance at the floor point h below the light record (facing it), from its UsdLux values alone."""
+def _centre_irradiance(rec, h=1.0, scale=1.0):
+    """Irradiance at the floor point h (m) below the light record (facing it), from its UsdLux values alone;
+    ``scale``: the record's sizes to metres."""
     L = float(emitted_radiance(rec)[0])
+    r = rec.radius * scale
     if rec.kind == "sphere":
-        return L / h ** 2 if rec.treat_as_point else pi * L * rec.radius ** 2 / h ** 2
+        return L / h ** 2 if rec.treat_as_point else pi * L * r ** 2 / h ** 2
     if rec.kind == "disk":
-        return pi * L * rec.radius ** 2 / (h ** 2 + rec.radius ** 2)
+        return pi * L * r ** 2 / (h ** 2 + r ** 2)
     if rec.kind == "rect":  # four corner rectangles' form factors
-        x, y = rec.width / 2 / h, rec.height / 2 / h
+        x, y = rec.width * scale / 2 / h, rec.height * scale / 2 / h
         f = (x / math.hypot(1, x) * math.atan(y / math.hypot(1, x)) + y / math.hypot(1, y) * math.atan(x / math.hypot(1, y)))
         return 2 * L * f
     return L  # distant: irradiance
@@ -189,6 +200,36 @@ def test_each_light_renders_in_cycles_as_the_usdlux_light_read_back(cli, built):
         expected = 0.5 / pi * _centre_irradiance(got[name]) * colour
         print(f"{name}: Cycles / closed form {centre / expected:.4f}")
         assert centre == pytest.approx(expected, rel=0.02 if name == "EllipseN" else 0.005), name
+
+
+def test_a_blend_in_centimetres_comes_back_in_its_unit_lighting_as_cycles_shows_it(cli, built):
+    """A .blend made otherwise with unit scale 0.01: the layer is in centimetres (metersPerUnit 0.01, every length
+    the Blender number); Cycles renders a Blender unit as a metre, so each light 1 unit above the floor, read back
+    and put 1 cm above a floor in metres, gives Cycles' centre: a point or spot light x 0.01^2, radiance as it is.
+    (Before: the layer was in metres, 100x too large, and nothing said so.)"""
+    from pxr import Gf, Usd, UsdGeom
+
+    rc, _, err = cli("convert", built / "centimetres.blend", built / "cm.usda")
+    assert rc == 0 and "unit scale 0.01" in err, err
+    stage = Usd.Stage.Open(str(built / "cm.usda"))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == pytest.approx(0.01)
+    got = _lights(built / "cm.usda")
+    assert sorted(got) == sorted(IN_CENTIMETRES)
+    i = list(CASES).index("RectN1")  # at Blender (0, 3 i, 2) units: Y-up (0, 2, -3 i) centimetres
+    m = UsdGeom.Xformable(stage.GetPrimAtPath(got["RectN1"].path)).ComputeLocalToWorldTransform(0)
+    assert Gf.Vec3d(m.ExtractTranslation()) == Gf.Vec3d(0, 2, -3 * i)
+    rect = UsdLux.RectLight(stage.GetPrimAtPath(got["RectN1"].path))
+    assert (rect.GetWidthAttr().Get(), rect.GetHeightAttr().Get()) == pytest.approx((0.5, 0.25))
+    for name in IN_CENTIMETRES:
+        rec = got[name]
+        metres = np.linalg.norm(rec.to_world[:3, 0])  # read_scene's world matrix is in metres: 0.01 per unit
+        assert metres == pytest.approx(0.01), name
+        img = read_map(built / f"cm_{name}.exr", 3)[..., 1]
+        h, w = img.shape
+        centre = float(img[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1].mean())
+        expected = 0.5 / pi * _centre_irradiance(rec, h=0.01, scale=0.01)
+        assert centre == pytest.approx(expected, rel=0.005), (name, centre, expected)
+    assert float(emitted_radiance(got["PointN"])[0]) == pytest.approx(P / (4 * pi) * 1e-4, rel=1e-6)
 
 
 def test_cycles_of_the_blend_matches_mitsuba_of_the_lights_read_back(cli, built):
