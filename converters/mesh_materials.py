@@ -122,7 +122,9 @@ def _material_terms(material, warnings: Counter) -> dict:
     if hasattr(material, "baseColorFactor"):  # glTF PBR
         out["base"] = _rgb_factor(material.baseColorFactor, np.ones(4))
         out["image"] = material.baseColorTexture
-        out["metallic"] = float(material.metallicFactor or 0.0)
+        if material.metallicFactor is None:  # glTF 2.0: an absent metallicFactor is 1 (Blender omits it at 1)
+            warnings["glTF metallicFactor absent (1, the glTF default: a metal)"] += 1
+        out["metallic"] = 1.0 if material.metallicFactor is None else float(material.metallicFactor)
         rough = material.roughnessFactor
         out["roughness"] = 1.0 if rough is None else float(rough)
         out["emissive"] = _rgb_factor(material.emissiveFactor, np.zeros(4))[:3]

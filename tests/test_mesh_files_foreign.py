@@ -192,3 +192,38 @@ def test_two_files_with_one_material_name_keep_their_own_textures_in_one_folder(
         tex = read_scene(tmp_path / "out" / f"{name}.usda").meshes[0].material.diffuse
         means[name] = read_map(tex.path, 3).reshape(-1, 3).mean(0)
     assert means["green"][1] > 0.9 > means["green"][0] and means["red"][0] > 0.9 > means["red"][1]
+
+
+def _glb_without(path, drop: str) -> None:
+    """A quad .glb (roughness 0.5, metallicFactor 0 as trimesh writes it), then its JSON edited: ``metallic``
+    removes metallicFactor (as Blender's exporter writes a metal: defaults left out), ``pbr`` the whole
+    pbrMetallicRoughness."""
+    import json
+    import struct
+
+    q = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False)
+    q.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
+        baseColorFactor=[1.0, 0.5, 0.25, 1.0], metallicFactor=0.0, roughnessFactor=0.5))
+    glb = trimesh.Scene(q).export(file_type="glb")
+    n = struct.unpack("<I", glb[12:16])[0]
+    doc = json.loads(glb[20:20 + n])
+    for mat in doc["materials"]:
+        if drop == "metallic":
+            mat["pbrMetallicRoughness"].pop("metallicFactor")
+        elif drop == "pbr":
+            mat.pop("pbrMetallicRoughness")
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + glb[20 + n:]
+    path.write_bytes(b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body)
+
+
+@pytest.mark.parametrize("drop, metallic, roughness", [("none", 0.0, 0.5), ("metallic", 1.0, 0.5), ("pbr", 1.0, 1.0)])
+def test_glb_metallic_factor_defaults_to_one_as_gltf_says(tmp_path, drop, metallic, roughness):
+    """glTF 2.0: metallicFactor and roughnessFactor default to 1 (before: an absent metallicFactor read as 0, so
+    a metal exported from Blender came in as a dielectric)."""
+    _glb_without(tmp_path / "q.glb", drop)
+    res = mesh_files.read_from_file(tmp_path / "q.glb")
+    mat = read_scene(res.stage).meshes[0].material
+    assert (float(mat.metallic), float(mat.roughness)) == pytest.approx((metallic, roughness))
+    assert ("glTF metallicFactor absent (1, the glTF default: a metal)" in res.warnings) == (drop != "none")
