@@ -29,7 +29,7 @@ from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.layout import FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import emitted_radiance, set_light_rgb
-from usdrelight.stage.read import ellipsoid_mesh, read_scene
+from usdrelight.stage.read import ellipsoid_mesh, read_camera, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.timing import frame_time, light_time_codes
@@ -53,12 +53,24 @@ ANIMATED = True
 """A .blend carries the lights' animation itself (keyframes): ``convert --frames`` does not apply."""
 
 
-#: UsdGeom.Camera attributes the .blend's camera takes once, at the first frame (its transform is keyed).
+#: UsdGeom.Camera attributes whose time samples become keyframes of the .blend's camera lens (:func:`_lens`).
 CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
                      "verticalApertureOffset", "clippingRange")
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
+def _lens(camera) -> dict:
+    """A Blender camera's lens of a USD camera record: a 36 mm-wide sensor (sensor_fit HORIZONTAL), the focal
+    length giving the record's fx, shifts from the principal point, clipping in metres."""
+    k = camera.intrinsics
+    f = 36.0 * k.fx / k.width
+    sw = k.width * f / k.fx
+    return {"lens": f, "sensor_width": sw, "shift_x": (k.width / 2 - k.cx) * f / k.fx / sw,
+            "shift_y": (k.cy - k.height / 2) * f / k.fy / sw, "clip_start": max(camera.near, 1e-6),
+            "clip_end": camera.far}
+
+
+
 def _shape_mesh(shape) -> MeshRecord:
     """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
     :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
@@ -137,26 +149,23 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
                        "file": f"{data_dir.name}/{fname}", "material": mats[key]["name"]})
     cam = None
     if rec.camera is not None:
-        k = rec.camera.intrinsics
-        f = 36.0 * k.fx / k.width
-        sw = k.width * f / k.fx
         cam = {"name": rec.camera.path.strip("/").replace("/", "_") or "Camera", "usd_path": rec.camera.path,
-               "lens": f, "sensor_width": sw,
-               "shift_x": (k.width / 2 - k.cx) * f / k.fx / sw, "shift_y": (k.cy - k.height / 2) * f / k.fy / sw,
-               "clip_start": max(rec.camera.near, 1e-6), "clip_end": rec.camera.far,
-               "matrix": (conv @ rec.camera.to_world).tolist()}
+               **_lens(rec.camera), "matrix": (conv @ rec.camera.to_world).tolist()}
+        k = rec.camera.intrinsics
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
         lens = stage.GetPrimAtPath(rec.camera.path)
-        if time is None and lens and any(lens.GetAttribute(n).GetNumTimeSamples() for n in CAMERA_LENS_ATTRS):
-            rec.warnings["animated camera lens (focal length, apertures, clipping) in Blender (the first "
-                         "frame's used)"] += 1
+        codes = sorted({c for n in CAMERA_LENS_ATTRS for c in lens.GetAttribute(n).GetTimeSamples()}) \
+            if time is None and lens else []
+        if len(codes) > 1:  # a zoom: the lens keyed at the samples' time codes (linear, as USD interpolates)
+            cam["lens_keys"] = [{"frame": float(c), **_lens(read_camera(stage, c))} for c in codes]
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
     animation = light_keys(stage, lights, rec.up_axis, rec.warnings) if time is None else None
     if time is None:  # the camera and rigid meshes follow their transforms' samples
         for m in meshes:
             m["baked"] = True
         codes = object_keys(stage, meshes + ([cam] if cam else []), conv, frame_time(stage, None), rec.warnings)
+        codes += [k["frame"] for k in (cam or {}).get("lens_keys", ())]
         if codes:  # the scene's range spans the lights' samples and these
             animation = scene_animation(stage, sorted(set(codes) | set(light_time_codes(stage))))
     if set(mesh_lights) - emitting:

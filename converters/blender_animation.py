@@ -4,9 +4,12 @@ USD -> Blender (:func:`light_keys`): every time code at which a light attribute 
 sample becomes a keyframe of the Blender light at the same frame number (Blender frame = USD time code, as
 Blender's own USD exporter maps them; fractional time codes are sub-frame keys): its object's location and
 rotation (quaternion), and its data's energy, colour, spot size / blend, size and angle, all with linear
-interpolation (USD's default); a light invisible at a time code is ``hide_render`` there. The scene gets the
-stage's start/end time codes (else the keys' span) and framesPerSecond. An animated DomeLight keeps its first
-sample (the World's strength is not keyed; one warning).
+interpolation (USD's default), and at every whole frame between samples too when a light turns (so that Blender's
+interpolation of the quaternion follows USD's of the xform ops); a light invisible at a time code is
+``hide_render`` there. An animated DomeLight keys the World: its colour x intensity (0 where invisible) and its
+texture's rotation (the mapping node's Euler angles, kept continuous); a texture file that changes over time keeps
+the first frame's (one warning). The scene gets the stage's start/end time codes (else the keys' span) and
+framesPerSecond. The camera's lens (focal length, apertures, clipping) is keyed at its samples' time codes.
 
 The camera and the meshes follow their transforms the same way (:func:`object_keys`): a keyframe of the object's
 world matrix at every time code where its transform or an ancestor's has a sample (location, rotation as a
@@ -34,7 +37,7 @@ from .blender_units import light_to_blender
 
 KEYED = ("matrix", "color", "power", "strength", "spot_size", "spot_blend", "radius", "size", "size_y", "angle")
 """What a keyframe of a Blender light carries (the light_to_blender record's animatable entries)."""
-DOME_WARNING = "animated DomeLight in Blender (the World is not keyed: its first sample is used)"
+DOME_WARNING = "DomeLight texture file changing over time in Blender (the first frame's file is used)"
 
 
 def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None:
@@ -46,7 +49,9 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None
         return None
     by_path = {d["usd_path"]: d for d in lights}
     keys: dict[str, list] = {p: [] for p in by_path}
-    for t in codes:
+    prims = [stage.GetPrimAtPath(p) for p in by_path]
+    curved = any(_xform_codes(p)[1] for p in prims if p)  # a turning light: keyed at every whole frame too
+    for t in _key_frames(codes, curved):
         now = {l.path: l for l in read_lights(stage, t) if l.kind != "mesh"}
         for path in by_path:
             rec = now.get(path)
@@ -55,14 +60,13 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None
                 d = light_to_blender(rec, up_axis)
                 key.update({k: d[k] for k in KEYED if k in d})
                 if d["type"] == "WORLD":
-                    key["rgb"] = d["rgb"]
+                    key.update({k: d[k] for k in ("rgb", "rotation", "texture") if k in d})
             keys[path].append(key)
     for path, seq in keys.items():
         values = [{k: v for k, v in key.items() if k != "frame"} for key in seq]
         if any(v != values[0] for v in values[1:]):
-            if by_path[path]["type"] == "WORLD":
+            if len({key.get("texture") for key in seq if not key["hidden"]}) > 1:
                 warnings[DOME_WARNING] += 1
-                continue
             by_path[path]["keys"] = seq
     return scene_animation(stage, codes)
 

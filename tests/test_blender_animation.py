@@ -221,3 +221,103 @@ def Xform "World" {
     for f in (1, 12, 24):  # USD: rotateY(a) of (2, 0, 0) = (2 cos a, 0, -2 sin a); Blender (x, -z, y)
         a = np.radians(90.0 * (f - 1) / 23)
         np.testing.assert_allclose(got[f], [2 * np.cos(a), 2 * np.sin(a), 0.0], atol=1e-4, err_msg=str(f))
+
+
+ZOOM_PROBE = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+sc = bpy.context.scene
+nodes = sc.world.node_tree.nodes
+mapping = next(n for n in nodes if n.type == "MAPPING")
+tint = next(n for n in nodes if n.type == "VECT_MATH")
+spot = next(o for o in sc.objects if o.type == "LIGHT")
+out = {}
+for f in (1, 4, 7, 10):
+    sc.frame_set(f)
+    out[f] = {"lens": sc.camera.data.lens, "shift_x": sc.camera.data.shift_x,
+              "rotation": [list(r) for r in mapping.inputs["Rotation"].default_value.to_matrix()],
+              "rgb": list(tint.inputs[1].default_value), "spot": list(spot.matrix_world.to_3x3().col[2])}
+sc.render.resolution_x, sc.render.resolution_y, sc.cycles.samples = 8, 6, 16
+sc.render.image_settings.file_format, sc.render.image_settings.color_depth = "OPEN_EXR", "32"
+for f in (1, 10):
+    sc.frame_set(f)
+    sc.render.filepath = args[2] + f"{f}.exr"
+    bpy.ops.render.render(write_still=True)
+json.dump(out, open(args[1], "w"))
+'''
+
+
+def test_a_zoom_a_turning_textured_dome_and_a_turning_spot_are_keyed_in_blender(cli, tmp_path):
+    """A camera zooming (focalLength 20 -> 40 mm, an aperture offset too), a textured dome brightening (1 -> 3)
+    while it turns half round about Y, a spot turning from straight down to horizontal, two samples each: the
+    .blend has them at every frame, equal to what the stage gives there (before: the lens and the dome kept their
+    first sample, warned; a turning light was keyed at its two samples only). Cycles' floor under the dome alone
+    (the spot at 0 W): 3x as bright at frame 10 as at frame 1 (a turn about the vertical keeps the floor's
+    irradiance)."""
+    from usd_scenes import asymmetric_latlong
+
+    from usdrelight.converters.blender import _lens
+    from usdrelight.converters.blender_units import Y_UP_TO_Z_UP, light_to_blender
+    from usdrelight.imageio import write_image
+    from usdrelight.stage.lux import light_direction
+    from usdrelight.stage.read import read_camera
+
+    write_image(tmp_path / "sky.exr", asymmetric_latlong(16, 32).astype(np.float32), "float")
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+    startTimeCode = 1
+    endTimeCode = 10
+)
+def Mesh "Floor" {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(-5, 0, 5), (5, 0, 5), (5, 0, -5), (-5, 0, -5)]
+    uniform token subdivisionScheme = "none"
+}
+def Camera "Cam" {
+    float focalLength.timeSamples = { 1: 20, 10: 40 }
+    float horizontalAperture = 36
+    float verticalAperture = 27
+    float horizontalApertureOffset.timeSamples = { 1: 0, 10: 2 }
+    double3 xformOp:translate = (0, 1, 0)
+    float xformOp:rotateX = -90
+    uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateX"]
+}
+def DomeLight "Sky" {
+    asset inputs:texture:file = @./sky.exr@
+    float inputs:intensity.timeSamples = { 1: 1, 10: 3 }
+    float xformOp:rotateY.timeSamples = { 1: 0, 10: 180 }
+    uniform token[] xformOpOrder = ["xformOp:rotateY"]
+}
+def SphereLight "Spot" (prepend apiSchemas = ["ShapingAPI"]) {
+    float inputs:intensity = 0
+    bool treatAsPoint = 1
+    float inputs:shaping:cone:angle = 30
+    double3 xformOp:translate = (0, 2, 0)
+    float xformOp:rotateX.timeSamples = { 1: -90, 10: 0 }
+    uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateX"]
+}
+''')
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
+    assert rc == 0 and "first" not in err, err
+    (tmp_path / "probe.py").write_text(ZOOM_PROBE)
+    run_blender(tmp_path / "probe.py", str(tmp_path / "s.blend"), str(tmp_path / "p.json"), str(tmp_path / "c_"))
+    got = {int(k): v for k, v in json.loads((tmp_path / "p.json").read_text()).items()}
+    stage = open_stage(tmp_path / "s.usda")
+    for f, g in got.items():
+        want = _lens(read_camera(stage, f))
+        assert g["lens"] == pytest.approx(want["lens"], rel=1e-5) and g["lens"] == pytest.approx(20 + 20 * (f - 1) / 9)
+        assert g["shift_x"] == pytest.approx(want["shift_x"], abs=1e-5), f
+        lights = {l.kind: l for l in read_lights(stage, f)}
+        dome = light_to_blender(lights["dome"])
+        np.testing.assert_allclose(g["rgb"], dome["rgb"], rtol=1e-5, err_msg=str(f))
+        np.testing.assert_allclose(g["rotation"], dome["rotation"], atol=1e-4, err_msg=str(f))
+        # Blender's light points along its -Z, as the USD spot: its direction turned Z up
+        np.testing.assert_allclose(-np.asarray(g["spot"]), Y_UP_TO_Z_UP[:3, :3] @ light_direction(lights["sphere"]),
+                                   atol=1e-4, err_msg=str(f))
+    assert got[4]["lens"] == pytest.approx(20 + 20 * 3 / 9, rel=1e-5)  # between the samples: linear, as USD
+    first, last = (read_map(tmp_path / f"c_{f}.exr", 4)[..., :3].mean() for f in (1, 10))
+    assert last / first == pytest.approx(3.0, rel=0.03), (first, last)

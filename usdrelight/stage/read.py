@@ -271,6 +271,16 @@ def read_scene(stage, time=None) -> SceneRecord:
             meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
         else:
             shapes.append(shape)
+    camera, products, resolution = _render_camera(stage, xcache, t, warnings, mpu)
+    return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
+                       mpu, str(UsdGeom.GetStageUpAxis(stage)), warnings)
+
+
+def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
+    """(camera record or None, render products, resolution) of the stage's RenderSettings (its camera, else the
+    first UsdGeom.Camera) at time code ``t``."""
+    from pxr import UsdGeom
+
     settings = _settings_prim(stage)
     cam_prim, resolution, products, conform = None, None, (), (1.0, "expandAperture")
     if settings is not None:
@@ -285,5 +295,13 @@ def read_scene(stage, time=None) -> SceneRecord:
     camera = None
     if cam_prim is not None and cam_prim.IsA(UsdGeom.Camera):
         camera, resolution = _read_camera(cam_prim, resolution, xcache, t, warnings, mpu, conform)
-    return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
-                       mpu, str(UsdGeom.GetStageUpAxis(stage)), warnings)
+    return camera, products, resolution
+
+
+def read_camera(stage, time=None) -> CameraRecord | None:
+    """The render camera alone (as :func:`read_scene` reads it, in metres) at USD time code ``time`` (None:
+    default); None when the stage has no camera. For tools that follow a camera's samples without the meshes."""
+    from pxr import Usd, UsdGeom
+
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    return _render_camera(stage, UsdGeom.XformCache(t), t, Counter(), stage_meters_per_unit(stage))[0]
