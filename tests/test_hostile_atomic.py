@@ -44,8 +44,10 @@ def _state(folder: Path):
 
 
 def _leftovers(folder: Path):
+    """(versions kept, temporary files left in the folder or beside it)."""
     vids = [p.name for p in (folder / VERSIONS).iterdir() if p.name != "current"]
-    return vids, sorted(p.name for p in folder.parent.glob(f".{folder.name}.tmp-*"))
+    temps = [*folder.parent.glob(f".{folder.name}.tmp-*"), *folder.glob(".*usdrelight-tmp-*")]
+    return vids, sorted(p.name for p in temps)
 
 
 @pytest.fixture(scope="module")
@@ -193,7 +195,7 @@ def test_the_layout_before_versions_is_migrated_and_user_files_kept(cli, inputs,
     text = text.replace("@./source/photo.png@", f"@{(inputs / 'a.png').resolve()}@")
     (out / "scene.usda").write_text(text)
     (out / "textures" / "mine.png").write_bytes(b"user")
-    (tmp_path / ".out.tmp-abc123").mkdir()
+    (tmp_path / ".out.tmp-abc123").mkdir()  # beside the folder: never touched (it may be the user's)
     rc, _, err = cli("validate", out / "scene.usda")
     assert rc == 0, err
     rc, _, err = cli("fit", out / "scene.usda", "--max-side", "16", "--iterations", "2")
@@ -201,7 +203,7 @@ def test_the_layout_before_versions_is_migrated_and_user_files_kept(cli, inputs,
     assert referenced_version(out) is not None and _fitted(out)
     assert (out / "textures" / "mine.png").read_bytes() == b"user"  # the user's file, in a real folder
     assert not (out / "textures" / "albedo.exr").exists() and (out / "geometry.usdc").is_symlink()
-    assert not (tmp_path / ".out.tmp-abc123").exists()
+    assert (tmp_path / ".out.tmp-abc123").is_dir()
     assert cli("validate", out / "scene.usda")[0] == 0
 
 
@@ -238,3 +240,23 @@ def test_a_failed_rebuild_leaves_the_previous_stage_untouched(cli, inputs, tmp_p
     assert rc == 2 and err.count("\n") == 1 and "No space left on device" in err, err
     assert _state(out) == before and _fitted(out)
     assert _leftovers(out) == ([referenced_version(out)], []) and not (out / LOCK_NAME).exists()
+
+
+def test_a_build_removes_only_its_own_temporaries_and_nothing_beside_the_folder(cli, inputs, tmp_path):
+    """What a killed writer leaves in the folder (``.scene.usdrelight-tmp-XXXXXXXX.usda``) goes; the user's
+    ``.scene-backup.usda`` in the folder and a ``.out.tmp-backup`` folder beside it stay (before: both were
+    removed, the one outside the output folder with its contents)."""
+    out = tmp_path / "out"
+    assert _build(inputs, "a.png", out).returncode == 0
+    ours = out / ".scene.usdrelight-tmp-ab12cd_9.usda"
+    ours.write_text("#usda 1.0\n")
+    (out / ".scene-backup.usda").write_text("mine")
+    (out / ".lights_user-20240101.usda").write_text("mine too")
+    beside = tmp_path / ".out.tmp-backup"
+    beside.mkdir()
+    (beside / "thesis.txt").write_text("precious")
+    assert _build(inputs, "b.png", out).returncode == 0
+    assert not ours.exists()
+    assert (out / ".scene-backup.usda").read_text() == "mine"
+    assert (out / ".lights_user-20240101.usda").read_text() == "mine too"
+    assert (beside / "thesis.txt").read_text() == "precious"

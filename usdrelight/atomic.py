@@ -15,6 +15,7 @@ process die right before the k-th one: ``USDRELIGHT_TEST_EXIT_BEFORE_RENAME=k``)
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 import threading
@@ -61,6 +62,19 @@ def _fsync_path(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
+#: In the name of :func:`atomic_path`'s temporary files, ``.STEM.usdrelight-tmp-XXXXXXXX.SUFFIX`` (8 random
+#: characters): what a killed run leaves, and all a clean-up may remove (:func:`is_temp_file_of`).
+TEMP_FILE_TAG = ".usdrelight-tmp-"
+
+
+def is_temp_file_of(path: str | os.PathLike, target_name: str) -> bool:
+    """True when ``path`` is named as :func:`atomic_path` names a temporary file for ``target_name`` (a user's
+    ``.scene-backup.usda`` is not)."""
+    target = Path(target_name)
+    pattern = re.escape(f".{target.stem}{TEMP_FILE_TAG}") + r"[a-z0-9_]{8}" + re.escape(target.suffix)
+    return re.fullmatch(pattern, Path(path).name) is not None
+
+
 @contextmanager
 def atomic_path(target: str | os.PathLike):
     """Yield a temporary path beside ``target``; on a clean exit it is fsynced and renamed onto ``target``.
@@ -70,7 +84,7 @@ def atomic_path(target: str | os.PathLike):
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}-", suffix=target.suffix, dir=target.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{TEMP_FILE_TAG}", suffix=target.suffix, dir=target.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:

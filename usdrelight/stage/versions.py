@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ..atomic import atomic_path, fsync_tree, link_or_copy, publish, temp_dir_beside
+from ..atomic import atomic_path, fsync_tree, is_temp_file_of, link_or_copy, publish, temp_dir_beside
 from ..errors import UsdRelightError
 from .layout import ALBEDO_TEXTURE, DIFFUSE_TARGET, FITTED_ENV_TEXTURE, FITTED_LIGHTS, GEOMETRY, SCENE, \
     USER_LIGHTS
@@ -212,9 +212,10 @@ def rebased_root(stage_dir, new_vid: str) -> Callable[[Path], None]:
 
 def collect_garbage(stage_dir) -> list[str]:
     """Remove what the current ``scene.usda`` does not reference: other versions, temporary folders of
-    killed runs (inside ``versions/``, ``.OUTDIR.tmp-*`` beside the folder, the temporary files of
-    ``scene.usda`` and ``lights_user.usda``), and, once versions are in use, the top-level files of the old
-    layout. Call it holding the stage's lock. Never touches other files. Returns what it removed."""
+    killed runs inside ``versions/``, the temporary files of ``scene.usda`` and ``lights_user.usda``
+    (:func:`usdrelight.atomic.is_temp_file_of`: ``.scene.usdrelight-tmp-XXXXXXXX.usda``), and, once versions are
+    in use, the top-level files of the old layout. Call it holding the stage's lock. Never touches other files,
+    nor anything outside the folder. Returns what it removed."""
     stage_dir = Path(stage_dir)
     no_versions_link(stage_dir)
     keep = referenced_version(stage_dir)
@@ -224,8 +225,8 @@ def collect_garbage(stage_dir) -> list[str]:
         _point_current(stage_dir, keep)
     stale = [p for p in vdir.iterdir() if p.name != keep and (_ID.match(p.name) or ".tmp-" in p.name)] \
         if vdir.is_dir() else []
-    stale += list(stage_dir.parent.glob(f".{stage_dir.name}.tmp-*"))
-    stale += [p for pattern in (".scene-*.usda", ".lights_user-*.usda") for p in stage_dir.glob(pattern)]
+    stale += [p for name in (SCENE, USER_LIGHTS) for p in stage_dir.glob(".*.usda")
+              if is_temp_file_of(p, name) and not p.is_dir()]
     for p in stale:
         shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
         removed.append(str(p))
