@@ -20,6 +20,14 @@ def non_negative_int(text: str) -> int:
     return v
 
 
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    v = float(text)
+    if not (v > 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return v
+
+
 def port(text: str) -> int:
     """A TCP port number, 0 .. 65535 (0: any free port)."""
     v = int(text)

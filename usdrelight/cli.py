@@ -12,7 +12,7 @@ from pathlib import Path
 
 from . import __version__
 from .argtypes import add_frames_argument, add_time_argument, non_negative_int as _non_negative_int, port as _port, \
-    positive_int as _positive_int, OneLineParser
+    positive_float as _positive_float, positive_int as _positive_int, OneLineParser
 from .batch.args import add_batch_parser
 from .commands import stderr_console, cmd_batch, cmd_build, cmd_convert, cmd_fit, cmd_neural, cmd_relight, \
     cmd_render, cmd_serve, cmd_train, cmd_validate
@@ -67,9 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("photo", type=Path, help="photograph (JPEG/PNG/TIFF: sRGB; EXR: linear)")
     b.add_argument("-o", "--output", type=Path, required=True, help="output directory (gets scene.usda)")
     g = b.add_mutually_exclusive_group()
-    g.add_argument("--depth", type=Path, help="z-depth map in metres (.npy/.exr/.pfm); <=0, NaN, Inf = invalid")
+    g.add_argument("--depth", type=Path, help="z-depth map in metres (.npy/.exr/.pfm; 16-bit PNG with --depth-scale); "
+                   "<=0, NaN, Inf = invalid")
     g.add_argument("--points", type=Path, help="point map HxWx3, OpenCV camera frame, Inf/NaN = invalid")
     g.add_argument("--geometry-model", type=Path, help="ONNX geometry model (see README, model contracts)")
+    b.add_argument("--depth-scale", type=_positive_float, metavar="M",
+                   help="metres per stored unit of --depth/--points (0.001: millimetres); needed for integer files")
     k = b.add_mutually_exclusive_group()
     k.add_argument("--intrinsics", type=Path, help='JSON: {"fx","fy","cx","cy"} (OpenCV pixels) or normalized 3x3')
     k.add_argument("--fov-x", type=float, help="horizontal field of view in degrees")

@@ -60,7 +60,7 @@ def _emit(args, summary: dict, human: str) -> None:
 def cmd_build(args) -> int:
     from .stage.build import BuildOptions, build
 
-    opts = BuildOptions(depth=args.depth, points=args.points, intrinsics=args.intrinsics, fov_x=args.fov_x,
+    opts = BuildOptions(depth=args.depth, depth_scale=args.depth_scale, points=args.points, intrinsics=args.intrinsics, fov_x=args.fov_x,
                         albedo=args.albedo, shading=args.shading, mask=args.mask,
                         geometry_model=args.geometry_model, albedo_model=args.albedo_model,
                         geometry=args.geometry, albedo_from=args.albedo_from, model_paths=tuple(args.model_path),

@@ -165,6 +165,31 @@ def read_texture_rgb(path: str | os.PathLike, linear: bool) -> np.ndarray:
     return np.ascontiguousarray(np.maximum(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), 0.0), np.float32)
 
 
+#: The largest value of each integer pixel type OpenImageIO scales to [0, 1] (its stored value = scaled x this).
+INTEGER_MAX = {"uint8": 255.0, "int8": 127.0, "uint16": 65535.0, "int16": 32767.0, "uint32": 4294967295.0,
+               "int32": 2147483647.0}
+
+
+def read_stored_map(path: str | os.PathLike, channels: int) -> tuple[np.ndarray, str | None]:
+    """A data map's values as the file stores them (an integer PNG's integers, not scaled to [0, 1]) as float64
+    (H, W, channels) (:func:`read_map`'s layout), and the integer type's name (``uint16``...; None for float
+    data): a measurement stored as integers is in a unit the file does not name."""
+    path = Path(path)
+    arr = read_map(path, channels).astype(np.float64)
+    if path.suffix.lower() == ".npy":
+        try:
+            kind = np.load(path, mmap_mode="r", allow_pickle=False).dtype
+        except Exception:  # read_map above has read it already
+            kind = np.dtype(np.float32)
+        return arr, (kind.name if kind.kind in "iub" else None)
+    if path.suffix.lower() == ".pfm":
+        return arr, None
+    fmt = str(_checked_buf(path).spec().format)
+    if fmt in INTEGER_MAX:
+        return np.rint(arr * INTEGER_MAX[fmt]), fmt
+    return arr, None
+
+
 def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
     """Read a data map (depth, point map, albedo, mask) without colour conversion.
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import read_focal_35mm, read_map
+from ..imageio import read_focal_35mm, read_stored_map
 from ..intrinsics import DEFAULT_FOV_X_DEG, Intrinsics
 from .hf_geometry import hf_geometry
 from .names import GEOMETRY, onnx_file
@@ -118,16 +118,29 @@ def fallback_intrinsics(photo: Photo, warn: bool = True) -> tuple[Intrinsics, st
         f"default {DEFAULT_FOV_X_DEG:.0f} degree field of view"
 
 
+def read_metric_map(path, channels: int, scale: float | None, what: str) -> np.ndarray:
+    """A depth or point map in metres: its stored values x ``scale`` (metres per stored unit; None: 1 for float
+    data). Integers (a 16-bit PNG of millimetres, a uint16 .npy) name no unit: they need a ``scale``."""
+    values, integer = read_stored_map(path, channels)
+    if integer is not None and scale is None:
+        raise UsdRelightError(f"{what} {Path(path).name} stores integers ({integer}): give --depth-scale, the metres "
+                              "per stored unit (0.001 for millimetres)")
+    return (values * (1.0 if scale is None else float(scale))).astype(np.float32)
+
+
 def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrinsics: Intrinsics | None = None,
                       mask: np.ndarray | None = None, model=None, estimator: str | None = None, model_paths=(),
-                      device: str | None = None) -> GeometryEstimate:
+                      device: str | None = None, depth_scale: float | None = None) -> GeometryEstimate:
     """Pick the geometry source by what was given: learned estimator, depth map, point map, ONNX model, or prior.
-    ``estimator``: a name of :data:`.names.GEOMETRY` or ``onnx:FILE`` (``--geometry``)."""
+    ``estimator``: a name of :data:`.names.GEOMETRY` or ``onnx:FILE`` (``--geometry``); ``depth_scale``: metres
+    per stored unit of the depth or point map (:func:`read_metric_map`)."""
     if onnx_file(estimator) is not None:
         if model is not None:
             raise UsdRelightError("give either --geometry onnx:FILE or --geometry-model, not both")
         model, estimator = onnx_file(estimator), None
     given = [x for x in (depth_file, points_file, model, estimator) if x is not None]
+    if depth_scale is not None and depth_file is None and points_file is None:
+        raise UsdRelightError("--depth-scale goes with --depth or --points")
     if len(given) > 1:
         raise UsdRelightError("give only one geometry source: --geometry, --depth, --points or --geometry-model")
     if estimator is not None:
@@ -141,13 +154,13 @@ def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrin
         geo = from_depth(depth, intr, mask, source=estimator)
         geo.metric, geo.run = metric, run
     elif depth_file is not None:
-        depth = read_map(depth_file, 1)[..., 0]
+        depth = read_metric_map(depth_file, 1, depth_scale, "depth map")[..., 0]
         _check_size(depth, photo, "depth map", depth_file)
         if intrinsics is None:
             intrinsics = fallback_intrinsics(photo)[0]
         geo = from_depth(depth, intrinsics, mask, source=f"depth:{Path(depth_file).name}")
     elif points_file is not None:
-        pts = read_map(points_file, 3)
+        pts = read_metric_map(points_file, 3, depth_scale, "point map")
         _check_size(pts, photo, "point map", points_file)
         geo = from_points(pts, intrinsics, mask, source=f"points:{Path(points_file).name}")
     elif model is not None:

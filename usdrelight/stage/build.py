@@ -28,7 +28,10 @@ class BuildOptions:
     """Inputs of ``usdrelight build`` besides the photo (README: "Inputs of build")."""
 
     depth: Path | None = None
-    """z-depth map in metres (.npy/.exr/.pfm); 0, negative, NaN, Inf = invalid."""
+    """z-depth map in metres (.npy/.exr/.pfm; integer files with ``depth_scale``); 0, negative, NaN, Inf = invalid."""
+    depth_scale: float | None = None
+    """Metres per stored unit of ``depth`` or ``points`` (0.001: millimetres); needed for integer files (a 16-bit
+    PNG), whose unit the file does not say; None: float data in metres."""
     points: Path | None = None
     """Point map H x W x 3 in the OpenCV camera frame (MoGe), Inf/NaN = invalid."""
     intrinsics: Path | None = None
@@ -130,7 +133,7 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
     with _timed(sec, "geometry", progress):
         geo = estimate_geometry(photo, depth_file=opts.depth, points_file=opts.points, intrinsics=intr,
                                 mask=mask, model=opts.geometry_model, estimator=opts.geometry,
-                                model_paths=model_paths, device=opts.device)
+                                model_paths=model_paths, device=opts.device, depth_scale=opts.depth_scale)
     with _timed(sec, "albedo", progress):
         dec = estimate_decomposition(photo, albedo_file=opts.albedo, shading_file=opts.shading,
                                      model=opts.albedo_model, estimator=opts.albedo_from,
