@@ -64,3 +64,129 @@ def test_an_integer_depth_map_needs_its_unit(cli, tmp_path, photo):
         with pytest.raises(SystemExit) as exc:
             cli("build", photo, "--depth", tmp_path / "cm.exr", "--depth-scale", bad, "-o", tmp_path / "f")
         assert exc.value.code == 2 and not (tmp_path / "f").exists()
+
+
+def _write_uint8(path, img: np.ndarray, **attrs) -> None:
+    oiio = _oiio()
+    spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], oiio.UINT8)
+    for k, v in attrs.items():
+        spec.attribute(k, v)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(np.ascontiguousarray(img))
+    out.close()
+
+
+@pytest.mark.parametrize("orientation, turn", [(1, lambda a: a), (3, lambda a: np.rot90(a, 2)),
+                                               (6, lambda a: np.rot90(a, -1)), (8, lambda a: np.rot90(a, 1)),
+                                               (2, lambda a: a[:, ::-1])])
+def test_exif_orientation_is_applied(tmp_path, orientation, turn):
+    """A camera's stored pixels turned as its Orientation tag says (6: a quarter turn clockwise to display)."""
+    from usdrelight.imageio import read_photo, srgb_to_linear
+
+    img = np.random.default_rng(0).integers(0, 256, (6, 10, 3), dtype=np.uint8)
+    _write_uint8(tmp_path / "o.tif", img, Orientation=orientation)
+    np.testing.assert_allclose(read_photo(tmp_path / "o.tif"), turn(srgb_to_linear(img / 255.0)), atol=1e-6)
+
+
+def test_alpha_is_dropped_not_multiplied_in(tmp_path):
+    """Alpha 0 on the left half: the colour there is the stored colour (before: 0, OpenImageIO's associated
+    alpha applied, so a cut-out PNG's albedo and fit target went black, and alpha 128 made a photo 4x dark)."""
+    from usdrelight.imageio import read_photo, srgb_to_linear
+
+    rgba = np.full((4, 6, 4), 200, np.uint8)
+    rgba[:, :3, 3] = 0
+    rgba[:, 3:, 3] = 128
+    _write_uint8(tmp_path / "a.png", rgba, **{"oiio:UnassociatedAlpha": 1})  # stored as given
+    np.testing.assert_allclose(read_photo(tmp_path / "a.png"), srgb_to_linear(200 / 255.0), rtol=1e-5)
+
+
+def test_a_truncated_jpeg_is_refused(cli, tmp_path):
+    """Half a JPEG decoded as grey rows below the cut (before: accepted, the grey became albedo and target)."""
+    img = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    _write_uint8(tmp_path / "full.jpg", img)
+    data = (tmp_path / "full.jpg").read_bytes()
+    (tmp_path / "half.jpg").write_bytes(data[:len(data) // 2])
+    rc, _, err = cli("build", tmp_path / "half.jpg", "-o", tmp_path / "out")
+    assert "truncated file" in _one_error(rc, err) and not (tmp_path / "out").exists()
+    assert cli("build", tmp_path / "full.jpg", "-o", tmp_path / "ok")[0] == 0
+
+
+def test_an_overscan_exr_is_cropped_to_its_display_window(cli, tmp_path):
+    """Display window 32 x 24, data window 40 x 30 at (-4, -3): the photo is the display window (before: the
+    camera was 40 x 30, its focal length in pixels 25% off the field of view asked for)."""
+    import json
+
+    oiio = _oiio()
+    rng = np.random.default_rng(2)
+    data = rng.uniform(0.1, 0.9, (30, 40, 3)).astype(np.float32)
+    spec = oiio.ImageSpec(40, 30, 3, oiio.FLOAT)
+    spec.x, spec.y = -4, -3
+    spec.full_x, spec.full_y, spec.full_width, spec.full_height = 0, 0, 32, 24
+    out = oiio.ImageOutput.create(str(tmp_path / "o.exr"))
+    out.open(str(tmp_path / "o.exr"), spec)
+    out.write_image(data)
+    out.close()
+    from usdrelight.imageio import read_photo
+
+    np.testing.assert_array_equal(read_photo(tmp_path / "o.exr"), data[3:27, 4:36])
+    rep = cli.json("build", tmp_path / "o.exr", "--fov-x", "60", "-o", tmp_path / "s")
+    assert json.dumps(rep) and read_scene(tmp_path / "s" / "scene.usda").resolution == (32, 24)
+    cam = read_scene(tmp_path / "s" / "scene.usda").camera.intrinsics
+    assert cam.fx == pytest.approx(16 / np.tan(np.radians(30)), rel=1e-6)
+    spec.x, spec.y, spec.width, spec.height = 5, 5, 20, 10  # a crop: the display window is not covered
+    out = oiio.ImageOutput.create(str(tmp_path / "c.exr"))
+    out.open(str(tmp_path / "c.exr"), spec)
+    out.write_image(data[:10, :20].copy())
+    out.close()
+    rc, _, err = cli("build", tmp_path / "c.exr", "-o", tmp_path / "t")
+    assert "does not cover its display window" in _one_error(rc, err)
+
+
+def test_a_folder_given_as_the_photo_is_named_as_one(cli, tmp_path):
+    (tmp_path / "shots.jpg").mkdir()
+    rc, _, err = cli("build", tmp_path / "shots.jpg", "-o", tmp_path / "out")
+    assert "is a folder, not an image file" in _one_error(rc, err)
+
+
+def test_a_mask_keeps_every_non_zero_pixel(cli, tmp_path, photo):
+    """As --help says, non-zero = keep (before: above half the mask's maximum, so an 8-bit 1 beside a 255 was
+    dropped, and one Inf pixel dropped everything with a misleading error)."""
+    np.save(tmp_path / "d.npy", np.full((24, 32), 2.0, np.float32))
+    m = np.zeros((24, 32), np.float32)
+    m[:, :8], m[:, 8:16], m[:, 16:24] = 1.0, 255.0, 0.004  # the right quarter 0: dropped
+    m[0, 0] = np.inf
+    m[1, 0] = np.nan
+    np.save(tmp_path / "m.npy", m)
+    rep = cli.json("build", photo, "--depth", tmp_path / "d.npy", "--fov-x", "60", "--mask", tmp_path / "m.npy",
+                   "-o", tmp_path / "s")
+    assert rep
+    pts = read_scene(tmp_path / "s" / "scene.usda").meshes[0].points
+    u = pts[:, 0] / -pts[:, 2] * (16 / np.tan(np.radians(30))) + 16  # column of each vertex (pixel centres + 0.5)
+    assert u.min() < 0.6 and 23.4 < u.max() < 24.6  # the three kept quarters, to the edge of the zero quarter
+
+
+def test_an_output_that_cannot_be_a_folder_fails_before_any_work(cli, tmp_path, photo, monkeypatch):
+    """-o naming a file (or a path under one) fails at once (before: after the geometry, albedo and mesh)."""
+    import usdrelight.stage.build as build_module
+
+    def no_work(*a, **k):
+        raise AssertionError("work started")
+
+    monkeypatch.setattr(build_module, "estimate_geometry", no_work)
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        rc, _, err = cli("build", photo, "-o", out)
+        assert "exists and is not a folder" in _one_error(rc, err)
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_a_lights_layer_that_is_not_usd_fails_before_any_work(cli, tmp_path, photo):
+    """The folder's lights_user.usda is the user's and is kept; one that is not USD would make the published
+    stage fail to open (before: build exited 0 with USD's multi-line warning, and every later command failed)."""
+    out = tmp_path / "u"
+    out.mkdir()
+    (out / "lights_user.usda").write_text("my notes")
+    rc, _, err = cli("build", photo, "-o", out)
+    assert "lights_user.usda is not a USD layer" in _one_error(rc, err)
+    assert (out / "lights_user.usda").read_text() == "my notes" and not (out / "scene.usda").exists()

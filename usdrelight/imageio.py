@@ -78,6 +78,8 @@ def _read_failure(message: str, path: Path) -> str:
 
 def _checked_buf(path: Path):
     """An ImageBuf of ``path`` whose header (only) has been read and whose size is within the limit."""
+    if path.is_dir():
+        raise UsdRelightError(f"{path} is a folder, not an image file")
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     buf = _oiio().ImageBuf(str(path))
@@ -102,23 +104,54 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     """Read an image file as float32 (H, W, C) without colour conversion.
 
     Returns ``(pixels, is_float)`` where ``is_float`` tells whether the file stores float data
-    (and is therefore linear by the conventions above). Raises UsdRelightError on a missing or
-    unreadable file.
+    (and is therefore linear by the conventions above). Alpha is read as stored (colour channels not
+    multiplied by it); EXIF orientation is applied; an OpenEXR whose data window is larger than its display
+    window (overscan) is cropped to the display window. Raises UsdRelightError on a missing, unreadable or
+    truncated file, or an OpenEXR whose data window does not cover its display window.
     """
     oiio = _oiio()
     path = Path(path)
-    buf = _checked_buf(path)
-    spec = buf.spec()
+    spec = _checked_buf(path).spec()
     is_float = str(spec.format) in LINEAR_FORMATS
-    if buf.orientation != 1:
-        buf = oiio.ImageBufAlgo.reorient(buf)
-    pixels = buf.get_pixels(oiio.FLOAT)
-    if buf.has_error or pixels is None or getattr(pixels, "size", 0) == 0:
-        raise UsdRelightError(f"cannot read image {path}: {_read_failure(buf.geterror(), path)}")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as stored: alpha is dropped, never applied
+    inp = oiio.ImageInput.open(str(path), config)
+    if not inp:
+        raise UsdRelightError(f"cannot read image {path}: {_read_failure(oiio.geterror(), path)}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        problem = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None or getattr(pixels, "size", 0) == 0 or "premature" in problem.lower():
+        raise UsdRelightError(f"cannot read image {path}: {_read_failure(problem or 'truncated', path)}")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
+    pixels = _display_window(pixels, spec, path)
+    orientation = int(spec.get_int_attribute("Orientation", 1))
+    if orientation != 1:
+        buf = oiio.ImageBuf(oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.FLOAT))
+        buf.set_pixels(buf.roi, np.ascontiguousarray(pixels))
+        buf.specmod().attribute("Orientation", orientation)
+        pixels = np.asarray(oiio.ImageBufAlgo.reorient(buf).get_pixels(oiio.FLOAT), dtype=np.float32)
+        if pixels.ndim == 2:
+            pixels = pixels[:, :, None]
     return pixels, is_float
+
+
+def _display_window(pixels: np.ndarray, spec, path: Path) -> np.ndarray:
+    """The pixels of the display window (OpenEXR's; the whole image elsewhere): an overscan data window is
+    cropped to it; a data window that does not cover it is refused (its camera would not be the image's)."""
+    x0, y0, w, h = spec.x, spec.y, spec.width, spec.height
+    fx0, fy0, fw, fh = spec.full_x, spec.full_y, spec.full_width, spec.full_height
+    if (x0, y0, w, h) == (fx0, fy0, fw, fh) or fw <= 0 or fh <= 0:
+        return pixels
+    if x0 <= fx0 and y0 <= fy0 and x0 + w >= fx0 + fw and y0 + h >= fy0 + fh:
+        return np.ascontiguousarray(pixels[fy0 - y0:fy0 - y0 + fh, fx0 - x0:fx0 - x0 + fw])
+    raise UsdRelightError(f"image {path}: its data window ({w}x{h} at {x0},{y0}) does not cover its display window "
+                          f"({fw}x{fh} at {fx0},{fy0}); crop it to the display window first (oiiotool --crop)")
 
 
 def read_focal_35mm(path: str | os.PathLike) -> float | None:

@@ -17,6 +17,8 @@ from ..estimate.names import ALBEDO, GEOMETRY, is_learned
 from ..estimate.records import Photo, PhotoEstimates
 from ..imageio import read_map, read_photo
 from ..mesh import DEFAULT_MAX_GRAZING_DEG, triangulate
+from ..native_io import captured_stderr
+from .layout import USER_LIGHTS
 from .versions import check_stage_folder
 from .write import write_stage
 
@@ -106,17 +108,37 @@ def _timed(seconds: dict, name: str, progress=None):
 
 
 def load_mask(path, photo: Photo) -> np.ndarray:
-    """(H, W) bool: the mask image at ``path`` (the photo's size) above half its finite maximum."""
+    """(H, W) bool: the mask image at ``path`` (the photo's size) non-zero (NaN is not kept; any value above 0,
+    an 8-bit 1 or a soft edge's 0.01, is)."""
     m = read_map(path, 1)[..., 0]
     if m.shape != (photo.height, photo.width):
         raise UsdRelightError(f"mask {path} is {m.shape[1]}x{m.shape[0]} but the photo is {photo.width}x{photo.height}")
-    return np.isfinite(m) & (m > 0.5 * float(np.nanmax(m) if np.isfinite(m).any() else 1.0))
+    return ~np.isnan(m) & (m != 0)
+
+
+def check_user_layer(outdir) -> None:
+    """UsdRelightError when ``outdir`` holds a ``lights_user.usda`` that is not a USD layer: build keeps the
+    user's layer as it is, so the stage it would publish could not be opened (one line, before any work)."""
+    from pxr import Sdf, Tf
+
+    path = Path(outdir) / USER_LIGHTS
+    if not path.is_file():
+        return
+    with captured_stderr():  # USD's own multi-line report: the one line below says it
+        try:
+            layer = Sdf.Layer.FindOrOpen(str(path))
+        except Tf.ErrorException:
+            layer = None
+    if layer is None:
+        raise UsdRelightError(f"{path} is not a USD layer; build keeps your lights layer as it is, so fix or move it "
+                              "(nothing was written)")
 
 
 def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
     """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
     opts = opts or BuildOptions()
     check_stage_folder(outdir)  # before any work: someone else's USD files are never written over
+    check_user_layer(outdir)
     if opts.model_paths and not (is_learned(opts.geometry) or is_learned(opts.albedo_from)):
         raise UsdRelightError("--model-path goes with --geometry or --albedo-from naming a hub model ("
                               f"{', '.join(n for n in GEOMETRY + ALBEDO if is_learned(n))})")

@@ -107,6 +107,11 @@ def check_stage_folder(folder, what: str = "build") -> None:
     or remove (``scene.usda``, ``geometry.usdc``, ``textures/albedo.exr`` ...): someone else's files there are
     never overwritten or deleted."""
     folder = Path(folder)
+    for p in (folder, *folder.parents):  # the nearest existing path must be a folder: checked before any work
+        if os.path.lexists(p):
+            if not p.is_dir():
+                raise UsdRelightError(f"output {folder}: {p} exists and is not a folder (nothing was written)")
+            break
     no_versions_link(folder)
     if not folder.is_dir() or is_stage_folder(folder):
         return
