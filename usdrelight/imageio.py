@@ -191,11 +191,14 @@ def read_photo(path: str | os.PathLike) -> np.ndarray:
 def read_texture_rgb(path: str | os.PathLike, linear: bool) -> np.ndarray:
     """A light's texture as (H, W, 3) float32 linear RGB: texels sRGB-decoded unless ``linear`` (as
     :attr:`usdrelight.stage.records.TextureRecord.linear` decides and Mitsuba decodes), grey replicated, alpha
-    dropped; NaN, Inf and negative texels read as 0 (no light)."""
+    dropped. A NaN, Inf, negative or above 1e30 texel is an error (no light is negative or unbounded)."""
     pixels, _ = read_raw(path)
     rgb = np.repeat(pixels[:, :, :1], 3, axis=2) if pixels.shape[2] <= 2 else pixels[:, :, :3]
     rgb = rgb if linear else srgb_to_linear(rgb)
-    return np.ascontiguousarray(np.maximum(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), 0.0), np.float32)
+    if not np.all(np.isfinite(rgb)) or rgb.min(initial=0.0) < 0 or rgb.max(initial=0.0) > 1e30:
+        raise UsdRelightError(f"light texture {path} has NaN, Inf, negative or above 1e30 texels (a light's "
+                              "radiance is finite and not negative)")
+    return np.ascontiguousarray(rgb, np.float32)
 
 
 #: The largest value of each integer pixel type OpenImageIO scales to [0, 1] (its stored value = scaled x this).

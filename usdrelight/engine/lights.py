@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from ..imageio import read_photo, read_texture_rgb
+from ..imageio import read_texture_rgb
 from ..stage.lux import emitted_radiance, light_direction, world_area, world_scale
 from ..stage.records import LightRecord, TextureRecord
 from ..transport.basis import LightTransport
@@ -110,9 +110,9 @@ def _sphere_weight(tr, o, w, dist, n, radius, u) -> np.ndarray:
 
 
 def light_texels(tex: TextureRecord, textures: dict) -> np.ndarray:
-    """(H, W, 3) float64 linear texels of a RectLight's texture (:func:`usdrelight.imageio.read_texture_rgb`),
-    read once into ``textures``."""
-    key = ("rect", tex.path, tex.linear)
+    """(H, W, 3) float64 linear texels of a DomeLight's or RectLight's texture
+    (:func:`usdrelight.imageio.read_texture_rgb`), read once into ``textures``."""
+    key = (tex.path, tex.linear)
     if key not in textures:
         textures[key] = read_texture_rgb(tex.path, tex.linear).astype(np.float64)
     return textures[key]
@@ -201,9 +201,7 @@ def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int =
     bh, bw = env_shape
     if light.texture is None:
         return np.tile(L, (bh * bw, 1))
-    img = textures.get(light.texture.path)
-    if img is None:
-        img = textures[light.texture.path] = read_photo(light.texture.path).astype(np.float64)
+    img = light_texels(light.texture, textures)
     th = (np.arange(bh * sub) + 0.5) / (bh * sub) * np.pi
     ph = (np.arange(bw * sub) + 0.5) / (bw * sub) * 2 * np.pi
     T, P = np.meshgrid(th, ph, indexing="ij")

@@ -35,7 +35,7 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
                     help="fast: cached deterministic renderer (default); mitsuba: path tracing (reference)")
     rl.add_argument("--with-fitted", action="store_true", help="keep the fitted (original) lighting too")
-    rl.add_argument("--fitted-scale", type=float, default=1.0, metavar="S",
+    rl.add_argument("--fitted-scale", type=float, default=None, metavar="S",
                     help="scale the fitted (original) lighting, e.g. 0.1 for night; implies --with-fitted")
     rl.add_argument("--mode", choices=["auto", "neural", "ratio", "add", "render", "transfer", "residual"], default="auto",
                     help="auto (default): add when the fitted lighting is kept (--with-fitted), transfer when it is "

@@ -136,14 +136,14 @@ def _area_settings(area_samples: int | None, renderer: str) -> EngineSettings | 
 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
             max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
-            mode: str = DEFAULT_MODE, fitted_scale: float = 1.0, contact_sheet: bool = False, time=None,
+            mode: str = DEFAULT_MODE, fitted_scale: float | None = None, contact_sheet: bool = False, time=None,
             frames=None, video=None, save_lights=None, area_samples: int | None = None) -> RelightResult:
     """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or for several frames relit_NNNN.* and
     render_diffuse_NNNN.exr (NNNN: the frame's index in the run), one frame per entry of ``sequence`` (a
     LIGHTS.json path) or per USD time code of ``frames`` (``"START:END[:STEP]"``; ``""``: the stage's own
     range), the stage's lights read at each time code (a light that did not change is not rendered again);
     ``time``: the time code of a single frame or of a sequence. ``lights`` apply to every frame.
-    ``fitted_scale`` scales the fitted lights (and implies ``with_fitted``); ``contact_sheet`` also writes
+    ``fitted_scale`` (None: not given) scales the fitted lights and implies ``with_fitted``, 1 too; ``contact_sheet`` also writes
     contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights; ``video`` also
     encodes the frames as an H.264 MP4 at the stage's framesPerSecond; ``save_lights`` (with ``sequence``)
     also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`);
@@ -165,7 +165,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     # parsed once, before any work: a bad spec fails fast, and each frame reuses the records
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
-    with_fitted = with_fitted or fitted_scale != 1.0
+    with_fitted = with_fitted or fitted_scale is not None  # any scale given, 1 too, keeps the fitted lights
+    fitted_scale = 1.0 if fitted_scale is None else fitted_scale
     settings = _area_settings(area_samples, renderer)
     session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
                              model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale,

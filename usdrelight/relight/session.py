@@ -33,6 +33,7 @@ from ..neural.model import RelightModel, build_input, hole_fill
 from ..neural.residual import DEFAULT_RESIDUAL, ResidualModel, apply_gain, residual_input
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
+from ..stage.lights_layer import fitted_as_written
 from ..stage.light_specs import parse_lights
 from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
@@ -144,7 +145,8 @@ class RelightSession:
         self._stage_lights = stage_lights
         self._set_lights(rec.lights, t)
         fitted = self.fitted_lights
-        self._photo_lights = fitted  # the photo's own lighting: the ratio reference, whatever time frames read
+        # the photo's own lighting (the ratio reference, whatever time frames read): the fit's, not a user's edit
+        self._photo_lights = fitted_as_written(stage, t, fitted)
         self.scene = rec.with_camera(rec.camera.limited(max_side))
         self._source_photo = source_photo_path(stage)
         self._stage_folder = stage_folder(stage)

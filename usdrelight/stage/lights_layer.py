@@ -82,3 +82,25 @@ def _author_layer(layer, points: list[PointLightValue], env, fit: FitProvenance)
     root.SetSpecifier(Sdf.SpecifierOver)  # /Scene is defined by scene.usda; this layer only adds to it
     author_hide_emitters(stage)  # also for stages built before build authored it (usdrelight.stage.backplate)
     layer.Save()
+
+
+def fitted_as_written(stage, time, lights) -> tuple:
+    """The fitted lights as the fit wrote them, at time code ``time`` (a ``Usd.TimeCode``): the photo's own
+    lighting. ``lights``: the fitted lights as the stage composes them, returned as they are unless a layer
+    above ``lights_fitted.usda`` (the user's ``lights_user.usda``: an edit in Blender, usdview or by hand)
+    overrides a fitted light: then they are read again with those layers muted, so that the edit is new
+    lighting, never the photo's."""
+    from pxr import Usd
+
+    from .read import read_lights
+
+    stack = stage.GetLayerStack(includeSessionLayers=False)
+    fitted = next((i for i, l in enumerate(stack) if Path(l.realPath or "").name == FITTED_LIGHTS), None)
+    over = [l for l in stack[:fitted] if l.GetPrimAtPath(FITTED_LIGHTS_SCOPE)] if fitted is not None else []
+    over = [l for l in over if l is not stage.GetRootLayer()]  # the root layer only sublayers (build writes it)
+    if not over:
+        return tuple(lights)
+    clean = Usd.Stage.Open(stage.GetRootLayer(), Usd.Stage.LoadNone)
+    for layer in over:
+        clean.MuteLayer(layer.identifier)
+    return tuple(l for l in read_lights(clean, time) if l.path.startswith(FITTED_LIGHTS_SCOPE + "/"))

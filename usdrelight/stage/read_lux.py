@@ -53,6 +53,9 @@ def light_radiance(prim, t=None, warnings=None) -> np.ndarray:
         raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
     if np.any(L < 0):
         raise UsdRelightError(f"light {prim.GetPath()} has a negative intensity or color (radiance {L.tolist()})")
+    if np.any(L > 1e30):  # beyond what a float32 image can carry once lit (as --light's cap)
+        raise UsdRelightError(f"light {prim.GetPath()} emits {float(L.max()):.3g} (intensity x 2^exposure x color), "
+                              "above 1e30")
     return L
 
 

@@ -1,0 +1,101 @@
+"""Relight cases a probe found wrong: a fitted light edited in the user's layer (Blender's read-back writes such
+an ``over``), ``--fitted-scale 1``, light values beyond what an image can carry, and light textures that are
+negative or unbounded. Each asserts a number or one clear error line."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import build_procedural
+from usdrelight.imageio import read_map, write_image
+from usdrelight.stage.layout import USER_LIGHTS
+from usdrelight.stage.lights_layer import write_fitted_lights
+from usdrelight.stage.read import read_lights
+from usdrelight.stage.records import FitProvenance, PointLightValue
+from usdrelight.stage.validate import open_stage
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """The procedural stage (stride 2) with one fitted point light and no fitted environment."""
+    d = tmp_path_factory.mktemp("edges")
+    scene = build_procedural(d / "st", stride=2)
+    write_fitted_lights(d / "st", [PointLightValue(np.array([-0.5, 1.0, -2.0]), np.array([3.0, 3.0, 3.0]))], None,
+                        FitProvenance("fast", 0.0, 0.0, 0.0, 1))
+    return scene
+
+
+def _user_layer(stage_dir, body: str) -> None:
+    (stage_dir / USER_LIGHTS).write_text(f'#usda 1.0\nover "Scene" {{\n over "Lights" {{\n{body}\n }}\n}}\n')
+
+
+def test_an_edited_fitted_light_is_new_lighting_not_the_photos(cli, fitted, tmp_path):
+    """The user's layer triples the fitted light (an ``over`` at its path, as a .blend edited in Blender reads
+    back): ratio = photo x (N + k) / (F + k) with N the edited light and F the fit's, up to 3x the photo (before: F
+    read the edit too, and ratio returned the photo unchanged)."""
+    stage_dir = fitted.parent
+    (path,) = [l.path for l in read_lights(open_stage(fitted)) if "Fitted" in l.path]
+    name = path.rsplit("/", 1)[1]
+    original = (stage_dir / USER_LIGHTS).read_text()
+    try:
+        _user_layer(stage_dir, f'  over "Fitted" {{\n   over "{name}" {{\n    float inputs:intensity = 9\n   }}\n  }}')
+        rc, _, err = cli("relight", fitted, "--with-fitted", "--mode", "ratio", "--max-side", "64", "-o",
+                         tmp_path / "r")
+        assert rc == 0, err
+        relit = read_map(tmp_path / "r" / "relit.exr", 3)
+        base = tmp_path / "base"
+        _user_layer(stage_dir, "")
+        assert cli("relight", fitted, "--with-fitted", "--mode", "ratio", "--max-side", "64", "-o", base)[0] == 0
+        unchanged = read_map(base / "relit.exr", 3)
+        lit = unchanged > 0.02
+        gain = relit[lit] / unchanged[lit]  # I (N + k) / (F + k): up to 3, 1 in F's shadows
+        assert 1.3 < np.median(gain) and gain.max() <= 3.0 + 1e-4, (np.median(gain), gain.max())  # measured 1.38
+        assert gain.min() > 1 - 1e-6
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)
+
+
+def test_fitted_scale_one_keeps_the_fitted_lights(cli, fitted, tmp_path):
+    """--help: --fitted-scale implies --with-fitted, 1 too (before: "no light to relight with")."""
+    rc, _, err = cli("relight", fitted, "--fitted-scale", "1", "--max-side", "64", "-o", tmp_path / "a")
+    assert rc == 0, err
+    rc, _, err = cli("relight", fitted, "--with-fitted", "--max-side", "64", "-o", tmp_path / "b")
+    assert rc == 0, err
+    np.testing.assert_array_equal(read_map(tmp_path / "a" / "relit.exr", 3), read_map(tmp_path / "b" / "relit.exr", 3))
+
+
+def test_a_light_beyond_what_an_image_carries_is_one_error(cli, fitted, tmp_path):
+    """intensity 3 x 2^200 (exposure 200) was accepted and rendered black, with numpy's overflow warnings."""
+    stage_dir = fitted.parent
+    original = (stage_dir / USER_LIGHTS).read_text()
+    try:
+        _user_layer(stage_dir, '  def Scope "User" {\n   def SphereLight "Hot" {\n    float inputs:intensity = 3\n'
+                               '    float inputs:exposure = 200\n    bool treatAsPoint = 1\n   }\n  }')
+        rc, _, err = cli("relight", fitted, "--max-side", "64", "-o", tmp_path / "o")
+        lines = [l for l in err.splitlines() if l.strip()]
+        assert rc == 2 and len(lines) == 1 and "above 1e30" in lines[0], err
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)
+
+
+@pytest.mark.parametrize("value, ok", [(0.5, True), (-5.0, False), (3e38, False)])
+def test_a_dome_texture_must_be_a_finite_non_negative_radiance(cli, fitted, tmp_path, value, ok):
+    stage_dir = fitted.parent
+    original = (stage_dir / USER_LIGHTS).read_text()
+    sky = np.full((8, 16, 3), 0.5, np.float32)
+    sky[2, 3] = value
+    write_image(stage_dir / "sky.exr", sky, "float")
+    try:
+        _user_layer(stage_dir, '  def Scope "User" {\n   def DomeLight "Sky" {\n    asset inputs:texture:file = @./sky.exr@\n'
+                               '   }\n  }')
+        rc, _, err = cli("relight", fitted, "--mode", "render", "--max-side", "64", "-o", tmp_path / "o")
+        if ok:
+            assert rc == 0, err
+            img = read_map(tmp_path / "o" / "relit.exr", 3)
+            assert np.isfinite(img).all() and img.min() >= 0 and img.max() > 0
+        else:
+            lines = [l for l in err.splitlines() if l.strip()]
+            assert rc == 2 and len(lines) == 1 and "negative or above 1e30 texels" in lines[0], err
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)
+        (stage_dir / "sky.exr").unlink()
