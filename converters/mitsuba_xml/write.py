@@ -27,7 +27,7 @@ from usdrelight.imageio import read_photo, write_image
 from usdrelight.safe_paths import check_read, stage_folder
 from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, scene_dict, texture_value
-from usdrelight.mitsuba.textures import baked_texels, mirrored_texels
+from usdrelight.mitsuba.textures import baked_texels, merged_dome_texels, mirrored_texels
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
@@ -126,6 +126,13 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
     elif tag == "texture" or key not in (tag, "film", "sampler", "rfilter"):
         attrs["name"] = key
     el = ET.SubElement(parent, tag, **attrs)
+    if ptype == "envmap" and "domes" in d:  # several DomeLights merged (Mitsuba takes one environment)
+        texels = merged_dome_texels(d)
+        digest = hashlib.sha1(texels.tobytes()).hexdigest()[:8]
+        dst = base / "textures" / f"domes_merged_{digest}.exr"
+        write_image(dst, texels, "float")
+        files.append(str(dst))
+        d = {**{k: v for k, v in d.items() if k != "domes"}, "filename": str(dst)}
     if ptype == "envmap" and "tint" in d:
         src = d["filename"]
         if src.endswith("]"):  # inside a .usdz package: extract it first

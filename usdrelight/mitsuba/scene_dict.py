@@ -26,7 +26,8 @@ from ..stage.lux import emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .cutout import cutout_spec, presence_map
-from .textures import baked_texels, mirrored_texels, rect_radiance_bitmap, texture_dict
+from .textures import baked_texels, merged_dome_dict, merged_dome_texels, mirrored_texels, rect_radiance_bitmap, \
+    texture_dict
 from .runtime import load_mitsuba
 
 log = logging.getLogger(__name__)
@@ -318,9 +319,14 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
             continue
         d[key(safe_name(shape.path))] = {"type": shape.kind, "to_world": Matrix(shape.to_world),
                                      "bsdf": bsdf_dict(shape.material, warnings, shape.double_sided)}
+    domes = [light for light in scene.lights if light.kind == "dome"]
     for light in scene.lights:
+        if light.kind == "dome" and len(domes) > 1:  # Mitsuba takes one environment: the domes merged
+            continue
         for name, e in emitter_dicts(light, warnings).items():
             d[key(name)] = e
+    if len(domes) > 1:
+        d[key("domes_merged")] = merged_dome_dict(domes)
     return d
 
 
@@ -352,6 +358,9 @@ def to_mitsuba(d, mi=None, name: str = "root"):
     if isinstance(d, dict):
         if d.get("type") == "_mesh":
             return _make_mesh(mi, name, d)
+        if d.get("type") == "envmap" and "domes" in d:  # several DomeLights, baked into one world-frame map
+            out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("domes", "filename")}
+            return {**out, "bitmap": mi.Bitmap(merged_dome_texels(d))}
         if d.get("type") == "envmap" and "tint" in d:
             bmp = np.array(mi.Bitmap(d["filename"]).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, False))
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}

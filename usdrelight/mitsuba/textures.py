@@ -145,3 +145,53 @@ def mirrored_texels(d: dict) -> np.ndarray:
         linear = d.get("raw") is True or str(d["filename"]).lower().endswith((".exr", ".hdr", ".pfm"))
         d = {**d, "bake": {"channel": "rgb", "linear": linear, "scale": [1.0] * 4, "bias": [0.0] * 4}}
     return np.ascontiguousarray(baked_texels(d)[:, ::-1])
+
+
+#: Largest latlong a merge of several DomeLights is baked at (height; the width is twice it).
+MERGED_DOME_MAX_HEIGHT = 1024
+
+
+def merged_dome_dict(domes) -> dict:
+    """One Mitsuba environment for several DomeLight records (Mitsuba takes one per scene): their constant
+    radiances summed, or, when one has a texture, a plain-data ``envmap`` whose ``domes`` lists each dome
+    (texture path or None, RGB radiance L, 3x3 rotation light -> world); :func:`merged_dome_texels` bakes it
+    in the world frame (in memory for rendering, to a file for the XML)."""
+    from ..stage.lux import emitted_radiance, world_scale
+
+    if all(d.texture is None for d in domes):
+        total = np.sum([emitted_radiance(d) for d in domes], axis=0)
+        return {"type": "constant", "radiance": {"type": "rgb", "value": [float(x) for x in total]}}
+    parts = []
+    for d in domes:
+        rot = d.to_world[:3, :3] / np.maximum(world_scale(d.to_world), 1e-300)
+        parts.append([None if d.texture is None else [d.texture.path, bool(d.texture.linear)],
+                      [float(x) for x in emitted_radiance(d)], rot.tolist()])
+    return {"type": "envmap", "filename": "domes_merged.exr", "domes": parts}
+
+
+def merged_dome_texels(spec: dict) -> np.ndarray:
+    """(H, W, 3) float32 world-frame latlong of a :func:`merged_dome_dict` envmap: each dome's radiance along
+    each texel centre's direction, summed (nearest texel of each texture; H the largest texture's height, at
+    most :data:`MERGED_DOME_MAX_HEIGHT`). Directions as Mitsuba's envmap and the fast renderer read a latlong:
+    d = (sin t sin p, cos t, -sin t cos p) at texel (t / pi, p / 2 pi)."""
+    from ..imageio import read_texture_rgb
+
+    maps = [None if tex is None else read_texture_rgb(tex[0], tex[1]) for tex, _, _ in spec["domes"]]
+    h = min(max([m.shape[0] for m in maps if m is not None] + [16]), MERGED_DOME_MAX_HEIGHT)
+    w = 2 * h
+    th = (np.arange(h) + 0.5) / h * np.pi
+    ph = (np.arange(w) + 0.5) / w * 2 * np.pi
+    T, P = np.meshgrid(th, ph, indexing="ij")
+    d = np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)
+    out = np.zeros((h * w, 3))
+    for img, (_, L, rot) in zip(maps, spec["domes"]):
+        if img is None:
+            out += np.asarray(L)
+            continue
+        local = d @ np.asarray(rot)  # world -> the dome's frame (an orthonormal rotation)
+        u = np.mod(np.arctan2(local[:, 0], -local[:, 2]), 2 * np.pi) / (2 * np.pi)
+        v = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
+        th_, tw = img.shape[:2]
+        out += img[np.minimum((v * th_).astype(np.int64), th_ - 1), np.minimum((u * tw).astype(np.int64), tw - 1)] \
+            * np.asarray(L)
+    return out.reshape(h, w, 3).astype(np.float32)
