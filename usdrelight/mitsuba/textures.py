@@ -19,7 +19,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..imageio import srgb_to_linear
+from ..imageio import read_texture_rgb, srgb_to_linear
+from ..stage.lux import emitted_radiance, world_scale
 from ..stage.records import TextureRecord
 from .cutout import CHANNELS, _read_texels
 
@@ -156,8 +157,6 @@ def merged_dome_dict(domes) -> dict:
     radiances summed, or, when one has a texture, a plain-data ``envmap`` whose ``domes`` lists each dome
     (texture path or None, RGB radiance L, 3x3 rotation light -> world); :func:`merged_dome_texels` bakes it
     in the world frame (in memory for rendering, to a file for the XML)."""
-    from ..stage.lux import emitted_radiance, world_scale
-
     if all(d.texture is None for d in domes):
         total = np.sum([emitted_radiance(d) for d in domes], axis=0)
         return {"type": "constant", "radiance": {"type": "rgb", "value": [float(x) for x in total]}}
@@ -174,8 +173,6 @@ def merged_dome_texels(spec: dict) -> np.ndarray:
     each texel centre's direction, summed (nearest texel of each texture; H the largest texture's height, at
     most :data:`MERGED_DOME_MAX_HEIGHT`). Directions as Mitsuba's envmap and the fast renderer read a latlong:
     d = (sin t sin p, cos t, -sin t cos p) at texel (t / pi, p / 2 pi)."""
-    from ..imageio import read_texture_rgb
-
     maps = [None if tex is None else read_texture_rgb(tex[0], tex[1]) for tex, _, _ in spec["domes"]]
     h = min(max([m.shape[0] for m in maps if m is not None] + [16]), MERGED_DOME_MAX_HEIGHT)
     w = 2 * h

@@ -22,6 +22,7 @@ from ..imageio import write_image
 from .backplate import author_hide_emitters
 from .layout import FITTED_ENV_TEXTURE, FITTED_LIGHTS, FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, SCENE
 from .lux import set_light_rgb
+from .read import read_lights
 from .records import FitProvenance, PointLightValue
 from .versions import VERSIONS, carry_over, prepare_version, publish_version, rebased_root
 
@@ -91,8 +92,6 @@ def fitted_as_written(stage, time, lights) -> tuple:
     overrides a fitted light: then they are read again with those layers muted, so that the edit is new
     lighting, never the photo's."""
     from pxr import Usd
-
-    from .read import read_lights
 
     stack = stage.GetLayerStack(includeSessionLayers=False)
     fitted = next((i for i, l in enumerate(stack) if Path(l.realPath or "").name == FITTED_LIGHTS), None)
