@@ -123,8 +123,11 @@ def test_default_time_is_first_sample(animated_stage):
     np.testing.assert_allclose(mover.to_world[:3, 3], _path(11))
 
 
-def test_sequence_saved_as_layer_gives_the_same_frames(animated_stage, tmp_path, cli):
-    """--sequence LIGHTS.json --save-lights LAYER: that layer, sublayered, renders the same frames via --frames."""
+@pytest.mark.parametrize("tcps", [None, 48.0])
+def test_sequence_saved_as_layer_gives_the_same_frames(animated_stage, tmp_path, cli, tcps):
+    """--sequence LIGHTS.json --save-lights LAYER: that layer, sublayered, renders the same frames via --frames;
+    on a stage of 48 time codes per second and 12 frames per second too (before: the layer had 12, so USD
+    rescaled its samples to time codes 4, 8, 12 and frames 1-3 all showed frame 0's lights)."""
     from pxr import Sdf
 
     specs = [[f"spot:{x:.3f},-0.4,-3.0:0,-1,-0.2:{2 + i},{1 + i},1:35:0.3", "point:-0.5,0.5,-2.5:1,1,1"]
@@ -137,6 +140,10 @@ def test_sequence_saved_as_layer_gives_the_same_frames(animated_stage, tmp_path,
 
     copy = tmp_path / "copy"
     shutil.copytree(animated_stage.parent, copy, symlinks=True)
+    if tcps is not None:
+        root = Sdf.Layer.FindOrOpen(str(copy / "scene.usda"))
+        root.timeCodesPerSecond, root.framesPerSecond = tcps, 12.0
+        root.Save()
     user = Sdf.Layer.FindOrOpen(str(copy / USER_LIGHTS))
     edit = Sdf.BatchNamespaceEdit()
     edit.Add("/Scene/Lights/User/Mover", Sdf.Path.emptyPath)

@@ -177,7 +177,9 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
         plan = [(extra, None) for extra in per_frame] if per_frame is not None else \
             [([], t) for t in times] if times is not None else [([], None)]
         fps = stage_fps(session.usd_stage)
-        layer = write_sequence_layer(save_lights, per_frame, fps=fps) if save_lights is not None else None
+        layer = write_sequence_layer(save_lights, per_frame, fps=fps,  # the stage's time codes: none rescaled
+                                     time_codes_per_second=session.usd_stage.GetTimeCodesPerSecond()) \
+            if save_lights is not None else None
         try:
             return _run(session, stage_path, out, common, plan, len(plan) > 1 or seq is not None or
                         times is not None, contact_sheet, video, fps, layer, t0)

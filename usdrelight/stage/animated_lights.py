@@ -50,9 +50,11 @@ def _rotation_quat(m: np.ndarray):
     return Gf.Quatf(rot.GetReal(), Gf.Vec3f(rot.GetImaginary()))
 
 
-def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1.0, fps: float = 24.0) -> Path:
+def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1.0, fps: float = 24.0,
+                         time_codes_per_second: float | None = None) -> Path:
     """Write ``frames`` (frame i: its light records, metres) as a new time-sampled lights layer at ``path``
-    (frame i at time code ``start + i``); see the module docstring. Returns ``path``."""
+    (frame i at time code ``start + i``); see the module docstring. ``time_codes_per_second``: the stage's, which
+    the layer takes (None: ``fps``), so that sublayered into it no sample is rescaled. Returns ``path``."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
     area_types = {"sphere": UsdLux.SphereLight, "disk": UsdLux.DiskLight, "rect": UsdLux.RectLight}
@@ -77,7 +79,7 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
     stage.SetStartTimeCode(start)
     stage.SetEndTimeCode(start + len(frames) - 1)
     stage.SetFramesPerSecond(fps)
-    stage.SetTimeCodesPerSecond(fps)
+    stage.SetTimeCodesPerSecond(fps if time_codes_per_second is None else time_codes_per_second)
     stage.OverridePrim(ROOT)
     UsdGeom.Scope.Define(stage, LIGHTS)
     UsdGeom.Scope.Define(stage, RELIGHT_LIGHTS_SCOPE)
