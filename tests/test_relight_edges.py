@@ -141,3 +141,37 @@ def test_two_domes_render_in_mitsuba_as_the_sum_of_each(tmp_path, cli):
     from usdrelight.mitsuba.runtime import load_mitsuba
 
     assert load_mitsuba().load_file(str(tmp_path / "x" / "scene.xml")) is not None
+
+
+def test_a_frame_whose_lights_are_all_invisible_is_dark_not_the_end_of_the_clip(cli, fitted, tmp_path):
+    """Every user light invisible at time code 2 of 3 (fitted lights off): that frame is rendered without light
+    (black), the others as lit (before: "no light to relight with" and no frame at all)."""
+    stage_dir = fitted.parent
+    original = (stage_dir / USER_LIGHTS).read_text()
+    try:
+        _user_layer(stage_dir, '  def Scope "User" {\n   def SphereLight "Blink" {\n    float inputs:intensity = 5\n'
+                               '    bool treatAsPoint = 1\n    token visibility.timeSamples = { 1: "inherited", '
+                               '2: "invisible", 3: "inherited" }\n    double3 xformOp:translate = (0.3, 0.8, -2.2)\n'
+                               '    uniform token[] xformOpOrder = ["xformOp:translate"]\n   }\n  }')
+        rep = cli.json("relight", fitted, "--frames", "1:3", "--mode", "render", "--max-side", "48", "-o",
+                       tmp_path / "o")
+        means = [read_map(f["exr"], 3).mean() for f in rep["frames"]]
+        assert [f["lights"] for f in rep["frames"]] == [1, 0, 1]
+        assert means[1] == 0.0 and means[0] == pytest.approx(means[2]) and means[0] > 0.01, means
+        rc, _, err = cli("relight", fitted, "--time", "2", "--mode", "render", "-o", tmp_path / "one")
+        assert rc == 2 and "no light to relight with" in err  # a single frame without light stays an error
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)
+
+
+def test_a_light_relight_cannot_draw_is_named(cli, fitted, tmp_path):
+    """A CylinderLight was dropped by relight without a word (render warned)."""
+    stage_dir = fitted.parent
+    original = (stage_dir / USER_LIGHTS).read_text()
+    try:
+        _user_layer(stage_dir, '  def Scope "User" {\n   def CylinderLight "Tube" {\n    float inputs:intensity = 5\n'
+                               '   }\n  }')
+        rc, _, err = cli("relight", fitted, "--with-fitted", "--max-side", "48", "-o", tmp_path / "o")
+        assert rc == 0 and "light type CylinderLight (not converted)" in err, err
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)

@@ -208,7 +208,7 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
                       disable=len(plan) < 2 or not console.is_terminal)
         first = None  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
-            frame = session.render(common + extra, time_code=t)
+            frame = session.render(common + extra, time_code=t, allow_dark=len(plan) > 1)  # a dark frame of a clip
             first = frame if first is None else first
             pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4))
             while len(pending) > WRITE_QUEUE:

@@ -141,6 +141,8 @@ class RelightSession:
         rec = read_scene(stage, t)
         if rec.camera is None:
             raise UsdRelightError(f"{stage_path} has no camera")
+        for kind, n in rec.warnings.items():  # what the stage holds that no renderer here draws, as render says
+            log.warning("%s: %d", kind, n)
         self._stage, self._with_fitted, self._fitted_scale = stage, with_fitted, fitted_scale
         self._stage_lights = stage_lights
         self._set_lights(rec.lights, t)
@@ -284,14 +286,15 @@ class RelightSession:
         return self.engine.sample_count(area_samples), self.engine.settings.area_samples
 
     def render(self, lights=(), mode: str | None = None, time_code: float | None = None,
-               area_samples: int | None = None) -> RelitFrame:
+               area_samples: int | None = None, allow_dark: bool = False) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
         in the session's mode or in ``mode`` (one of :data:`usdrelight.relight.composite.MODES`; what it needs is
         loaded on first use); ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
         In ``add`` mode the fitted lights are not rendered: the photo already holds their light.
         ``area_samples``: the fast renderer's shadow rays per pixel for the sampling lights of this frame only (a
         preview while a light moves; None: the settings'); the fitted render the composites divide by keeps the
-        settings' count. Refused with the Mitsuba renderer."""
+        settings' count. Refused with the Mitsuba renderer. No light at all is an error unless ``allow_dark``
+        (a frame of a clip at which every light is invisible: rendered without light)."""
         t0 = perf_counter()
         if time_code is not None:
             self.set_time(time_code)
@@ -301,7 +304,7 @@ class RelightSession:
         all_lights = list(self.base_lights) + added
         if mode == "add":
             all_lights = list(self.user_lights if self._stage_lights else ()) + added
-        if not all_lights and mode != "add":
+        if not all_lights and mode != "add" and not allow_dark:
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
         if area_samples is not None and self.engine.name != "fast":
