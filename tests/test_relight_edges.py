@@ -175,3 +175,22 @@ def test_a_light_relight_cannot_draw_is_named(cli, fitted, tmp_path):
         assert rc == 0 and "light type CylinderLight (not converted)" in err, err
     finally:
         (stage_dir / USER_LIGHTS).write_text(original)
+
+
+def test_a_relight_keeps_a_renders_aovs_in_its_folder_and_replaces_its_own_frames(cli, fitted, tmp_path):
+    """render then relight into one folder: renders/diffuse.exr stays (before: the relight removed it, and
+    `neural` then failed on the stage folder); a 3-frame relight after a 4-frame one leaves 3 frames."""
+    out = tmp_path / "mix"
+    assert cli("render", fitted, "--spp", "1", "--aov", "diffuse", "-o", out)[0] == 0
+    aov = (out / "renders" / "diffuse.exr").read_bytes()
+    assert cli("relight", fitted, "--with-fitted", "--max-side", "48", "-o", out)[0] == 0
+    assert (out / "renders" / "diffuse.exr").read_bytes() == aov and (out / "relit.exr").is_file()
+    seq = tmp_path / "seq.json"
+    seq.write_text('[["point:0,1,-2:1,1,1"], ["point:0.2,1,-2:1,1,1"], ["point:0.4,1,-2:1,1,1"], '
+                   '["point:0.6,1,-2:1,1,1"]]')
+    assert cli("relight", fitted, "--sequence", seq, "--max-side", "48", "-o", out)[0] == 0
+    assert len(list(out.glob("relit_*.exr"))) == 4 and not (out / "relit.exr").exists()
+    seq.write_text('[["point:0,1,-2:1,1,1"], ["point:0.2,1,-2:1,1,1"], ["point:0.4,1,-2:1,1,1"]]')
+    assert cli("relight", fitted, "--sequence", seq, "--max-side", "48", "-o", out)[0] == 0
+    assert sorted(p.name for p in out.glob("relit_*.exr")) == ["relit_0000.exr", "relit_0001.exr", "relit_0002.exr"]
+    assert (out / "renders" / "diffuse.exr").read_bytes() == aov

@@ -22,6 +22,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 from .errors import UsdRelightError
 
@@ -265,7 +266,7 @@ def _point(link: Path, target: str) -> None:
 
 
 @contextmanager
-def result_group(out_dir: str | os.PathLike, keep_previous: bool = False):
+def result_group(out_dir: str | os.PathLike, keep_previous: bool | Callable[[Path], bool] = False):
     """Yield a new, hidden folder to write one result's files into (relative names: ``relit.exr``,
     ``relit.png``, ``renders/diffuse.exr`` ...); on a clean exit they all appear under ``out_dir`` at once.
 
@@ -275,7 +276,8 @@ def result_group(out_dir: str | os.PathLike, keep_previous: bool = False):
     never a mix, and a killed writer leaves the previous result. A regular file left by an older usdrelight under
     a public name is first moved into the current version (hard link) before it becomes a link, so that step
     never changes what a reader sees either. Names of the previous result that the new one lacks disappear, or
-    with ``keep_previous`` stay as they were (a render of some AOVs keeps the others); versions other than the
+    with ``keep_previous`` stay as they were (a render of some AOVs keeps the others; a callable keeps those
+    relative names for which it is true: a relight keeps a render's AOVs, not its own older frames); versions other than the
     current one are removed. Holds :func:`stage_lock` on ``out_dir`` meanwhile; on an
     exception nothing is published and the new version is removed."""
     out = Path(out_dir)
@@ -293,7 +295,7 @@ def result_group(out_dir: str | os.PathLike, keep_previous: bool = False):
         raise
 
 
-def _publish_group(out: Path, keep_previous: bool):
+def _publish_group(out: Path, keep_previous):
     results = out / RESULTS_DIR
     current = results / "current"
     pointed = os.readlink(current) if current.is_symlink() else ""
@@ -335,16 +337,17 @@ def _inside_real(path: Path, folder: Path) -> bool:
     return base in real.parents
 
 
-def _switch(out: Path, results: Path, version: Path, keep_previous: bool) -> None:
+def _switch(out: Path, results: Path, version: Path, keep_previous) -> None:
     """Publish ``version``: public links first (they keep showing the current result), then one rename."""
     current = results / "current"
     old = (results / os.readlink(current)) if current.is_symlink() else None
     # the previous result's own files only: a link planted inside its version is not carried into the new one
     previous = sorted(p.relative_to(old) for p in old.rglob("*") if p.is_file() and not p.is_symlink()
                       and _inside_real(p, old)) if old and old.is_dir() else []
+    keep = keep_previous if callable(keep_previous) else (lambda name: bool(keep_previous))
     if keep_previous:  # carried into the new version (hard links: the published files are never written)
         for name in previous:
-            if not (version / name).exists():
+            if keep(name) and not (version / name).exists():
                 link_or_copy(old / name, version / name)
     fsync_tree(version)
     names = sorted(p.relative_to(version) for p in version.rglob("*") if p.is_file())

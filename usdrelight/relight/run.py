@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time as time_module
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -81,6 +82,16 @@ class RelightResult:
 
 WRITE_QUEUE = 2
 """Frames rendered but not yet written, at most (the writer thread overlaps the next frame's render)."""
+
+
+#: What a relight writes into its folder (frames numbered _NNNN in a sequence): a new relight replaces these
+#: and keeps the folder's other results (a render's AOVs in renders/, a neural result).
+RELIT_NAMES = re.compile(r"(relit|render_diffuse)(_\d{4})?\.(exr|png)|contact_sheet\.png")
+
+
+def not_relit(name: Path) -> bool:
+    """Whether a previous result's file (relative name) is someone else's than relight's (kept by a relight)."""
+    return RELIT_NAMES.fullmatch(name.as_posix()) is None
 
 
 def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame, mp4: Mp4Writer | None = None) -> FrameFiles:
@@ -200,7 +211,7 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         # the video appears after the frames are published (contexts close in reverse): a run that fails to
         # publish leaves the previous video too, never a new video beside old frames
         mp4 = stack.enter_context(Mp4Writer(video, fps)) if video is not None else None
-        folder = stack.enter_context(result_group(out_dir))
+        folder = stack.enter_context(result_group(out_dir, keep_previous=not_relit))
         writer = stack.enter_context(ThreadPoolExecutor(1, "usdrelight-write"))
         pending: deque = deque()
         console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
