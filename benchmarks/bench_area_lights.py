@@ -33,6 +33,9 @@ SAMPLES = (1, 2, 4, 16, 64)
 """Shadow rays per pixel tried (16 is the default, :class:`usdrelight.engine.fast.EngineSettings`)."""
 AREA = ["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5", "disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3",
         "sphere:-0.5,1.0,-2.0:20,20,20:0.15", "dome:0.05,0.05,0.06"]
+PANEL = ["rect:0,0,-3:0,0,-1:1,1,1:100,100", "rect:0,0.2,-5.9:0,0,-1:1,1,1:10,10"]
+"""Large and near panels (a 100 m panel 3 m in, a 10 m one 0.1 m before the back wall): rect sampling by solid
+angle (the engine's) against by area (what it did before, :func:`usdrelight.engine.lights.planar_light`)."""
 POINT = ["point:0.3,1.6,-3.0:2.4,2.4,2.4", "dome:0.05,0.05,0.06"]
 """For scale: a point light where the rect is, of the rect's on-axis intensity (L x area)."""
 
@@ -61,6 +64,7 @@ def main() -> int:
         refs = {}
         for name, lights in (("area", area), ("point", point)):
             refs[name] = Mitsuba(rec.with_lights(lights).with_camera(rec.camera.limited(side))).render(args.spp, seed=5)
+    panels = panel_rows(args.spp)
     rows = []
     for n in SAMPLES:
         img, sec = fast[n]
@@ -71,7 +75,7 @@ def main() -> int:
            "lights": AREA, "mitsuba_spp": args.spp, "mitsuba_seconds": refs["area"][1], "machine": platform.platform(),
            "point": {"lights": POINT, "fast_frame_seconds": pt_sec,
                      "rel_rmse_vs_mitsuba": rel_rmse(pt.beauty, refs["point"][0], pt.valid)},
-           "rows": rows}
+           "rows": rows, "panels": panels}
     (ROOT / "benchmarks" / "results").mkdir(exist_ok=True)
     (ROOT / "benchmarks" / "results" / "area_lights.json").write_text(json.dumps(out, indent=1) + "\n")
     print(f"{'samples':>7} {'fast s':>8} {'x point':>7} {'rRMSE':>7} {'mean/M':>7}")
@@ -81,7 +85,52 @@ def main() -> int:
     p = out["point"]
     print(f"{'point':>7} {p['fast_frame_seconds']:>8.4f} {1.0:>7.1f} {p['rel_rmse_vs_mitsuba']:>7.4f}")
     print(f"Mitsuba {args.spp} spp: {out['mitsuba_seconds']:.1f} s")
+    print(f"\n{'panel':>36} {'samples':>7} {'solid-angle rRMSE':>17} {'mean/M':>7} {'s':>7} "
+          f"{'area rRMSE':>10} {'mean/M':>7} {'s':>7} {'max/bound':>9}")
+    for r in panels:
+        print(f"{r['light']:>36} {r['area_samples']:>7} {r['solid_angle']['rel_rmse_vs_mitsuba']:>17.4f} "
+              f"{r['solid_angle']['mean_over_mitsuba_mean']:>7.3f} {r['solid_angle']['seconds']:>7.3f} "
+              f"{r['area']['rel_rmse_vs_mitsuba']:>10.4f} {r['area']['mean_over_mitsuba_mean']:>7.3f} "
+              f"{r['area']['seconds']:>7.3f} {r['area']['max_over_bound']:>9.2f}")
     return 0
+
+
+def panel_rows(spp: int) -> list[dict]:
+    """Per panel and sample count: the direct light (max_depth 2) by solid-angle and by area sampling against
+    Mitsuba (``spp``), and the area sampling's largest pixel over the bound a radiance-1 panel can give (1 x
+    albedo)."""
+    import usdrelight.engine.fast as fast_module
+    from usdrelight.engine.lights import planar_light, rect_light
+
+    out = []
+    with tempfile.TemporaryDirectory() as td:
+        rec = procedural_record(Path(td))
+        for spec in PANEL:
+            light = parse_lights([spec])
+            ref = None
+            for n in SAMPLES:
+                row = {"light": spec, "area_samples": n}
+                for name, sampler in (("solid_angle", rect_light), ("area", planar_light)):
+                    fast_module.rect_light = sampler  # the engine's rect dispatch, for this comparison only
+                    try:
+                        fr = FastRenderer(rec, EngineSettings(max_side=128, direct_terms=0, area_samples=n,
+                                                              max_depth=2))
+                        fr.render(light)
+                        t = time.perf_counter()
+                        img = fr.render(light)
+                        sec = time.perf_counter() - t
+                    finally:
+                        fast_module.rect_light = rect_light
+                    if ref is None:
+                        side = max(img.beauty.shape[:2])
+                        ref = Mitsuba(rec.with_lights(light).with_camera(rec.camera.limited(side)),
+                                      max_depth=2).render(spp, seed=5)[0]
+                    v = img.valid
+                    row[name] = {"seconds": sec, "rel_rmse_vs_mitsuba": rel_rmse(img.beauty, ref, v),
+                                 "mean_over_mitsuba_mean": float(img.beauty[v].mean() / ref[v].mean()),
+                                 "max_over_bound": float((img.beauty[v] / np.maximum(img.albedo[v], 1e-6)).max())}
+                out.append(row)
+    return out
 
 
 if __name__ == "__main__":

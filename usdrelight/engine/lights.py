@@ -10,7 +10,8 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
 * sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
-* disk / rect: stratified area sampling, one-sided emission towards the light's -Z; a RectLight's texture
+* disk: stratified area sampling; rect: stratified sampling of the solid angle it subtends at each pixel
+  (:func:`rect_light`); both one-sided, emitting towards the light's -Z; a RectLight's texture
   weights each sample by its texel (UsdLux: the file's top-left texel at the light's local (+X, +Y) corner,
   bottom-right at (-X, -Y); bilinear, wrapping and decoded as the Mitsuba scene's bitmap);
 * distant: irradiance L along the light's -Z, sharp (angle 0) or spread over the cone of its angular diameter;
@@ -168,6 +169,83 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
     if not textured:
         acc = acc[:, None]
     return acc * scale * emitted_radiance(light)[None, :]
+
+
+def rect_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
+    """Rect light by solid-angle sampling (Urena, Fajardo and King 2013, "An Area-Preserving Parametrization for
+    Spherical Rectangles"): each pixel draws its points uniformly in the solid angle S the rectangle subtends
+    there, E / pi ~ S / (pi n) sum cos(theta) V, so a large or near panel is as smooth as a small far one (area
+    sampling lit a 100 m panel 10x too dark at 16 samples, and a sample next to a surface overshot the physical
+    bound). The stratified (u1, u2) are shared by all pixels (deterministic, no per-pixel noise); a texture weights
+    each point by its texel. A sheared or degenerate frame falls back to area sampling (:func:`planar_light`)."""
+    ax, ay = light.to_world[:3, 0], light.to_world[:3, 1]
+    sx, sy = float(np.linalg.norm(ax)), float(np.linalg.norm(ay))
+    if sx * sy * light.width * light.height <= 0 or abs(float(ax @ ay)) > 1e-9 * sx * sy:
+        return planar_light(tr, light, samples, rng, textures)
+    ex, ey = ax / sx, ay / sy
+    ez = np.cross(ex, ey)
+    w, h = light.width * sx, light.height * sy
+    centre = light.to_world[:3, 3]
+    surf, o = tr.surface, tr.origins
+    d = (centre - 0.5 * w * ex - 0.5 * h * ey)[None] - o  # the corner, from each pixel
+    x0, y0, z0 = d @ ex, d @ ey, d @ ez
+    zs = np.where(z0 > 0, -1.0, 1.0)  # the local z points away from the pixel: z0 <= 0
+    z0 = z0 * zs
+    front = (o - centre) @ light_direction(light) > 0  # one-sided: the pixel is on the side the panel lights
+    live = front & (z0 < -1e-9 * max(w, h))
+    x0, y0, z0, zs, idx = x0[live], y0[live], z0[live], zs[live], np.nonzero(live)[0]
+    x1, y1 = x0 + w, y0 + h
+
+    def unit(a, b, c):
+        n = np.sqrt(a * a + b * b + c * c)
+        return a / n, b / n, c / n
+
+    n0, n1 = unit(0 * z0, z0, -y0), unit(-z0, 0 * z0, x1)
+    n2, n3 = unit(0 * z0, -z0, y1), unit(z0, 0 * z0, -x0)
+
+    def angle(a, b):
+        return np.arccos(np.clip(-(a[0] * b[0] + a[1] * b[1] + a[2] * b[2]), -1.0, 1.0))
+
+    g0, g1, g2, g3 = angle(n0, n1), angle(n1, n2), angle(n2, n3), angle(n3, n0)
+    b0, b1 = n0[2], n2[2]
+    k = 2 * np.pi - g2 - g3
+    solid = np.maximum(g0 + g1 - k, 0.0)
+    u1, u2 = stratified(1, samples, rng)
+    textured = light.texture is not None
+    acc = np.zeros((surf.n_pixels, 3) if textured else surf.n_pixels)
+    op, nrm = o[idx], surf.n[idx]
+    for a, b in zip(u1[0], u2[0]):  # one shadow-ray batch per sample: memory stays at N rays
+        au = a * solid + k
+        sin_au = np.sin(au)
+        fu = (np.cos(au) * b0 - b1) / np.where(np.abs(sin_au) < 1e-12, 1e-12, sin_au)
+        cu = np.clip(np.sign(fu) / np.sqrt(fu * fu + b0 * b0), -1.0, 1.0)
+        xu = np.clip(-(cu * z0) / np.maximum(np.sqrt(1.0 - cu * cu), 1e-12), x0, x1)
+        dd = np.sqrt(xu * xu + z0 * z0)
+        h0, h1 = y0 / np.sqrt(dd * dd + y0 * y0), y1 / np.sqrt(dd * dd + y1 * y1)
+        hv = h0 + b * (h1 - h0)
+        yv = np.where(hv * hv < 1 - 1e-9, hv * dd / np.sqrt(np.maximum(1 - hv * hv, 1e-18)), y1)
+        v = xu[:, None] * ex + yv[:, None] * ey + (z0 * zs)[:, None] * ez
+        dist = np.linalg.norm(v, axis=1)
+        om = v / np.maximum(dist, 1e-300)[:, None]
+        cos = np.maximum(np.einsum("ij,ij->i", nrm, om), 0.0) * solid
+        ok = (cos > 0) & np.isfinite(cos)
+        if not ok.any():
+            continue
+        vis = tr.visible(op[ok], om[ok], dist[ok])
+        hit = np.nonzero(ok)[0][vis]
+        if textured:
+            p = op[hit] + v[hit] - centre
+            local = np.stack([p @ ex / sx, p @ ey / sy, np.zeros(len(hit))], 1)
+            acc[idx[hit]] += cos[hit][:, None] * rect_texture_at(light, local, {} if textures is None else textures)
+        else:
+            acc[idx[hit]] += cos[hit]
+    # E / pi of a radiance-1 panel is at most 1 (the whole hemisphere): the estimate's overshoot where the panel
+    # fills the view is cut there (the brightest texel's for a texture)
+    bound = light_texels(light.texture, textures if textures is not None else {}).max() if textured else 1.0
+    acc = np.minimum(acc / (np.pi * samples), bound)
+    if not textured:
+        acc = acc[:, None]
+    return acc * emitted_radiance(light)[None, :]
 
 
 def distant_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> np.ndarray:
