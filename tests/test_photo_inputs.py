@@ -190,3 +190,15 @@ def test_a_lights_layer_that_is_not_usd_fails_before_any_work(cli, tmp_path, pho
     rc, _, err = cli("build", photo, "-o", out)
     assert "lights_user.usda is not a USD layer" in _one_error(rc, err)
     assert (out / "lights_user.usda").read_text() == "my notes" and not (out / "scene.usda").exists()
+
+
+def test_a_depth_of_1e_30_is_invalid_not_a_stage_nothing_renders(cli, tmp_path, photo):
+    """Depths below a micrometre underflowed float32 (a stage with a 5e-31 clipping range that fit refused and
+    render drew black), with numpy's divide-by-zero warning on stderr; now they are invalid pixels."""
+    np.save(tmp_path / "tiny.npy", np.full((24, 32), 1e-30, np.float32))
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "tiny.npy", "--fov-x", "60", "-o", tmp_path / "a")
+    assert "no valid pixel" in _one_error(rc, err) and "RuntimeWarning" not in err
+    np.save(tmp_path / "mm.npy", np.full((24, 32), 1e-3, np.float32))  # a millimetre away: a (macro) stage
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "mm.npy", "--fov-x", "60", "-o", tmp_path / "b")
+    assert rc == 0 and "RuntimeWarning" not in err, err
+    np.testing.assert_allclose(_mesh_depths(tmp_path / "b" / "scene.usda"), 1e-3, rtol=1e-5)

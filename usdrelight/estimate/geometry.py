@@ -50,13 +50,16 @@ def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
 #: Depth (scene units) above which a pixel is invalid, like Inf: placeholder "sky" values such as 3e38 would
 #: otherwise overflow the camera's clipping range (2 x the farthest depth) and float32 points.
 MAX_DEPTH = 1e15
+#: Depth (scene units) below which a pixel is invalid: a micrometre is far nearer than any photo sees, and depths
+#: like 1e-30 underflow float32 points, normals and the clipping range (a stage that nothing could render).
+MIN_DEPTH = 1e-6
 
 
 def from_depth(depth: np.ndarray, intrinsics: Intrinsics, valid: np.ndarray | None = None,
                source: str = "depth") -> GeometryEstimate:
-    """Unproject a z-depth map (H, W); non-finite, non-positive or huge (> MAX_DEPTH) depth is invalid."""
+    """Unproject a z-depth map (H, W); non-finite, tiny (< MIN_DEPTH) or huge (> MAX_DEPTH) depth is invalid."""
     depth = np.asarray(depth, dtype=np.float64)
-    ok = np.isfinite(depth) & (depth > 0) & (depth <= MAX_DEPTH)
+    ok = np.isfinite(depth) & (depth >= MIN_DEPTH) & (depth <= MAX_DEPTH)
     if valid is not None:
         ok &= valid
     z = np.where(ok, depth, 0.0)
