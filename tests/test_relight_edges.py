@@ -194,3 +194,17 @@ def test_a_relight_keeps_a_renders_aovs_in_its_folder_and_replaces_its_own_frame
     assert cli("relight", fitted, "--sequence", seq, "--max-side", "48", "-o", out)[0] == 0
     assert sorted(p.name for p in out.glob("relit_*.exr")) == ["relit_0000.exr", "relit_0001.exr", "relit_0002.exr"]
     assert (out / "renders" / "diffuse.exr").read_bytes() == aov
+
+
+def test_frame_steps_and_numbers_are_read_as_written(cli, fitted, tmp_path):
+    """--frames 0:0.3:0.1 ends at 0.3 (not 0.30000000000000004, past END); 1_0 is not a number here (Python's
+    float reads it as 10)."""
+    from usdrelight.stage.timing import parse_frames
+
+    assert parse_frames("0:0.3:0.1") == [0.0, 0.1, 0.2, 0.3]
+    assert parse_frames("1:2:0.25")[-1] == 2.0 and len(parse_frames("0:1:0.1")) == 11
+    rc, _, err = cli("relight", fitted, "--light", "point:1_0,1,-2:1,1,1", "-o", tmp_path / "a")
+    assert rc == 2 and "comma-separated numbers" in err and err.count("\n") == 1, err
+    with pytest.raises(SystemExit) as exc:  # argparse refuses it before anything runs
+        cli("relight", fitted, "--time", "1_0", "-o", tmp_path / "b")
+    assert exc.value.code == 2

@@ -20,6 +20,13 @@ def non_negative_int(text: str) -> int:
     return v
 
 
+def number(text: str) -> float:
+    """A number as written in ASCII digits (``float`` alone also reads ``1_0`` as 10 and other scripts' digits)."""
+    if not text.isascii() or "_" in text:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}")
+    return float(text)
+
+
 def positive_float(text: str) -> float:
     """A finite number > 0."""
     v = float(text)
@@ -42,7 +49,7 @@ TIME_HELP = ("the USD time code lights are read at (default: the stage's startTi
 
 def add_time_argument(parser) -> None:
     """``--time T``: the USD time code a command reads lights at (render, convert, relight)."""
-    parser.add_argument("--time", type=float, metavar="T", help=TIME_HELP)
+    parser.add_argument("--time", type=number, metavar="T", help=TIME_HELP)
 
 
 def add_frames_argument(parser, what: str) -> None:

@@ -33,13 +33,13 @@ from .records import LightRecord
 
 def _floats(text: str, n: int, what: str, spec: str) -> np.ndarray:
     try:
-        if not text.isascii():  # float() also reads other scripts' digits; a spec is written in ASCII
+        if not text.isascii() or "_" in text:  # float() also reads other scripts' digits and 1_0 as 10
             raise ValueError(text)
         v = np.array([float(x) for x in text.split(",")], np.float64)
     except ValueError:
         raise UsdRelightError(f"bad --light {spec!r}: {what} must be {n} comma-separated numbers") from None
     if len(v) != n or not np.all(np.isfinite(v)):
-        raise UsdRelightError(f"bad --light {spec!r}: {what} must be {n} finite numbers")
+        raise UsdRelightError(f"bad --light {spec!r}: {what} must be {'one finite number' if n == 1 else f'{n} finite numbers'}")
     return v
 
 

@@ -64,6 +64,8 @@ def frame_time(stage, time: float | None = None):
 def check_time(time) -> float:
     """A time code given by a user: a finite number."""
     try:
+        if isinstance(time, str) and "_" in time:  # float() reads 1_0 as 10
+            raise ValueError(time)
         t = float(time)
     except (TypeError, ValueError):
         raise UsdRelightError(f"a time code must be a number, got {time!r}") from None
@@ -95,7 +97,8 @@ def parse_frames(text: str | None, stage=None) -> list[float]:
     if count > MAX_FRAMES:
         raise UsdRelightError(f"--frames {start:g}:{end:g}:{step:g} holds {count} time codes: at most "
                               f"{MAX_FRAMES} in one run (split it into several runs)")
-    return [start + i * step for i in range(count)]
+    # each code rounded to 12 significant digits: 0 + 3 x 0.1 is 0.3, not 0.30000000000000004 (past END 0.3)
+    return [min(float(f"{start + i * step:.12g}"), end) for i in range(count)]
 
 
 def xformable_ancestors(prim) -> list:
