@@ -94,14 +94,14 @@ def test_unwritable_output(cli, bad_setup):
     out = tmp / "afile" / "scene"
     rc, o, e = cli("build", photo, "--fov-x", "60", "--depth", write_plane_depth(tmp / "d.npy", 24, 32), "-o", out)
     _assert_clean_failure(rc, o, e, tmp / "afile")
-    assert "not a directory" in e
+    assert "is not a folder" in e
 
 
 def test_output_is_a_file(cli, bad_setup):
     tmp, photo, _ = bad_setup
     (tmp / "out").write_text("x")
     rc, o, e = cli("build", photo, "-o", tmp / "out")
-    assert rc == 2 and "not a directory" in e and (tmp / "out").read_text() == "x"
+    assert rc == 2 and "is not a folder" in e and (tmp / "out").read_text() == "x"
 
 
 def test_bad_stage_for_validate(cli, tmp_path):
