@@ -23,6 +23,7 @@ shift_x = horizontalApertureOffset / horizontalAperture, shift_y = verticalApert
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -89,12 +90,18 @@ def cone_softness(half_angle: float, blend: float) -> float:
     return 0.5 * (lo + hi)
 
 
+@lru_cache(maxsize=32)
+def _texture_mean(path: str, linear: bool) -> tuple:
+    """A light texture's mean linear RGB (read once: keyed frames ask again)."""
+    return tuple(float(x) for x in read_texture_rgb(path, linear).reshape(-1, 3).mean(0))
+
+
 def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
     """Plain description of the Blender light for a UsdLux light record (a textured RectLight: uniform, the
     texture's mean radiance, so that it sends the same power)."""
     L = emitted_radiance(light)
     if light.kind == "rect" and light.texture is not None:
-        L = L * read_texture_rgb(light.texture.path, light.texture.linear).reshape(-1, 3).mean(0)
+        L = L * np.asarray(_texture_mean(light.texture.path, light.texture.linear))
     peak, color = split_rgb(L)
     color = list(color)
     conv = Y_UP_TO_Z_UP if up_axis == "Y" else np.eye(4)

@@ -199,7 +199,8 @@ def test_blender_and_mesh_readers_return_their_warnings(cli, monkeypatch, tmp_pa
     box = trimesh.creation.box()
     tex = Image.fromarray(np.full((4, 4, 3), 200, np.uint8))
     box.visual = trimesh.visual.TextureVisuals(uv=np.zeros((len(box.vertices), 2)),
-                                               material=trimesh.visual.material.PBRMaterial(baseColorTexture=tex))
+                                               material=trimesh.visual.material.PBRMaterial(baseColorTexture=tex,
+                                                                                            metallicFactor=0.0))
     box.export(tmp_path / "box.glb")
     res = mesh_files.read_from_file(tmp_path / "box.glb")
     assert isinstance(res, ReadReport)

@@ -134,3 +134,54 @@ def test_a_large_or_near_panel_at_16_samples_matches_mitsuba(spec, tmp_path):
     assert fast.beauty[v].mean() == pytest.approx(ref[v].mean(), rel=0.05)
     unit = fr.direct(replace(light, radiance=np.ones(3)))
     assert unit.max() <= 1.0 and unit.min() >= 0
+
+
+def test_a_light_textures_encoding_follows_what_the_file_stores(tmp_path):
+    """An 8-bit TIFF is sRGB like an 8-bit PNG (its suffix made it 'linear': a mid-grey dome lit 2.3x too bright),
+    an EXR linear; the engine reads the texels so."""
+    import OpenImageIO as oiio
+
+    from usdrelight.engine.lights import light_texels
+    from usdrelight.imageio import srgb_to_linear
+
+    out = oiio.ImageOutput.create(str(tmp_path / "grey.tif"))
+    out.open(str(tmp_path / "grey.tif"), oiio.ImageSpec(4, 2, 3, oiio.UINT8))
+    out.write_image(np.full((2, 4, 3), 128, np.uint8))
+    out.close()
+    write_image(tmp_path / "grey.exr", np.full((2, 4, 3), 0.5, np.float32), "float")
+    for name, space, value in (("grey.tif", "sRGB", float(srgb_to_linear(128 / 255))), ("grey.exr", "raw", 0.5)):
+        stage = looking_down_at_floor(tmp_path / f"{name}.usda", width=8, height=6)
+        UsdLux.DomeLight.Define(stage, "/World/Sky").CreateTextureFileAttr(Sdf.AssetPath(f"./{name}"))
+        stage.GetRootLayer().Save()
+        (dome,) = read_scene(open_stage(tmp_path / f"{name}.usda")).lights
+        assert dome.texture.color_space == space
+        np.testing.assert_allclose(light_texels(dome.texture, {}), value, rtol=1e-6)
+
+
+def test_the_xml_export_writes_one_mirrored_texture_per_scaled_rect(cli, tmp_path):
+    """Two RectLights sharing one texture at different radiances: two mirrored files, each scaled (before, a
+    separate baked copy was written too, unused; and the name would not tell the scales apart)."""
+    stage = looking_down_at_floor(tmp_path / "two.usda", width=8, height=6)
+    write_image(tmp_path / "t.exr", np.full((2, 4, 3), 0.5, np.float32), "float")
+    for name, k in (("A", 2.0), ("B", 3.0)):
+        light = UsdLux.RectLight.Define(stage, f"/World/{name}")
+        light.CreateIntensityAttr(k)
+        light.CreateTextureFileAttr(Sdf.AssetPath("./t.exr"))
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("convert", tmp_path / "two.usda", tmp_path / "x" / "two.xml")
+    assert rc == 0, err
+    files = sorted((tmp_path / "x" / "textures").glob("*.exr"))
+    assert len(files) == 2 and all("_mirrored_" in f.name for f in files), files
+    from usdrelight.imageio import read_photo
+
+    assert sorted(float(read_photo(f).mean()) for f in files) == pytest.approx([1.0, 1.5])
+
+
+def test_radiance_times_texel_beyond_float32_is_one_error(tmp_path):
+    """Each factor within its bound (1e30), their product is not: an error, not an Inf turned into black."""
+    tex = np.full((2, 2, 3), 1e20)
+    rec = _stage(tmp_path, tex, "hot")
+    (light,) = rec.lights
+    hot = replace(light, radiance=np.full(3, 1e20))
+    with pytest.raises(UsdRelightError, match="beyond what a float32 image carries"):
+        FastRenderer(rec, EngineSettings(max_side=None)).render([hot])

@@ -208,3 +208,11 @@ def test_frame_steps_and_numbers_are_read_as_written(cli, fitted, tmp_path):
     with pytest.raises(SystemExit) as exc:  # argparse refuses it before anything runs
         cli("relight", fitted, "--time", "1_0", "-o", tmp_path / "b")
     assert exc.value.code == 2
+
+
+def test_a_clip_without_any_light_is_still_an_error(cli, fitted, tmp_path):
+    """Dark frames are allowed inside a clip that has light somewhere, not a whole clip with none (nothing is
+    published)."""
+    rc, _, err = cli("relight", fitted, "--frames", "1:3", "--mode", "render", "--max-side", "32", "-o", tmp_path / "o")
+    assert rc == 2 and "no light to relight with at any frame" in err and err.count("\n") == 1, err
+    assert not list((tmp_path / "o").glob("relit*")) if (tmp_path / "o").exists() else True

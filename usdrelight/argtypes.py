@@ -29,7 +29,7 @@ def number(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """A finite number > 0."""
-    v = float(text)
+    v = number(text)
     if not (v > 0 and v != float("inf")):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v

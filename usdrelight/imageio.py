@@ -93,6 +93,12 @@ def _checked_buf(path: Path):
     return buf
 
 
+def stores_floats(path: str | os.PathLike) -> bool:
+    """Whether the image file stores float data (linear by the conventions above) rather than integers (sRGB),
+    from its header."""
+    return str(_checked_buf(Path(path)).spec().format) in LINEAR_FORMATS
+
+
 def check_image_size(path: str | os.PathLike) -> tuple[int, int]:
     """``(width, height)`` from the file's header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS (for images
     a renderer decodes by itself, such as Mitsuba's textures)."""

@@ -73,15 +73,16 @@ _FLOAT_IMAGES = (".exr", ".hdr", ".pfm")
 
 
 #: bitmap dict keys whose texels are computed, not read: key -> (file label, texels(d) -> float image), in order
-#: (a RectLight's scaled texture is baked first, then mirrored: :func:`_restore_area_lights`)
-_BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("bake", "baked", baked_texels),
-                  ("mirror_u", "mirrored", mirrored_texels))
+#: (a RectLight's texture is scaled and mirrored in one file: mirrored_texels bakes the scale itself)
+_BAKED_BITMAPS = (("cutout", "cutout", presence_map), ("mirror_u", "mirrored", mirrored_texels),
+                  ("bake", "baked", baked_texels))
 
 
 def _baked_bitmap(d: dict, key: str, label: str, texels, base: Path, files: list) -> dict:
     """The bitmap ``d`` with its computed texels (``texels(d)``: a UsdPreviewSurface opacityThreshold presence map,
     or a UsdUVTexture's scale / bias / single channel) written once to textures/<stem>_<label>_<hash>.exr."""
-    digest = hashlib.sha1(json.dumps([d["filename"], d[key]], sort_keys=True).encode()).hexdigest()[:8]
+    digest = hashlib.sha1(json.dumps([d["filename"], d[key], d.get("bake") if key == "mirror_u" else None],
+                                     sort_keys=True).encode()).hexdigest()[:8]
     name = Path(d["filename"][d["filename"].index("[") + 1:-1] if d["filename"].endswith("]") else d["filename"])
     dst = base / "textures" / f"{name.stem}_{label}_{digest}.exr"
     if str(dst) not in files:
@@ -145,6 +146,8 @@ def _plugin(parent: ET.Element, key: str, d: dict, base: Path, files: list, top:
         for key_, label, texels in _BAKED_BITMAPS:
             if key_ in d:
                 d = _baked_bitmap(d, key_, label, texels, base, files)
+                if key_ == "mirror_u" and "bake" in d:  # already in the mirrored file's texels
+                    d = {**{k: v for k, v in d.items() if k != "bake"}, "raw": True}
     for k, v in d.items():
         if k == "type" or v is None:
             continue

@@ -212,7 +212,12 @@ class FastRenderer:
         kept[key] = term  # most recently used last
         while len(kept) > max(most, 0):
             kept.pop(next(iter(kept)))
-        return term * np.asarray(light.radiance, np.float64)[None, :]
+        out = term * np.asarray(light.radiance, np.float64)[None, :]
+        peak = out.max(initial=0.0)
+        if not np.isfinite(peak) or peak > 3e38:  # e.g. radiance 1e20 x a texel of 1e20, each within its bound
+            raise UsdRelightError(f"light {light.path} lights the scene beyond what a float32 image carries "
+                                  f"(its radiance times its texture's brightest texel)")
+        return out
 
     def sample_count(self, area_samples: int | None = None) -> int:
         """The shadow rays per pixel of a render: ``area_samples`` or the settings' (:func:`check_area_samples`)."""

@@ -139,6 +139,8 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
     """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``); a rect's
     texture weights each point by its texel (:func:`rect_texture_at`; texels read once into ``textures``)."""
     surf = tr.surface
+    if world_area(light) <= 0:  # a zero-size panel emits nothing (UsdLux allows the size 0)
+        return np.zeros((surf.n_pixels, 3))
     u1, u2 = stratified(1, samples, rng)
     u1, u2 = u1[0], u2[0]
     if light.kind == "disk":

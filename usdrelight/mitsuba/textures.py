@@ -170,25 +170,33 @@ def merged_dome_dict(domes) -> dict:
 
 def merged_dome_texels(spec: dict) -> np.ndarray:
     """(H, W, 3) float32 world-frame latlong of a :func:`merged_dome_dict` envmap: each dome's radiance along
-    each texel centre's direction, summed (nearest texel of each texture; H the largest texture's height, at
-    most :data:`MERGED_DOME_MAX_HEIGHT`). Directions as Mitsuba's envmap and the fast renderer read a latlong:
-    d = (sin t sin p, cos t, -sin t cos p) at texel (t / pi, p / 2 pi)."""
+    each texel's directions, summed. H is the largest texture's height, at most :data:`MERGED_DOME_MAX_HEIGHT`;
+    a larger texture is averaged over f x f directions per texel (f = its height / H, rounded up), so a sun a few
+    texels wide keeps its power. Directions as Mitsuba's envmap and the fast renderer read a latlong:
+    d = (sin t sin p, cos t, -sin t cos p) at texel (t / pi, p / 2 pi); each texture's nearest texel."""
     maps = [None if tex is None else read_texture_rgb(tex[0], tex[1]) for tex, _, _ in spec["domes"]]
-    h = min(max([m.shape[0] for m in maps if m is not None] + [16]), MERGED_DOME_MAX_HEIGHT)
-    w = 2 * h
-    th = (np.arange(h) + 0.5) / h * np.pi
-    ph = (np.arange(w) + 0.5) / w * 2 * np.pi
-    T, P = np.meshgrid(th, ph, indexing="ij")
-    d = np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)
-    out = np.zeros((h * w, 3))
-    for img, (_, L, rot) in zip(maps, spec["domes"]):
-        if img is None:
-            out += np.asarray(L)
-            continue
-        local = d @ np.asarray(rot)  # world -> the dome's frame (an orthonormal rotation)
-        u = np.mod(np.arctan2(local[:, 0], -local[:, 2]), 2 * np.pi) / (2 * np.pi)
-        v = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
-        th_, tw = img.shape[:2]
-        out += img[np.minimum((v * th_).astype(np.int64), th_ - 1), np.minimum((u * tw).astype(np.int64), tw - 1)] \
-            * np.asarray(L)
-    return out.reshape(h, w, 3).astype(np.float32)
+    tallest = max([m.shape[0] for m in maps if m is not None] + [16])
+    h = min(tallest, MERGED_DOME_MAX_HEIGHT)
+    w, f = 2 * h, -(-tallest // h)
+    sub = (np.arange(f) + 0.5) / f
+    ph = ((np.arange(w)[:, None] + sub[None, :]) / w * 2 * np.pi).ravel()
+    out = np.zeros((h, w, 3))
+    chunk = max(1, 4_000_000 // (w * f * f))  # rows per batch: bounded memory
+    for r0 in range(0, h, chunk):
+        rows = np.arange(r0, min(h, r0 + chunk))
+        th = ((rows[:, None] + sub[None, :]) / h * np.pi).ravel()
+        T, P = np.meshgrid(th, ph, indexing="ij")
+        d = np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)
+        acc = np.zeros((len(d), 3))
+        for img, (_, L, rot) in zip(maps, spec["domes"]):
+            if img is None:
+                acc += np.asarray(L)
+                continue
+            local = d @ np.asarray(rot)  # world -> the dome's frame (an orthonormal rotation)
+            u = np.mod(np.arctan2(local[:, 0], -local[:, 2]), 2 * np.pi) / (2 * np.pi)
+            v = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
+            th_, tw = img.shape[:2]
+            acc += img[np.minimum((v * th_).astype(np.int64), th_ - 1),
+                       np.minimum((u * tw).astype(np.int64), tw - 1)] * np.asarray(L)
+        out[rows] = acc.reshape(len(rows), f, w, f, 3).mean(axis=(1, 3))
+    return out.astype(np.float32)

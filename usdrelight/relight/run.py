@@ -217,14 +217,17 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
         steps = track(plan, description="relight", console=console, transient=True,
                       disable=len(plan) < 2 or not console.is_terminal)
-        first = None  # the first frame: the contact sheet shows it
+        first, lit = None, False  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
             frame = session.render(common + extra, time_code=t, allow_dark=len(plan) > 1)  # a dark frame of a clip
-            first = frame if first is None else first
+            first, lit = (frame if first is None else first), lit or frame.lights > 0
             pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4))
             while len(pending) > WRITE_QUEUE:
                 written.append(pending.popleft().result())
         written += [f.result() for f in pending]  # a failed write raises here: the group publishes nothing
+        if not lit and session.mode != "add":  # a clip with no light at any frame: a mistake, not a dark clip
+            raise UsdRelightError("no light to relight with at any frame: add --light, put lights in "
+                                  "lights_user.usda, or pass --with-fitted")
         if contact_sheet:
             sheet = out_dir / _contact_sheet(folder, common + plan[0][0], session, first).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_image_size
+from ..imageio import check_image_size, stores_floats
 from ..safe_paths import check_read, stage_folder
 from .lux import uniform_scale
 from .records import LightRecord, TextureRecord
@@ -142,9 +142,11 @@ def _light_texture(prim, asset, what: str) -> TextureRecord:
     if not asset.resolvedPath:
         raise UsdRelightError(f"{what} texture not found: {asset.path} ({prim.GetPath()})")
     check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"{what} texture ({prim.GetPath()})")
-    if not asset.resolvedPath.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
-        check_image_size(asset.resolvedPath)
-    return TextureRecord(asset.resolvedPath, "auto")
+    if asset.resolvedPath.endswith("]"):  # inside a .usdz: decided by the file type when it is read
+        return TextureRecord(asset.resolvedPath, "auto")
+    check_image_size(asset.resolvedPath)  # bounded before a renderer decodes it
+    # by what the file stores, as photos are read: float data is linear, integers sRGB (an 8-bit TIFF too)
+    return TextureRecord(asset.resolvedPath, "raw" if stores_floats(asset.resolvedPath) else "sRGB")
 
 
 def _ignored_lux(prim, warnings) -> None:

@@ -97,8 +97,18 @@ def parse_frames(text: str | None, stage=None) -> list[float]:
     if count > MAX_FRAMES:
         raise UsdRelightError(f"--frames {start:g}:{end:g}:{step:g} holds {count} time codes: at most "
                               f"{MAX_FRAMES} in one run (split it into several runs)")
-    # each code rounded to 12 significant digits: 0 + 3 x 0.1 is 0.3, not 0.30000000000000004 (past END 0.3)
-    return [min(float(f"{start + i * step:.12g}"), end) for i in range(count)]
+    # each code rounded to the decimals START and STEP are written with: 0 + 3 x 0.1 is 0.3, not
+    # 0.30000000000000004 (past END 0.3); never past END
+    places = max(_decimals(start), _decimals(step))
+    return [min(round(start + i * step, places), end) for i in range(count)]
+
+
+def _decimals(x: float) -> int:
+    """The decimal places of ``x`` as Python writes it shortest (12 for an exponent form)."""
+    text = repr(float(x))
+    if "e" in text or "E" in text:
+        return 12
+    return min(len(text.split(".")[1]) if "." in text else 0, 12)
 
 
 def xformable_ancestors(prim) -> list:
