@@ -100,7 +100,7 @@ def panel_rows(spp: int) -> list[dict]:
     Mitsuba (``spp``), and the area sampling's largest pixel over the bound a radiance-1 panel can give (1 x
     albedo)."""
     import usdrelight.engine.fast as fast_module
-    from usdrelight.engine.lights import planar_light, rect_light
+    from usdrelight.engine.lights import planar_light, panel_light
 
     out = []
     with tempfile.TemporaryDirectory() as td:
@@ -110,8 +110,8 @@ def panel_rows(spp: int) -> list[dict]:
             ref = None
             for n in SAMPLES:
                 row = {"light": spec, "area_samples": n}
-                for name, sampler in (("solid_angle", rect_light), ("area", planar_light)):
-                    fast_module.rect_light = sampler  # the engine's rect dispatch, for this comparison only
+                for name, sampler in (("solid_angle", panel_light), ("area", planar_light)):
+                    fast_module.panel_light = sampler  # the engine's rect dispatch, for this comparison only
                     try:
                         fr = FastRenderer(rec, EngineSettings(max_side=128, direct_terms=0, area_samples=n,
                                                               max_depth=2))
@@ -120,7 +120,7 @@ def panel_rows(spp: int) -> list[dict]:
                         img = fr.render(light)
                         sec = time.perf_counter() - t
                     finally:
-                        fast_module.rect_light = rect_light
+                        fast_module.panel_light = panel_light
                     if ref is None:
                         side = max(img.beauty.shape[:2])
                         ref = Mitsuba(rec.with_lights(light).with_camera(rec.camera.limited(side)),

@@ -202,3 +202,19 @@ def test_a_depth_of_1e_30_is_invalid_not_a_stage_nothing_renders(cli, tmp_path, 
     rc, _, err = cli("build", photo, "--depth", tmp_path / "mm.npy", "--fov-x", "60", "-o", tmp_path / "b")
     assert rc == 0 and "RuntimeWarning" not in err, err
     np.testing.assert_allclose(_mesh_depths(tmp_path / "b" / "scene.usda"), 1e-3, rtol=1e-5)
+
+
+def test_a_damaged_png_is_one_line_not_libpngs_too(tmp_path, capfd):
+    """libpng printed 'libpng error: IDAT: Read error' lines of its own before ours (capfd: the process's real
+    stderr, where a C library writes)."""
+    from usdrelight.cli import main
+
+    img = np.random.default_rng(3).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    _write_uint8(tmp_path / "full.png", img)
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:len(data) * 2 // 3])
+    capfd.readouterr()
+    rc = main(["build", str(tmp_path / "cut.png"), "-o", str(tmp_path / "out")])
+    err = capfd.readouterr().err
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("usdrelight: error: "), err

@@ -13,7 +13,7 @@ from pxr import Gf, Sdf, UsdGeom, UsdLux
 from usd_scenes import looking_down_at_floor
 from usdrelight.converters.blender_units import light_to_blender
 from usdrelight.engine.fast import EngineSettings, FastRenderer
-from usdrelight.engine.lights import planar_light, rect_light
+from usdrelight.engine.lights import planar_light, panel_light
 from usdrelight.errors import UsdRelightError
 from usdrelight.imageio import write_image
 from usdrelight.mitsuba.render import render_record
@@ -86,7 +86,7 @@ def test_a_constant_texture_scales_the_uniform_light_exactly(tmp_path):
     rec = _stage(tmp_path, np.full((4, 6, 3), 0.25), "quarter")
     (light,) = rec.lights
     tr = FastRenderer(rec, EngineSettings(max_side=None)).transport
-    for sampler in (planar_light, rect_light):
+    for sampler in (planar_light, panel_light):
         textured = sampler(tr, light, 64, np.random.default_rng(1), {})
         plain = sampler(tr, replace(light, texture=None), 64, np.random.default_rng(1))
         assert plain.mean() > 0.01
@@ -185,3 +185,21 @@ def test_radiance_times_texel_beyond_float32_is_one_error(tmp_path):
     hot = replace(light, radiance=np.full(3, 1e20))
     with pytest.raises(UsdRelightError, match="beyond what a float32 image carries"):
         FastRenderer(rec, EngineSettings(max_side=None)).render([hot])
+
+
+def test_a_disk_next_to_a_wall_stays_within_the_physical_bound(tmp_path):
+    """Disks are still sampled by area: a 5 m disk 0.1 m before the back wall overshot E / pi <= 1; now capped
+    there. Its mean is still far below Mitsuba's (0.10 against 0.42 measured: area sampling's near-field error,
+    left for a disk sampler by solid angle); asserted only not to exceed it."""
+    from conftest import build_procedural
+    from usdrelight.stage.light_specs import parse_light
+
+    rec = read_scene(build_procedural(tmp_path / "st", stride=4))
+    light = parse_light("disk:0,0.2,-5.9:0,0,-1:1,1,1:5")
+    fr = FastRenderer(rec, EngineSettings(max_side=64, max_depth=2, area_samples=64))
+    unit = fr.direct(replace(light, radiance=np.ones(3)))
+    assert unit.max() <= 1.0 and unit.min() >= 0
+    fast = fr.render([light])
+    ref = render_record(rec.with_lights([light]).with_camera(rec.camera.limited(64)), {"beauty"}, spp=256,
+                        max_depth=2, hide_emitters=True)["beauty"]
+    assert 0 < fast.beauty[fast.valid].mean() < ref[fast.valid].mean()

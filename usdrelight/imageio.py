@@ -11,6 +11,7 @@ Conventions
 """
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -18,6 +19,9 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import UsdRelightError
+from .native_io import captured_stderr
+
+log = logging.getLogger(__name__)
 
 LINEAR_FORMATS = {"float", "half", "double"}
 #: Largest image decoded, in megapixels (checked from the file header, before any pixel is decoded);
@@ -121,17 +125,22 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     is_float = str(spec.format) in LINEAR_FORMATS
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as stored: alpha is dropped, never applied
-    inp = oiio.ImageInput.open(str(path), config)
+    with captured_stderr() as native:  # libpng prints its own lines on a damaged file: the one error below says it
+        inp = oiio.ImageInput.open(str(path), config)
+        if inp:
+            try:
+                spec = inp.spec()
+                pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+                problem = inp.geterror()
+            finally:
+                inp.close()
     if not inp:
         raise UsdRelightError(f"cannot read image {path}: {_read_failure(oiio.geterror(), path)}")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        problem = inp.geterror()
-    finally:
-        inp.close()
     if pixels is None or getattr(pixels, "size", 0) == 0 or "premature" in problem.lower():
         raise UsdRelightError(f"cannot read image {path}: {_read_failure(problem or 'truncated', path)}")
+    for line in native.text.splitlines():  # a read that succeeded: what was printed meanwhile, through logging
+        if line.strip():
+            log.warning("%s", line.strip())
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]

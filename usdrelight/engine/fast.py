@@ -31,7 +31,7 @@ from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.records import LightRecord, SceneRecord, TextureRecord
 from ..transport.cache import TransportCache, TransportSettings, prepare_transport
 from .aovs import Aovs, nonnegative
-from .lights import distant_light, dome_light, planar_light, point_light, rect_light, sphere_light
+from .lights import distant_light, dome_light, panel_light, planar_light, point_light, sphere_light
 
 
 PREVIEW_TERMS = 8
@@ -187,7 +187,7 @@ class FastRenderer:
         if light.kind == "sphere":
             return sphere_light(tr, light, s, rng)
         if light.kind == "rect":
-            return rect_light(tr, light, s, rng, self.textures)
+            return panel_light(tr, light, s, rng, self.textures)
         if light.kind == "disk":
             return planar_light(tr, light, s, rng, self.textures)
         if light.kind == "distant":

@@ -10,8 +10,9 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
 * sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
-* disk: stratified area sampling; rect: stratified sampling of the solid angle it subtends at each pixel
-  (:func:`rect_light`); both one-sided, emitting towards the light's -Z; a RectLight's texture
+* rect: stratified sampling of the solid angle it subtends at each pixel (:func:`panel_light`); disk: stratified
+  area sampling (near or large disks come out too dark: a sampler by solid angle is left to do); both
+  one-sided, emitting towards the light's -Z, and capped at the physical bound (E / pi <= L); a RectLight's texture
   weights each sample by its texel (UsdLux: the file's top-left texel at the light's local (+X, +Y) corner,
   bottom-right at (-X, -Y); bilinear, wrapping and decoded as the Mitsuba scene's bitmap);
 * distant: irradiance L along the light's -Z, sharp (angle 0) or spread over the cone of its angular diameter;
@@ -168,12 +169,15 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
             else:
                 acc[hit] += g[live][vis]
     scale = world_area(light) / (np.pi * samples)
+    # E / pi of a radiance-1 panel is at most 1: a sample next to a surface cannot lift a pixel past it
+    bound = light_texels(light.texture, textures if textures is not None else {}).max() if textured else 1.0
+    acc = np.minimum(acc * scale, bound)
     if not textured:
         acc = acc[:, None]
-    return acc * scale * emitted_radiance(light)[None, :]
+    return acc * emitted_radiance(light)[None, :]
 
 
-def rect_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
+def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
     """Rect light by solid-angle sampling (Urena, Fajardo and King 2013, "An Area-Preserving Parametrization for
     Spherical Rectangles"): each pixel draws its points uniformly in the solid angle S the rectangle subtends
     there, E / pi ~ S / (pi n) sum cos(theta) V, so a large or near panel is as smooth as a small far one (area
