@@ -3,6 +3,8 @@ an ``over``), ``--fitted-scale 1``, light values beyond what an image can carry,
 negative or unbounded. Each asserts a number or one clear error line."""
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 
@@ -29,6 +31,17 @@ def _user_layer(stage_dir, body: str) -> None:
     (stage_dir / USER_LIGHTS).write_text(f'#usda 1.0\nover "Scene" {{\n over "Lights" {{\n{body}\n }}\n}}\n')
 
 
+@contextmanager
+def user_lights(stage_dir, body: str):
+    """The stage's lights_user.usda holds ``body`` (under /Scene/Lights) inside the block; restored after."""
+    original = (stage_dir / USER_LIGHTS).read_text()
+    _user_layer(stage_dir, body)
+    try:
+        yield
+    finally:
+        (stage_dir / USER_LIGHTS).write_text(original)
+
+
 def test_an_edited_fitted_light_is_new_lighting_not_the_photos(cli, fitted, tmp_path):
     """The user's layer triples the fitted light (an ``over`` at its path, as a .blend edited in Blender reads
     back): ratio = photo x (N + k) / (F + k) with N the edited light and F the fit's, up to 3x the photo (before: F
@@ -36,9 +49,7 @@ def test_an_edited_fitted_light_is_new_lighting_not_the_photos(cli, fitted, tmp_
     stage_dir = fitted.parent
     (path,) = [l.path for l in read_lights(open_stage(fitted)) if "Fitted" in l.path]
     name = path.rsplit("/", 1)[1]
-    original = (stage_dir / USER_LIGHTS).read_text()
-    try:
-        _user_layer(stage_dir, f'  over "Fitted" {{\n   over "{name}" {{\n    float inputs:intensity = 9\n   }}\n  }}')
+    with user_lights(stage_dir, f'  over "Fitted" {{\n   over "{name}" {{\n    float inputs:intensity = 9\n   }}\n  }}'):
         rc, _, err = cli("relight", fitted, "--with-fitted", "--mode", "ratio", "--max-side", "64", "-o",
                          tmp_path / "r")
         assert rc == 0, err
@@ -51,8 +62,6 @@ def test_an_edited_fitted_light_is_new_lighting_not_the_photos(cli, fitted, tmp_
         gain = relit[lit] / unchanged[lit]  # I (N + k) / (F + k): up to 3, 1 in F's shadows
         assert 1.3 < np.median(gain) and gain.max() <= 3.0 + 1e-4, (np.median(gain), gain.max())  # measured 1.38
         assert gain.min() > 1 - 1e-6
-    finally:
-        (stage_dir / USER_LIGHTS).write_text(original)
 
 
 def test_fitted_scale_one_keeps_the_fitted_lights(cli, fitted, tmp_path):
@@ -67,28 +76,23 @@ def test_fitted_scale_one_keeps_the_fitted_lights(cli, fitted, tmp_path):
 def test_a_light_beyond_what_an_image_carries_is_one_error(cli, fitted, tmp_path):
     """intensity 3 x 2^200 (exposure 200) was accepted and rendered black, with numpy's overflow warnings."""
     stage_dir = fitted.parent
-    original = (stage_dir / USER_LIGHTS).read_text()
-    try:
-        _user_layer(stage_dir, '  def Scope "User" {\n   def SphereLight "Hot" {\n    float inputs:intensity = 3\n'
-                               '    float inputs:exposure = 200\n    bool treatAsPoint = 1\n   }\n  }')
+    with user_lights(stage_dir, '  def Scope "User" {\n   def SphereLight "Hot" {\n    float inputs:intensity = 3\n'
+                                '    float inputs:exposure = 200\n    bool treatAsPoint = 1\n   }\n  }'):
         rc, _, err = cli("relight", fitted, "--max-side", "64", "-o", tmp_path / "o")
         lines = [l for l in err.splitlines() if l.strip()]
         assert rc == 2 and len(lines) == 1 and "above 1e30" in lines[0], err
-    finally:
-        (stage_dir / USER_LIGHTS).write_text(original)
 
 
 @pytest.mark.parametrize("value, ok", [(0.5, True), (-5.0, False), (3e38, False)])
 def test_a_dome_texture_must_be_a_finite_non_negative_radiance(cli, fitted, tmp_path, value, ok):
     stage_dir = fitted.parent
-    original = (stage_dir / USER_LIGHTS).read_text()
     sky = np.full((8, 16, 3), 0.5, np.float32)
     sky[2, 3] = value
     write_image(stage_dir / "sky.exr", sky, "float")
     try:
-        _user_layer(stage_dir, '  def Scope "User" {\n   def DomeLight "Sky" {\n    asset inputs:texture:file = @./sky.exr@\n'
-                               '   }\n  }')
-        rc, _, err = cli("relight", fitted, "--mode", "render", "--max-side", "64", "-o", tmp_path / "o")
+        with user_lights(stage_dir, '  def Scope "User" {\n   def DomeLight "Sky" {\n'
+                                    '    asset inputs:texture:file = @./sky.exr@\n   }\n  }'):
+            rc, _, err = cli("relight", fitted, "--mode", "render", "--max-side", "64", "-o", tmp_path / "o")
         if ok:
             assert rc == 0, err
             img = read_map(tmp_path / "o" / "relit.exr", 3)
@@ -97,7 +101,6 @@ def test_a_dome_texture_must_be_a_finite_non_negative_radiance(cli, fitted, tmp_
             lines = [l for l in err.splitlines() if l.strip()]
             assert rc == 2 and len(lines) == 1 and "negative or above 1e30 texels" in lines[0], err
     finally:
-        (stage_dir / USER_LIGHTS).write_text(original)
         (stage_dir / "sky.exr").unlink()
 
 
@@ -147,12 +150,10 @@ def test_a_frame_whose_lights_are_all_invisible_is_dark_not_the_end_of_the_clip(
     """Every user light invisible at time code 2 of 3 (fitted lights off): that frame is rendered without light
     (black), the others as lit (before: "no light to relight with" and no frame at all)."""
     stage_dir = fitted.parent
-    original = (stage_dir / USER_LIGHTS).read_text()
-    try:
-        _user_layer(stage_dir, '  def Scope "User" {\n   def SphereLight "Blink" {\n    float inputs:intensity = 5\n'
-                               '    bool treatAsPoint = 1\n    token visibility.timeSamples = { 1: "inherited", '
-                               '2: "invisible", 3: "inherited" }\n    double3 xformOp:translate = (0.3, 0.8, -2.2)\n'
-                               '    uniform token[] xformOpOrder = ["xformOp:translate"]\n   }\n  }')
+    with user_lights(stage_dir, '  def Scope "User" {\n   def SphereLight "Blink" {\n    float inputs:intensity = 5\n'
+                                '    bool treatAsPoint = 1\n    token visibility.timeSamples = { 1: "inherited", '
+                                '2: "invisible", 3: "inherited" }\n    double3 xformOp:translate = (0.3, 0.8, -2.2)\n'
+                                '    uniform token[] xformOpOrder = ["xformOp:translate"]\n   }\n  }'):
         rep = cli.json("relight", fitted, "--frames", "1:3", "--mode", "render", "--max-side", "48", "-o",
                        tmp_path / "o")
         means = [read_map(f["exr"], 3).mean() for f in rep["frames"]]
@@ -160,21 +161,15 @@ def test_a_frame_whose_lights_are_all_invisible_is_dark_not_the_end_of_the_clip(
         assert means[1] == 0.0 and means[0] == pytest.approx(means[2]) and means[0] > 0.01, means
         rc, _, err = cli("relight", fitted, "--time", "2", "--mode", "render", "-o", tmp_path / "one")
         assert rc == 2 and "no light to relight with" in err  # a single frame without light stays an error
-    finally:
-        (stage_dir / USER_LIGHTS).write_text(original)
 
 
 def test_a_light_relight_cannot_draw_is_named(cli, fitted, tmp_path):
     """A CylinderLight was dropped by relight without a word (render warned)."""
     stage_dir = fitted.parent
-    original = (stage_dir / USER_LIGHTS).read_text()
-    try:
-        _user_layer(stage_dir, '  def Scope "User" {\n   def CylinderLight "Tube" {\n    float inputs:intensity = 5\n'
-                               '   }\n  }')
+    with user_lights(stage_dir, '  def Scope "User" {\n   def CylinderLight "Tube" {\n    float inputs:intensity = 5\n'
+                                '   }\n  }'):
         rc, _, err = cli("relight", fitted, "--with-fitted", "--max-side", "48", "-o", tmp_path / "o")
         assert rc == 0 and "light type CylinderLight (not converted)" in err, err
-    finally:
-        (stage_dir / USER_LIGHTS).write_text(original)
 
 
 def test_a_relight_keeps_a_renders_aovs_in_its_folder_and_replaces_its_own_frames(cli, fitted, tmp_path):
