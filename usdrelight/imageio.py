@@ -99,7 +99,7 @@ def _checked_buf(path: Path):
 
 def stores_floats(path: str | os.PathLike) -> bool:
     """Whether the image file stores float data (linear by the conventions above) rather than integers (sRGB),
-    from its header."""
+    from its header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS, as :func:`check_image_size`."""
     return str(_checked_buf(Path(path)).spec().format) in LINEAR_FORMATS
 
 
@@ -190,14 +190,17 @@ def read_focal_35mm(path: str | os.PathLike) -> float | None:
     return f if 0 < f < 1e4 else None
 
 
+def _rgb(pixels: np.ndarray, decode: bool) -> np.ndarray:
+    """(H, W, 3) of read_raw's pixels: grey (and grey + alpha) replicated, alpha dropped, sRGB-decoded when
+    ``decode``."""
+    rgb = np.repeat(pixels[:, :, :1], 3, axis=2) if pixels.shape[2] <= 2 else pixels[:, :, :3]
+    return srgb_to_linear(rgb) if decode else rgb
+
+
 def read_photo(path: str | os.PathLike) -> np.ndarray:
     """Read a photograph as linear RGB float32 (H, W, 3); alpha dropped, grey replicated."""
     pixels, is_float = read_raw(path)
-    if pixels.shape[2] == 1 or pixels.shape[2] == 2:
-        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
-    rgb = pixels[:, :, :3]
-    if not is_float:
-        rgb = srgb_to_linear(rgb)
+    rgb = _rgb(pixels, decode=not is_float)
     if not np.all(np.isfinite(rgb)):
         raise UsdRelightError(f"image {path} contains NaN or Inf pixels")
     return np.ascontiguousarray(np.maximum(rgb, 0.0), dtype=np.float32)
@@ -207,9 +210,7 @@ def read_texture_rgb(path: str | os.PathLike, linear: bool) -> np.ndarray:
     """A light's texture as (H, W, 3) float32 linear RGB: texels sRGB-decoded unless ``linear`` (as
     :attr:`usdrelight.stage.records.TextureRecord.linear` decides and Mitsuba decodes), grey replicated, alpha
     dropped. A NaN, Inf, negative or above 1e30 texel is an error (no light is negative or unbounded)."""
-    pixels, _ = read_raw(path)
-    rgb = np.repeat(pixels[:, :, :1], 3, axis=2) if pixels.shape[2] <= 2 else pixels[:, :, :3]
-    rgb = rgb if linear else srgb_to_linear(rgb)
+    rgb = _rgb(read_raw(path)[0], decode=not linear)
     if not np.all(np.isfinite(rgb)) or rgb.min(initial=0.0) < 0 or rgb.max(initial=0.0) > 1e30:
         raise UsdRelightError(f"light texture {path} has NaN, Inf, negative or above 1e30 texels (a light's "
                               "radiance is finite and not negative)")

@@ -27,7 +27,7 @@ from usdrelight.imageio import read_photo, write_image
 from usdrelight.safe_paths import check_read, stage_folder
 from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, scene_dict, texture_value
-from usdrelight.mitsuba.textures import baked_texels, merged_dome_texels, mirrored_texels
+from usdrelight.mitsuba.textures import baked_texels, merged_dome_texels, mirrored_texels, scaled_bitmap
 from usdrelight.stage.backplate import hides_emitters
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
@@ -251,7 +251,8 @@ def _restore_area_lights(stage, rec, d: dict) -> None:
     root = stage_folder(stage)
     for light in rec.lights:
         entry = d.get(safe_name(light.path))
-        if light.kind not in ("rect", "disk", "sphere", "mesh") or not isinstance(entry, dict) or \
+        # (a RectLight: its texture is the scene dict's already, rect_radiance_bitmap, and it has no flip)
+        if light.kind not in ("disk", "sphere", "mesh") or not isinstance(entry, dict) or \
                 not isinstance(entry.get("emitter"), dict):
             continue
         prim = stage.GetPrimAtPath(light.path)
@@ -261,8 +262,6 @@ def _restore_area_lights(stage, rec, d: dict) -> None:
             if light.kind != "sphere":  # the USD frame is Mitsuba's (x, y, z): undo the writer's FLIP_Z
                 entry["to_world"] = Matrix(entry["to_world"].m @ FLIP_Z)
             entry["flip_normals"] = True
-        if light.kind == "rect":  # its texture, if any, is the scene dict's already (rect_radiance_bitmap)
-            continue
         radiance = np.asarray(entry["emitter"]["radiance"]["value"], np.float64)
         kept = extra.get(AREA_TEXTURE_KEY)
         if isinstance(kept, dict) and isinstance(kept.get("file"), str) and isinstance(kept.get("mean"), list) \
@@ -278,14 +277,9 @@ def _radiance_bitmap(path: str, scale, props: dict) -> dict:
     """A bitmap radiance: the file's texels (decoded as Mitsuba does: sRGB for 8-bit files unless ``raw``) x
     ``scale`` (RGB), the file itself when the scale is 1, else baked (textures/<stem>_baked_<hash>.exr)."""
     raw = props.get("raw") is True
-    d = {"type": "bitmap", "filename": path, "raw": raw}
+    d = scaled_bitmap(path, raw, raw or path.lower().endswith(_FLOAT_IMAGES), scale, rtol=1e-6)
     if isinstance(props.get("filter_type"), str):
         d["filter_type"] = props["filter_type"]
-    scale = np.asarray(scale, np.float64)
-    if not np.allclose(scale, 1.0, rtol=1e-6, atol=0.0):
-        d["raw"] = True
-        d["bake"] = {"channel": "rgb", "linear": raw or path.lower().endswith(_FLOAT_IMAGES),
-                     "scale": [float(x) for x in scale] + [1.0], "bias": [0.0, 0.0, 0.0, 0.0]}
     return d
 
 

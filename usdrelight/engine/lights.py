@@ -27,10 +27,11 @@ import math
 import numpy as np
 
 from ..imageio import read_texture_rgb
-from ..stage.lux import emitted_radiance, light_direction, world_area, world_scale
+from ..stage.lux import direction_to_cell, emitted_radiance, latlong_directions, light_direction, world_area, \
+    world_scale
 from ..stage.records import LightRecord, TextureRecord
 from ..transport.basis import LightTransport
-from ..transport.sampling import direction_to_cell, shifted_grid, stratified, tangent_frames
+from ..transport.sampling import shifted_grid, stratified, tangent_frames
 
 RAY_CHUNK = 4_000_000
 """Most shadow rays of a sphere or wide sun light traced in one batch (pixels x samples; the transport's bound)."""
@@ -136,6 +137,12 @@ def rect_texture_at(light: LightRecord, local: np.ndarray, textures: dict) -> np
     return top * (1 - fy) + bottom * fy
 
 
+def _bound(light: LightRecord, textures: dict) -> float:
+    """The most E / pi a disk or rect of unit radiance can give (the whole hemisphere: 1, its brightest texel
+    for a textured rect): what a panel's estimate is capped at."""
+    return light_texels(light.texture, textures).max() if light.kind == "rect" and light.texture is not None else 1.0
+
+
 def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
     """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``); a rect's
     texture weights each point by its texel (:func:`rect_texture_at`; texels read once into ``textures``)."""
@@ -151,7 +158,8 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
         local = np.stack([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, np.zeros_like(u1)], 1)
     ys = local @ light.to_world[:3, :3].T + light.to_world[:3, 3]
     textured = light.kind == "rect" and light.texture is not None
-    texel = rect_texture_at(light, local, {} if textures is None else textures) if textured else None
+    textures = {} if textures is None else textures  # read once here, for the lookups and the bound
+    texel = rect_texture_at(light, local, textures) if textured else None
     n_l = light_direction(light)
     o = tr.origins
     acc = np.zeros((surf.n_pixels, 3) if textured else surf.n_pixels)
@@ -170,8 +178,7 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
                 acc[hit] += g[live][vis]
     scale = world_area(light) / (np.pi * samples)
     # E / pi of a radiance-1 panel is at most 1: a sample next to a surface cannot lift a pixel past it
-    bound = light_texels(light.texture, textures if textures is not None else {}).max() if textured else 1.0
-    acc = np.minimum(acc * scale, bound)
+    acc = np.minimum(acc * scale, _bound(light, textures))
     if not textured:
         acc = acc[:, None]
     return acc * emitted_radiance(light)[None, :]
@@ -218,6 +225,7 @@ def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textu
     solid = np.maximum(g0 + g1 - k, 0.0)
     u1, u2 = stratified(1, samples, rng)
     textured = light.texture is not None
+    textures = {} if textures is None else textures  # read once here, for the lookups and the bound
     acc = np.zeros((surf.n_pixels, 3) if textured else surf.n_pixels)
     op, nrm = o[idx], surf.n[idx]
     for a, b in zip(u1[0], u2[0]):  # one shadow-ray batch per sample: memory stays at N rays
@@ -242,13 +250,12 @@ def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textu
         if textured:
             p = op[hit] + v[hit] - centre
             local = np.stack([p @ ex / sx, p @ ey / sy, np.zeros(len(hit))], 1)
-            acc[idx[hit]] += cos[hit][:, None] * rect_texture_at(light, local, {} if textures is None else textures)
+            acc[idx[hit]] += cos[hit][:, None] * rect_texture_at(light, local, textures)
         else:
             acc[idx[hit]] += cos[hit]
     # E / pi of a radiance-1 panel is at most 1 (the whole hemisphere): the estimate's overshoot where the panel
     # fills the view is cut there (the brightest texel's for a texture)
-    bound = light_texels(light.texture, textures if textures is not None else {}).max() if textured else 1.0
-    acc = np.minimum(acc / (np.pi * samples), bound)
+    acc = np.minimum(acc / (np.pi * samples), _bound(light, textures))
     if not textured:
         acc = acc[:, None]
     return acc * emitted_radiance(light)[None, :]
@@ -288,15 +295,11 @@ def dome_cell_radiance(light: LightRecord, env_shape, textures: dict, sub: int =
     img = light_texels(light.texture, textures)
     th = (np.arange(bh * sub) + 0.5) / (bh * sub) * np.pi
     ph = (np.arange(bw * sub) + 0.5) / (bw * sub) * 2 * np.pi
-    T, P = np.meshgrid(th, ph, indexing="ij")
-    d = np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)
+    d = latlong_directions(th, ph)
     rot = light.to_world[:3, :3] / np.maximum(world_scale(light.to_world), 1e-300)
     local = d @ rot  # world -> light frame (rot is orthonormal)
-    h, w = img.shape[:2]
-    u = np.mod(np.arctan2(local[:, 0], -local[:, 2]), 2 * np.pi) / (2 * np.pi)
-    v = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
-    texel = img[np.minimum((v * h).astype(np.int64), h - 1), np.minimum((u * w).astype(np.int64), w - 1)]
-    wts = np.sin(T).reshape(-1)
+    texel = img.reshape(-1, 3)[direction_to_cell(local, img.shape[:2])]  # the nearest texel
+    wts = np.repeat(np.sin(th), len(ph))
     cell = direction_to_cell(d, env_shape)
     num = np.stack([np.bincount(cell, wts * texel[:, c], bh * bw) for c in range(3)], 1)
     den = np.bincount(cell, wts, bh * bw)[:, None]

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..imageio import read_texture_rgb, srgb_to_linear
-from ..stage.lux import emitted_radiance, world_scale
+from ..stage.lux import direction_to_cell, emitted_radiance, latlong_directions, world_scale
 from ..stage.records import TextureRecord
 from .cutout import CHANNELS, _read_texels
 
@@ -131,11 +131,19 @@ def rect_radiance_bitmap(tex: TextureRecord, radiance) -> dict:
     at the light's local (+X, +Y) corner; Mitsuba's rectangle (light frame x FLIP_Z) has its bitmap's first texel
     at uv (0, 0), the light's (-X, +Y). Not the bitmap's ``to_uv`` u -> 1 - u: Mitsuba importance-samples the
     texels ignoring to_uv (unbiased, far noisier)."""
-    scale = [float(x) for x in np.asarray(radiance, np.float64)[:3]] + [1.0]
-    d = {"type": "bitmap", "filename": tex.path, "raw": tex.linear, "mirror_u": True}
-    if scale != [1.0] * 4:
+    return {**scaled_bitmap(tex.path, tex.linear, tex.linear, radiance), "mirror_u": True}
+
+
+def scaled_bitmap(path: str, raw: bool, linear: bool, scale, rtol: float = 0.0) -> dict:
+    """A plain-data bitmap of the file's texels x ``scale`` (RGB): the file itself (``raw`` as given) when the
+    scale is 1 (to ``rtol``), else baked (``bake``: decoded as :func:`baked_texels` does, sRGB unless
+    ``linear``; then ``raw``)."""
+    scale = np.asarray(scale, np.float64)[:3]
+    d = {"type": "bitmap", "filename": path, "raw": raw}
+    if not np.allclose(scale, 1.0, rtol=rtol, atol=0.0):
         d["raw"] = True
-        d["bake"] = {"channel": "rgb", "linear": tex.linear, "scale": scale, "bias": [0.0] * 4}
+        d["bake"] = {"channel": "rgb", "linear": linear, "scale": [float(x) for x in scale] + [1.0],
+                     "bias": [0.0] * 4}
     return d
 
 
@@ -184,19 +192,13 @@ def merged_dome_texels(spec: dict) -> np.ndarray:
     chunk = max(1, 4_000_000 // (w * f * f))  # rows per batch: bounded memory
     for r0 in range(0, h, chunk):
         rows = np.arange(r0, min(h, r0 + chunk))
-        th = ((rows[:, None] + sub[None, :]) / h * np.pi).ravel()
-        T, P = np.meshgrid(th, ph, indexing="ij")
-        d = np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)
+        d = latlong_directions(((rows[:, None] + sub[None, :]) / h * np.pi).ravel(), ph)
         acc = np.zeros((len(d), 3))
         for img, (_, L, rot) in zip(maps, spec["domes"]):
             if img is None:
                 acc += np.asarray(L)
                 continue
             local = d @ np.asarray(rot)  # world -> the dome's frame (an orthonormal rotation)
-            u = np.mod(np.arctan2(local[:, 0], -local[:, 2]), 2 * np.pi) / (2 * np.pi)
-            v = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
-            th_, tw = img.shape[:2]
-            acc += img[np.minimum((v * th_).astype(np.int64), th_ - 1),
-                       np.minimum((u * tw).astype(np.int64), tw - 1)] * np.asarray(L)
+            acc += img.reshape(-1, 3)[direction_to_cell(local, img.shape[:2])] * np.asarray(L)
         out[rows] = acc.reshape(len(rows), f, w, f, 3).mean(axis=(1, 3))
     return out.astype(np.float32)

@@ -101,3 +101,23 @@ def set_light_rgb(light, rgb) -> None:
     intensity, color = split_rgb(rgb)
     light.CreateIntensityAttr(float(intensity))
     light.CreateColorAttr(Gf.Vec3f(*color))
+
+
+def direction_to_cell(d: np.ndarray, shape) -> np.ndarray:
+    """Flat latlong cell index (row * columns + column) of unit directions ``d`` (N, 3) in a grid of ``shape``
+    (rows, columns): the DomeLight latlong convention (OpenEXR / Mitsuba ``envmap``): u = 0 -> -Z,
+    u = 1/4 -> +X, the top row -> +Y. Indexing a texture's (rows * columns, 3) texels with it is its nearest
+    texel."""
+    bh, bw = shape
+    phi = np.mod(np.arctan2(d[:, 0], -d[:, 2]), 2 * np.pi)
+    theta = np.arccos(np.clip(d[:, 1], -1.0, 1.0))
+    j = np.minimum((phi / (2 * np.pi) * bw).astype(np.int64), bw - 1)
+    i = np.minimum((theta / np.pi * bh).astype(np.int64), bh - 1)
+    return i * bw + j
+
+
+def latlong_directions(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """(len(theta) * len(phi), 3) unit directions at polar angles ``theta`` (from +Y) and azimuths ``phi`` (from
+    -Z towards +X), theta-major: the inverse of :func:`direction_to_cell`'s mapping."""
+    T, P = np.meshgrid(theta, phi, indexing="ij")
+    return np.stack([np.sin(T) * np.sin(P), np.cos(T), -np.sin(T) * np.cos(P)], -1).reshape(-1, 3)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_image_size, stores_floats
+from ..imageio import stores_floats
 from ..safe_paths import check_read, stage_folder
 from .lux import uniform_scale
 from .records import LightRecord, TextureRecord
@@ -144,8 +144,8 @@ def _light_texture(prim, asset, what: str) -> TextureRecord:
     check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"{what} texture ({prim.GetPath()})")
     if asset.resolvedPath.endswith("]"):  # inside a .usdz: decided by the file type when it is read
         return TextureRecord(asset.resolvedPath, "auto")
-    check_image_size(asset.resolvedPath)  # bounded before a renderer decodes it
-    # by what the file stores, as photos are read: float data is linear, integers sRGB (an 8-bit TIFF too)
+    # by what the file stores, as photos are read: float data is linear, integers sRGB (an 8-bit TIFF too); one
+    # header read, which also bounds the size before a renderer decodes it
     return TextureRecord(asset.resolvedPath, "raw" if stores_floats(asset.resolvedPath) else "sRGB")
 
 

@@ -1,23 +1,10 @@
 """Sampling helpers shared by every user of the transport layer: stratified 2D samples, cosine-weighted
-hemisphere directions, Mitsuba ray batches from numpy arrays, and the latlong cell of a direction.
-
-Latlong convention (OpenEXR / Mitsuba ``envmap`` as UsdLux DomeLight maps it): u = 0 -> -Z, u = 1/4 -> +X,
-the top row -> +Y.
+hemisphere directions and Mitsuba ray batches from numpy arrays (the latlong cell of a direction:
+:func:`usdrelight.stage.lux.direction_to_cell`).
 """
 from __future__ import annotations
 
 import numpy as np
-
-
-def direction_to_cell(d: np.ndarray, shape) -> np.ndarray:
-    """Flat latlong cell index (row * columns + column) of unit directions ``d`` (N, 3) in a grid of ``shape``
-    (rows, columns)."""
-    bh, bw = shape
-    phi = np.mod(np.arctan2(d[:, 0], -d[:, 2]), 2 * np.pi)
-    theta = np.arccos(np.clip(d[:, 1], -1.0, 1.0))
-    j = np.minimum((phi / (2 * np.pi) * bw).astype(np.int64), bw - 1)
-    i = np.minimum((theta / np.pi * bh).astype(np.int64), bh - 1)
-    return i * bw + j
 
 
 def tangent_frames(n: np.ndarray):
@@ -97,7 +84,7 @@ def cosine_rays(mi, o: np.ndarray, n: np.ndarray, shift: np.ndarray, s: int):
 
 def ray_cells(mi, d, shape):
     """Flat latlong cell index (UInt32) of the unit directions ``d`` (a Mitsuba Vector3f) in a grid of ``shape``,
-    as :func:`direction_to_cell` computes in float32."""
+    as :func:`usdrelight.stage.lux.direction_to_cell` computes in float32."""
     import drjit as dr
 
     bh, bw = shape
