@@ -33,9 +33,12 @@ SAMPLES = (1, 2, 4, 16, 64)
 """Shadow rays per pixel tried (16 is the default, :class:`usdrelight.engine.fast.EngineSettings`)."""
 AREA = ["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5", "disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3",
         "sphere:-0.5,1.0,-2.0:20,20,20:0.15", "dome:0.05,0.05,0.06"]
-PANEL = ["rect:0,0,-3:0,0,-1:1,1,1:100,100", "rect:0,0.2,-5.9:0,0,-1:1,1,1:10,10"]
-"""Large and near panels (a 100 m panel 3 m in, a 10 m one 0.1 m before the back wall): rect sampling by solid
-angle (the engine's) against by area (what it did before, :func:`usdrelight.engine.lights.planar_light`)."""
+PANEL = ["rect:0,0,-3:0,0,-1:1,1,1:100,100", "rect:0,0.2,-5.9:0,0,-1:1,1,1:10,10",
+         "disk:0,0,-3:0,0,-1:1,1,1:50", "disk:0,0.2,-5.9:0,0,-1:1,1,1:5"]
+"""Large and near panels (a 100 m rect or a disk of radius 50 m 3 m in, a 10 m rect or a disk of radius 5 m 0.1 m
+before the back wall): sampling by solid angle (the engine's: :func:`usdrelight.engine.lights.panel_light`,
+:func:`~usdrelight.engine.lights.disk_light`) against by area (what it did before,
+:func:`~usdrelight.engine.lights.planar_light`)."""
 POINT = ["point:0.3,1.6,-3.0:2.4,2.4,2.4", "dome:0.05,0.05,0.06"]
 """For scale: a point light where the rect is, of the rect's on-axis intensity (L x area)."""
 
@@ -100,7 +103,7 @@ def panel_rows(spp: int) -> list[dict]:
     Mitsuba (``spp``), and the area sampling's largest pixel over the bound a radiance-1 panel can give (1 x
     albedo)."""
     import usdrelight.engine.fast as fast_module
-    from usdrelight.engine.lights import planar_light, panel_light
+    from usdrelight.engine.lights import disk_light, panel_light, planar_light
 
     out = []
     with tempfile.TemporaryDirectory() as td:
@@ -110,8 +113,10 @@ def panel_rows(spp: int) -> list[dict]:
             ref = None
             for n in SAMPLES:
                 row = {"light": spec, "area_samples": n}
-                for name, sampler in (("solid_angle", panel_light), ("area", planar_light)):
-                    fast_module.panel_light = sampler  # the engine's rect dispatch, for this comparison only
+                kind = spec.split(":")[0]
+                solid = {"rect": ("panel_light", panel_light), "disk": ("disk_light", disk_light)}[kind]
+                for name, sampler in (("solid_angle", solid[1]), ("area", planar_light)):
+                    setattr(fast_module, solid[0], sampler)  # the engine's dispatch, for this comparison only
                     try:
                         fr = FastRenderer(rec, EngineSettings(max_side=128, direct_terms=0, area_samples=n,
                                                               max_depth=2))
@@ -120,7 +125,7 @@ def panel_rows(spp: int) -> list[dict]:
                         img = fr.render(light)
                         sec = time.perf_counter() - t
                     finally:
-                        fast_module.panel_light = panel_light
+                        setattr(fast_module, *solid)
                     if ref is None:
                         side = max(img.beauty.shape[:2])
                         ref = Mitsuba(rec.with_lights(light).with_camera(rec.camera.limited(side)),

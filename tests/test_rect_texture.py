@@ -185,21 +185,3 @@ def test_radiance_times_texel_beyond_float32_is_one_error(tmp_path):
     hot = replace(light, radiance=np.full(3, 1e20))
     with pytest.raises(UsdRelightError, match="beyond what a float32 image carries"):
         FastRenderer(rec, EngineSettings(max_side=None)).render([hot])
-
-
-def test_a_disk_next_to_a_wall_stays_within_the_physical_bound(tmp_path):
-    """Disks are still sampled by area: a 5 m disk 0.1 m before the back wall overshot E / pi <= 1; now capped
-    there. Its mean is still far below Mitsuba's (0.10 against 0.42 measured: area sampling's near-field error,
-    left for a disk sampler by solid angle); asserted only not to exceed it."""
-    from conftest import build_procedural
-    from usdrelight.stage.light_specs import parse_light
-
-    rec = read_scene(build_procedural(tmp_path / "st", stride=4))
-    light = parse_light("disk:0,0.2,-5.9:0,0,-1:1,1,1:5")
-    fr = FastRenderer(rec, EngineSettings(max_side=64, max_depth=2, area_samples=64))
-    unit = fr.direct(replace(light, radiance=np.ones(3)))
-    assert unit.max() <= 1.0 and unit.min() >= 0
-    fast = fr.render([light])
-    ref = render_record(rec.with_lights([light]).with_camera(rec.camera.limited(64)), {"beauty"}, spp=256,
-                        max_depth=2, hide_emitters=True)["beauty"]
-    assert 0 < fast.beauty[fast.valid].mean() < ref[fast.valid].mean()

@@ -31,7 +31,7 @@ from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.records import LightRecord, SceneRecord, TextureRecord
 from ..transport.cache import TransportCache, TransportSettings, prepare_transport
 from .aovs import Aovs, nonnegative
-from .lights import distant_light, dome_light, panel_light, planar_light, point_light, sphere_light
+from .lights import disk_light, distant_light, dome_light, panel_light, point_light, sphere_light
 
 
 PREVIEW_TERMS = 8
@@ -189,7 +189,7 @@ class FastRenderer:
         if light.kind == "rect":
             return panel_light(tr, light, s, rng, self.textures)
         if light.kind == "disk":
-            return planar_light(tr, light, s, rng, self.textures)
+            return disk_light(tr, light, s, rng, self.textures)
         if light.kind == "distant":
             return distant_light(tr, light, s, rng)
         if light.kind == "dome":

@@ -10,9 +10,9 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
 * sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
-* rect: stratified sampling of the solid angle it subtends at each pixel (:func:`panel_light`); disk: stratified
-  area sampling (near or large disks come out too dark: a sampler by solid angle is left to do); both
-  one-sided, emitting towards the light's -Z, and capped at the physical bound (E / pi <= L); a RectLight's texture
+* rect and disk: stratified sampling of the solid angle they subtend at each pixel (:func:`panel_light`,
+  :func:`disk_light`; area sampling, :func:`planar_light`, for a sheared or degenerate frame); both one-sided,
+  emitting towards the light's -Z, and capped at the physical bound (E / pi <= L); a RectLight's texture
   weights each sample by its texel (UsdLux: the file's top-left texel at the light's local (+X, +Y) corner,
   bottom-right at (-X, -Y); bilinear, wrapping and decoded as the Mitsuba scene's bitmap);
 * distant: irradiance L along the light's -Z, sharp (angle 0) or spread over the cone of its angular diameter;
@@ -31,7 +31,8 @@ from ..stage.lux import direction_to_cell, emitted_radiance, latlong_directions,
     world_scale
 from ..stage.records import LightRecord, TextureRecord
 from ..transport.basis import LightTransport
-from ..transport.sampling import shifted_grid, stratified, tangent_frames
+from ..transport.sampling import lattice, shifted_grid, stratified, tangent_frames
+from .solid_angle import SIDES, DiskFan, SphericalRect
 
 RAY_CHUNK = 4_000_000
 """Most shadow rays of a sphere or wide sun light traced in one batch (pixels x samples; the transport's bound)."""
@@ -185,77 +186,80 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
 
 
 def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
-    """Rect light by solid-angle sampling (Urena, Fajardo and King 2013, "An Area-Preserving Parametrization for
-    Spherical Rectangles"): each pixel draws its points uniformly in the solid angle S the rectangle subtends
-    there, E / pi ~ S / (pi n) sum cos(theta) V, so a large or near panel is as smooth as a small far one (area
-    sampling lit a 100 m panel 10x too dark at 16 samples, and a sample next to a surface overshot the physical
-    bound). The stratified (u1, u2) are shared by all pixels (deterministic, no per-pixel noise); a texture weights
-    each point by its texel. A sheared or degenerate frame falls back to area sampling (:func:`planar_light`)."""
+    """Rect light by solid-angle sampling (:class:`~usdrelight.engine.solid_angle.SphericalRect`, Urena, Fajardo
+    and King 2013): each pixel draws its points uniformly in the solid angle S the rectangle subtends there,
+    E / pi ~ S / (pi n) sum cos(theta) V, so a large or near panel is as smooth as a small far one (area sampling
+    lit a 100 m panel 10x too dark at 16 samples, and a sample next to a surface overshot the physical bound). The
+    stratified (u1, u2) are shared by all pixels (deterministic, no per-pixel noise); a texture weights each point
+    by its texel. A sheared or degenerate frame falls back to area sampling (:func:`planar_light`)."""
     ax, ay = light.to_world[:3, 0], light.to_world[:3, 1]
     sx, sy = float(np.linalg.norm(ax)), float(np.linalg.norm(ay))
     if sx * sy * light.width * light.height <= 0 or abs(float(ax @ ay)) > 1e-9 * sx * sy:
         return planar_light(tr, light, samples, rng, textures)
     ex, ey = ax / sx, ay / sy
-    ez = np.cross(ex, ey)
     w, h = light.width * sx, light.height * sy
     centre = light.to_world[:3, 3]
-    surf, o = tr.surface, tr.origins
-    d = (centre - 0.5 * w * ex - 0.5 * h * ey)[None] - o  # the corner, from each pixel
-    x0, y0, z0 = d @ ex, d @ ey, d @ ez
-    zs = np.where(z0 > 0, -1.0, 1.0)  # the local z points away from the pixel: z0 <= 0
-    z0 = z0 * zs
-    front = (o - centre) @ light_direction(light) > 0  # one-sided: the pixel is on the side the panel lights
-    live = front & (z0 < -1e-9 * max(w, h))
-    x0, y0, z0, zs, idx = x0[live], y0[live], z0[live], zs[live], np.nonzero(live)[0]
-    x1, y1 = x0 + w, y0 + h
-
-    def unit(a, b, c):
-        n = np.sqrt(a * a + b * b + c * c)
-        return a / n, b / n, c / n
-
-    n0, n1 = unit(0 * z0, z0, -y0), unit(-z0, 0 * z0, x1)
-    n2, n3 = unit(0 * z0, -z0, y1), unit(z0, 0 * z0, -x0)
-
-    def angle(a, b):
-        return np.arccos(np.clip(-(a[0] * b[0] + a[1] * b[1] + a[2] * b[2]), -1.0, 1.0))
-
-    g0, g1, g2, g3 = angle(n0, n1), angle(n1, n2), angle(n2, n3), angle(n3, n0)
-    b0, b1 = n0[2], n2[2]
-    k = 2 * np.pi - g2 - g3
-    solid = np.maximum(g0 + g1 - k, 0.0)
-    u1, u2 = stratified(1, samples, rng)
-    textured = light.texture is not None
+    front = (tr.origins - centre) @ light_direction(light) > 0  # one-sided: the side the panel lights
+    idx = np.nonzero(front)[0]
+    shape = SphericalRect(tr.origins[idx], centre - 0.5 * w * ex - 0.5 * h * ey, ex, ey, w, h)
     textures = {} if textures is None else textures  # read once here, for the lookups and the bound
-    acc = np.zeros((surf.n_pixels, 3) if textured else surf.n_pixels)
-    op, nrm = o[idx], surf.n[idx]
+    local = None
+    if light.texture is not None:
+        def local(p):  # world points -> the light's own frame, for the texel lookups
+            p = p - centre
+            return np.stack([p @ ex / sx, p @ ey / sy, np.zeros(len(p))], 1)
+    out = np.zeros((tr.surface.n_pixels, 3))
+    out[idx] = _solid_angle_estimate(tr, light, idx, shape, stratified(1, samples, rng), textures, local)
+    return out
+
+
+def disk_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
+    """Disk light by solid-angle sampling (:class:`~usdrelight.engine.solid_angle.DiskFan`: the fan of spherical
+    triangles of the circumscribed polygon, each cut at the rim), as :func:`panel_light` does a rect:
+    a large or near disk is as smooth as a small far one (area sampling lit a 5 m disk 0.1 m before a wall 4x too
+    dark at 16 samples, under its cap). A stretched disk is the ellipse its frame makes of it; a degenerate frame
+    falls back to area sampling (:func:`planar_light`)."""
+    ax, ay = light.to_world[:3, 0] * light.radius, light.to_world[:3, 1] * light.radius
+    if np.linalg.norm(np.cross(ax, ay)) <= 1e-12 * max(float(ax @ ax), float(ay @ ay), 1e-300):
+        return planar_light(tr, light, samples, rng, textures)
+    centre = light.to_world[:3, 3]
+    gap = (tr.origins - centre) @ light_direction(light)
+    idx = np.nonzero(gap > 1e-9 * math.sqrt(max(float(ax @ ax), float(ay @ ay))))[0]  # the side it lights
+    u = lattice(1, samples, rng)  # drawn once, shared by every chunk of pixels; u1 picks the fan's triangle: each
+    # sample in its own 1/n stratum (a 4 x 4 grid has 4 values of u1: 4 of the 16 triangles, a 50 m disk 16% dark)
+    out = np.zeros((tr.surface.n_pixels, 3))
+    for sl in _chunks(len(idx), SIDES):  # the fan's (pixels, SIDES) arrays stay bounded
+        fan = DiskFan(tr.origins[idx[sl]], centre, ax, ay, np.ones(len(idx[sl]), bool))
+        out[idx[sl]] = _solid_angle_estimate(tr, light, idx[sl], fan, u, textures, None)
+    return out
+
+
+def _solid_angle_estimate(tr, light, idx, shape, u, textures, local) -> np.ndarray:
+    """(len(idx), 3) E / pi at the pixels ``idx``: 1 / (pi n) sum weight cos(theta) V [x texel] over the n
+    stratified ``u`` = (u1, u2) ((1, n) each) shared by the pixels, ``shape.sample(u1, u2)`` giving the vectors to
+    the shape's points and their weights (:mod:`usdrelight.engine.solid_angle`); ``local`` maps world points into
+    the light's frame for a texture's lookups (None: untextured). Capped at the physical
+    bound: E / pi of a radiance-1 panel is at most 1, the whole hemisphere (the brightest texel's for a texture),
+    so the estimate's overshoot where the shape fills the view is cut there."""
+    op, nrm = tr.origins[idx], tr.surface.n[idx]
+    textured = local is not None
+    acc = np.zeros((len(idx), 3) if textured else len(idx))
+    u1, u2 = u
     for a, b in zip(u1[0], u2[0]):  # one shadow-ray batch per sample: memory stays at N rays
-        au = a * solid + k
-        sin_au = np.sin(au)
-        fu = (np.cos(au) * b0 - b1) / np.where(np.abs(sin_au) < 1e-12, 1e-12, sin_au)
-        cu = np.clip(np.sign(fu) / np.sqrt(fu * fu + b0 * b0), -1.0, 1.0)
-        xu = np.clip(-(cu * z0) / np.maximum(np.sqrt(1.0 - cu * cu), 1e-12), x0, x1)
-        dd = np.sqrt(xu * xu + z0 * z0)
-        h0, h1 = y0 / np.sqrt(dd * dd + y0 * y0), y1 / np.sqrt(dd * dd + y1 * y1)
-        hv = h0 + b * (h1 - h0)
-        yv = np.where(hv * hv < 1 - 1e-9, hv * dd / np.sqrt(np.maximum(1 - hv * hv, 1e-18)), y1)
-        v = xu[:, None] * ex + yv[:, None] * ey + (z0 * zs)[:, None] * ez
+        v, weight = shape.sample(a, b)
         dist = np.linalg.norm(v, axis=1)
         om = v / np.maximum(dist, 1e-300)[:, None]
-        cos = np.maximum(np.einsum("ij,ij->i", nrm, om), 0.0) * solid
+        cos = np.maximum(np.einsum("ij,ij->i", nrm, om), 0.0) * weight
         ok = (cos > 0) & np.isfinite(cos)
         if not ok.any():
             continue
         vis = tr.visible(op[ok], om[ok], dist[ok])
         hit = np.nonzero(ok)[0][vis]
         if textured:
-            p = op[hit] + v[hit] - centre
-            local = np.stack([p @ ex / sx, p @ ey / sy, np.zeros(len(hit))], 1)
-            acc[idx[hit]] += cos[hit][:, None] * rect_texture_at(light, local, textures)
+            acc[hit] += cos[hit][:, None] * rect_texture_at(light, local(op[hit] + v[hit]), textures)
         else:
-            acc[idx[hit]] += cos[hit]
-    # E / pi of a radiance-1 panel is at most 1 (the whole hemisphere): the estimate's overshoot where the panel
-    # fills the view is cut there (the brightest texel's for a texture)
-    acc = np.minimum(acc / (np.pi * samples), _bound(light, textures))
+            acc[hit] += cos[hit]
+    acc = np.minimum(acc / (np.pi * u1.shape[1]), _bound(light, textures))
     if not textured:
         acc = acc[:, None]
     return acc * emitted_radiance(light)[None, :]

@@ -52,6 +52,15 @@ def shifted_grid(shift: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray]:
     return np.mod(base1[None] + shift[:, :1], 1.0), np.mod(base2[None] + shift[:, 1:], 1.0)
 
 
+def lattice(n: int, s: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(N, s) points of the Fibonacci (rank-1) lattice on [0,1)^2, u1 = (j + 1/2) / s, u2 = (j + 1/2) (sqrt 5 - 1)
+    / 2 mod 1, with a per-pixel random shift (drawn as :func:`stratified` draws it): every u1 in its own 1/s stratum,
+    where a sqrt(s) x sqrt(s) grid repeats sqrt(s) values (what a sampler that picks among s pieces by u1 needs)."""
+    shift = rng.random((n, 2))
+    j = np.arange(s) + 0.5
+    return np.mod(j[None] / s + shift[:, :1], 1.0), np.mod(j[None] * ((np.sqrt(5.0) - 1) / 2) + shift[:, 1:], 1.0)
+
+
 def cosine_rays(mi, o: np.ndarray, n: np.ndarray, shift: np.ndarray, s: int):
     """A Mitsuba ray batch of ``s`` stratified cosine-weighted directions around each normal of ``n`` (N, 3) from
     the origins ``o`` (N, 3): ray ``i * s + k`` is sample k of pixel i, with the Cranley-Patterson ``shift``
