@@ -119,7 +119,7 @@ def held(tmp_path_factory):
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
             seen["health"] = r.read().decode()
         seen["others"] = {ip: _connect(ip, port) for ip in _other_addresses()}
-        seen["temp_dirs"] = sorted(p.name for p in out.iterdir() if p.name.startswith(".hold.tmp-"))
+        seen["temp_dirs"] = sorted(p.name for p in out.iterdir() if p.name.startswith(".hold.usdrelight-batch-tmp-"))
         seen["lock"] = (out / ".usdrelight.lock").read_text()
         before = _snapshot(out)
         stdout, stderr = io.StringIO(), io.StringIO()

@@ -121,11 +121,11 @@ def publish(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     _fsync_path(dst.parent, directory=True)
 
 
-def temp_dir_beside(target: str | os.PathLike) -> Path:
-    """A new hidden folder next to ``target`` (same file system, so :func:`publish` can move from it),
-    with the permissions a plain ``mkdir`` would give."""
+def temp_dir_beside(target: str | os.PathLike, tag: str = ".tmp-") -> Path:
+    """A new hidden folder ``.NAME{tag}XXXXXXXX`` next to ``target`` (same file system, so :func:`publish` can
+    move from it), with the permissions a plain ``mkdir`` would give."""
     target = Path(target)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}{tag}", dir=target.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700
     return tmp
 

@@ -77,7 +77,7 @@ def stdout_to_stderr():
         if real:
             sys.stdout = io.TextIOWrapper(io.FileIO(saved, "w", closefd=False), encoding=old.encoding,
                                           errors=old.errors, line_buffering=old.line_buffering)
-    broken = False
+    broken, failed = False, None
     try:
         yield
     except BrokenPipeError:
@@ -91,16 +91,22 @@ def stdout_to_stderr():
                     broken = True
                     _to_devnull(saved)
                     sys.stdout.flush()
-                except (OSError, ValueError):
+                except OSError as exc:  # a full disk, a quota, an I/O error: the output is lost, say so
+                    failed = exc.strerror or str(exc)
+                    _to_devnull(saved)
+                    sys.stdout.flush()
+                except ValueError:
                     pass
                 sys.stdout = old
             _flush()
             os.dup2(saved, 1)
             os.close(saved)
-            if broken:
+            if broken or failed:
                 _to_devnull(1)
     if broken:
         raise BrokenPipeError("stdout was closed by its reader")
+    if failed:
+        raise UsdRelightError(f"cannot write to stdout: {failed}")
 
 
 def _to_devnull(fd: int) -> None:

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 from pathlib import Path
 
 from ..argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
 from ..errors import UsdRelightError
 from ..estimate import names
 from ..estimate.hub import prepare as prepare_models
+from ..onnx_runtime import open_session
 from .records import BatchOptions
 
 DESCRIPTION = ("Per photo of PHOTO_DIR (NAME.png/.jpg/.exr + optional NAME.depth.exr, NAME.intrinsics.json, "
@@ -48,6 +50,29 @@ def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.Arg
     return bt
 
 
+def _onnx_absolute(choice: str | None) -> str | None:
+    """``onnx:FILE`` with FILE absolute (the workers may run elsewhere); any other choice as it is."""
+    f = names.onnx_file(choice)
+    return choice if f is None else f"onnx:{f.absolute()}"
+
+
+def _onnx_digests(*choices) -> tuple:
+    """sha256 of each ``onnx:FILE`` model, hashed into every photo's input hash (a changed model redoes the
+    photos); each is opened here first, so a missing or broken model is one line and exit 2 before any photo."""
+    out = []
+    for choice in choices:
+        f = names.onnx_file(choice)
+        if f is None:
+            continue
+        open_session(f, threads=1)
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        out.append(h.hexdigest())
+    return tuple(out)
+
+
 def options_from_args(args) -> BatchOptions:
     """The batch's options; the learned estimators' weights are found here, in the client, before any work (a
     missing extra or model is one line and exit 2), and handed to the workers as folders."""
@@ -56,8 +81,10 @@ def options_from_args(args) -> BatchOptions:
     if model_paths and not (names.is_learned(geometry) or names.is_learned(albedo_from)):
         raise UsdRelightError("--model-path goes with --geometry or --albedo-from naming a hub model")
     model_paths = tuple(str(Path(p).absolute()) for p in prepare_models((geometry, albedo_from), model_paths))
+    geometry, albedo_from = _onnx_absolute(geometry), _onnx_absolute(albedo_from)
     return BatchOptions(max_side=args.max_side, lights=args.lights, iterations=args.iterations,
                         verify_spp=args.verify_spp, pairs=args.pairs, spp=args.spp, workers=args.workers,
                         scheduler=args.scheduler, retries=args.retries, retry_failed=args.retry_failed,
                         dashboard=not args.no_dashboard, geometry=geometry, albedo_from=albedo_from,
-                        model_paths=model_paths, device=getattr(args, "device", None))
+                        model_paths=model_paths, device=getattr(args, "device", None),
+                        model_digests=_onnx_digests(geometry, albedo_from))

@@ -11,6 +11,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -18,13 +19,21 @@ from .. import __version__
 from ..atomic import write_text_atomic
 from ..errors import UsdRelightError
 from ..neural.pairs import MANIFEST, photo_inputs
+from ..stage.layout import FITTED_LIGHTS, GEOMETRY, SCENE
 from .records import MANIFEST_FIELDS_VERSION, REFUSED, BatchOptions, PhotoJob, PhotoRecord
 
 log = logging.getLogger(__name__)
 RECORD = "batch.json"
 """A finished photo's own manifest row, inside its folder."""
-TEMP_MARKERS = (".tmp-", ".old-")
-"""Hidden folders of unfinished or replaced photos (``.NAME.tmp-*``, ``.NAME.old-*``), removed between runs."""
+COMPLETE = (SCENE, GEOMETRY, FITTED_LIGHTS)
+"""What a finished photo's folder holds besides ``batch.json`` (the stage and the files it references)."""
+PAIR_FILES = ("pair.json", "renders/diffuse.exr", "renders/albedo.exr", "renders/valid.exr")
+"""And with ``--pairs``: the training pair."""
+TEMP_TAG, OLD_TAG = ".usdrelight-batch-tmp-", ".usdrelight-batch-old-"
+"""In the names of the hidden folders of unfinished and of replaced photos, ``.NAME.usdrelight-batch-tmp-XXXXXXXX``
+(8 random characters) and ``.NAME.usdrelight-batch-old-PID-NS``: what :func:`remove_leftovers` removes between
+runs, and nothing else (a user's ``.photos.old-2023`` or ``.notes.tmp-draft`` stays)."""
+_LEFTOVER = re.compile(r"\..+(" + re.escape(TEMP_TAG) + r"[a-z0-9_]{8}|" + re.escape(OLD_TAG) + r"[0-9]+-[0-9]+)")
 
 
 def input_hash(files, options: BatchOptions) -> str:
@@ -82,8 +91,9 @@ def write_manifest(out_dir: Path, rows: dict[str, PhotoRecord]) -> Path:
 
 
 def finished_record(job: PhotoJob) -> PhotoRecord | None:
-    """The photo's ``NAME/batch.json`` row when its folder is complete and was made from the same inputs
-    and options; None otherwise."""
+    """The photo's ``NAME/batch.json`` row when its folder is complete (:data:`COMPLETE`, and with ``--pairs``
+    :data:`PAIR_FILES`, each a file, links followed) and was made from the same inputs and options; None
+    otherwise (a folder whose stage or renders were removed is redone)."""
     path = job.out_dir / job.name / RECORD
     try:
         rec = PhotoRecord.from_dict(json.loads(path.read_text()))
@@ -91,7 +101,9 @@ def finished_record(job: PhotoJob) -> PhotoRecord | None:
         return None
     if rec.status != "done" or rec.input_hash != job.input_hash:
         return None
-    if job.options.pairs and not (job.out_dir / job.name / "pair.json").is_file():
+    folder = job.out_dir / job.name
+    need = COMPLETE + (PAIR_FILES if job.options.pairs else ())
+    if not all((folder / name).is_file() for name in need):  # through the stage's links into versions/
         return None
     return rec
 
@@ -109,10 +121,11 @@ def reusable(job: PhotoJob, previous: PhotoRecord | None) -> PhotoRecord | None:
 
 
 def remove_leftovers(out_dir: Path) -> int:
-    """Remove temp and replaced folders left by killed workers or an interrupted run; returns how many."""
+    """Remove temp and replaced folders left by killed workers or an interrupted run (named as :data:`TEMP_TAG`
+    and :data:`OLD_TAG` say, real folders, not links); returns how many."""
     n = 0
     for p in Path(out_dir).iterdir():
-        if p.name.startswith(".") and any(m in p.name for m in TEMP_MARKERS) and p.is_dir():
+        if _LEFTOVER.fullmatch(p.name) and p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
             n += 1
     return n

@@ -47,6 +47,8 @@ class BatchOptions:
     """Local model snapshots (``--model-path``, plus the cache folders the client found): hashed."""
     device: str | None = None
     """Torch device of the learned estimators (auto when None); not hashed."""
+    model_digests: tuple = ()
+    """sha256 (hex) of each ``onnx:FILE`` model named by ``geometry`` and ``albedo_from``: hashed."""
 
     def hashed(self) -> dict:
         """The options that change a photo's outputs (the rest only schedule the work). The estimator options
@@ -56,6 +58,8 @@ class BatchOptions:
         if self.geometry or self.albedo_from:
             out.update(geometry=self.geometry, albedo_from=self.albedo_from,
                        model_paths=[str(p) for p in self.model_paths])
+        if self.model_digests:  # apart, so the hashes of batches without ONNX models stay as they were
+            out.update(model_digests=list(self.model_digests))
         return out
 
     def estimators(self) -> dict:

@@ -1,6 +1,7 @@
 """The client side of ``usdrelight batch``: list the photos, decide what a re-run may skip, start a Dask
-LocalCluster (worker processes, 1 thread each) or connect to an existing scheduler, submit one task per
-photo, record each result in the manifest as it arrives, and summarise.
+LocalCluster (worker processes, 1 thread each) or connect to an existing scheduler, hand the photos to Dask
+one per free slot (each worker's ``photo`` resource: a worker holds no queue of photos that its death would
+fail), record each result in the manifest as it arrives, and summarise.
 
 Before anything starts (guard.py): ``--workers`` within the machine's cores and memory, the output folder's
 lock (one batch per folder), the photo folder confined (``list_photos``: links out of it, control characters
@@ -48,18 +49,27 @@ def _client(options: BatchOptions, workers: int):
     if options.scheduler:
         try:
             return Client(options.scheduler, timeout="10s"), None
-        except (OSError, TimeoutError) as exc:
-            raise UsdRelightError(f"cannot reach the Dask scheduler {options.scheduler}: {exc}") from None
+        except (OSError, TimeoutError, ValueError) as exc:  # ValueError: an address Dask cannot parse
+            raise UsdRelightError(f"cannot reach the Dask scheduler {options.scheduler}: {one_line(exc)}") from None
     # a worker that dies mid-photo makes the tasks it holds 'suspicious'; after `retries` more deaths a task
-    # fails. The PHOTO resource (1 per worker) keeps waiting photos on the scheduler, so a dying worker holds
-    # only the photo it runs and never marks a queued one. Everything listens on loopback: the dashboard
-    # too (a bare ":0" would bind it to every interface).
+    # fails. The PHOTO resource (1 per worker) sets how many photos the client hands Dask at once (_slots), so
+    # a dying worker holds only the photo it runs and never marks a waiting one. Everything listens on
+    # loopback: the dashboard too (a bare ":0" would bind it to every interface).
     with dask.config.set({"distributed.scheduler.allowed-failures": options.retries}):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                                resources={PHOTO_RESOURCE: 1},
                                dashboard_address=f"{LOOPBACK}:0" if options.dashboard else None,
                                silence_logs=logging.ERROR)
     return Client(cluster), cluster
+
+
+def _slots(client, limit) -> int:
+    """Photos the cluster runs at once: its workers' ``photo`` resources (their threads when they declare none),
+    at least 1 (a scheduler waiting for its first worker)."""
+    workers = client.scheduler_info(n_workers=-1)["workers"].values()
+    if limit is None:
+        return max(1, sum(int(w.get("nthreads", 1)) for w in workers))
+    return max(1, sum(int(w.get("resources", {}).get(PHOTO_RESOURCE, 0)) for w in workers))
 
 
 def _crash_record(job: PhotoJob, exc: BaseException) -> PhotoRecord:
@@ -169,13 +179,25 @@ def _run(todo, options, workers, rows, summary, out, progress, on_cluster, done0
         workers = client.scheduler_info(n_workers=-1)["workers"].values()
         limit = {PHOTO_RESOURCE: 1} if any(PHOTO_RESOURCE in w.get("resources", {}) for w in workers) else None
         if limit is None:
-            log.warning("batch: the workers declare no '%s' resource (dask worker --resources %s=1): a worker "
-                        "that dies may take queued photos' retries with it", PHOTO_RESOURCE, PHOTO_RESOURCE)
-        futures = {client.submit(process_photo, job, key=f"photo-{job.name}-{job.input_hash[:12]}", pure=False,
-                                 resources=limit): job for job in todo}
+            log.warning("batch: the workers declare no '%s' resource (dask worker --resources %s=1): photos run "
+                        "one per worker thread", PHOTO_RESOURCE, PHOTO_RESOURCE)
+        # at most one photo per free slot is handed to Dask: a task restricted to a resource goes to a worker at
+        # once and waits in its queue, so a worker that died took its queued photos' retries with it
+        pending, in_flight = list(todo), {}
+        completed = _dask()[1].as_completed()
+
+        def submit_more() -> None:
+            while pending and len(in_flight) < _slots(client, limit):
+                job = pending.pop(0)
+                fut = client.submit(process_photo, job, key=f"photo-{job.name}-{job.input_hash[:12]}", pure=False,
+                                    resources=limit)
+                in_flight[fut] = job
+                completed.add(fut)
+
+        submit_more()
         n = done0
-        for fut in _dask()[1].as_completed(futures):
-            job = futures[fut]
+        for fut in completed:
+            job = in_flight.pop(fut)
             try:
                 rec = fut.result()
             except Exception as exc:  # the task's worker died (KilledWorker) or the cluster failed
@@ -191,6 +213,7 @@ def _run(todo, options, workers, rows, summary, out, progress, on_cluster, done0
             n += 1
             if progress is not None:
                 progress(n, total, rec)
+            submit_more()
     finally:
         client.close()
         if cluster is not None:

@@ -17,7 +17,7 @@ from ..atomic import fsync_tree, publish, temp_dir_beside, write_bytes_atomic, w
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import make_pair_files
 from ..stage.layout import USER_LIGHTS
-from .manifest import RECORD
+from .manifest import OLD_TAG, RECORD, TEMP_TAG
 from .records import PhotoJob, PhotoRecord
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
     o = job.options
     final = job.out_dir / job.name
     rec = PhotoRecord(job.name, "failed", job.input_hash, str(job.photo), pairs=o.pairs, worker=_worker_address())
-    tmp = temp_dir_beside(final)
+    tmp = temp_dir_beside(final, TEMP_TAG)
     try:
         work = make_pair_files(job.photo, tmp, max_side=o.max_side, fit_iterations=o.iterations, spp=o.spp,
                                lights=o.lights, verify_spp=o.verify_spp, render=o.pairs,
@@ -116,7 +116,7 @@ def _replace(tmp: Path, final: Path) -> None:
         mine = final / USER_LIGHTS
         if mine.is_file() and not mine.is_symlink():  # the user's own lights survive a re-run of the photo
             write_bytes_atomic(tmp / USER_LIGHTS, mine.read_bytes())
-        old = final.with_name(f".{final.name}.old-{os.getpid()}-{time.monotonic_ns()}")
+        old = final.with_name(f".{final.name}{OLD_TAG}{os.getpid()}-{time.monotonic_ns()}")
         publish(final, old)
     publish(tmp, final)
     if old is not None:

@@ -51,7 +51,11 @@ class Pair:
     """Fit MSE divided by the photo's mean squared value (comparable across exposures)."""
 
 
-SIDECAR_KINDS = ("depth", "points", "intrinsics", "albedo", "shading")
+SIDECAR_SUFFIXES = {"depth": (".exr", ".npy", ".pfm"), "points": (".npy", ".exr"), "intrinsics": (".json",),
+                    "albedo": (".exr", ".png", ".npy"), "shading": (".exr", ".npy")}
+"""The files each kind of sidecar is read from, in order of preference (float maps: an integer PNG depth map's unit
+is not stored in it; ``build --depth-scale`` reads one)."""
+SIDECAR_KINDS = tuple(SIDECAR_SUFFIXES)
 """``NAME.KIND.ext`` (KIND one of these) is a sidecar estimate of photo NAME (:func:`build_options`), not a photo."""
 MAX_NAME_BYTES = 200
 """Longest photo name (file stem, UTF-8 bytes) :func:`list_photos` accepts: output folders add to it."""
@@ -69,6 +73,8 @@ def _name_problem(stem: str) -> str | None:
         return "its name is not valid UTF-8"
     if stem.startswith("."):
         return "a hidden file (its name starts with '.')"
+    if "\\" in stem:
+        return "its name has a backslash (USD reads it as a folder separator in the stage's asset paths)"
     if size > MAX_NAME_BYTES:
         return f"its name is longer than {MAX_NAME_BYTES} bytes"
     return None
@@ -89,9 +95,10 @@ def list_photos(data_dir, refused: list | None = None) -> list[Path]:
     """The photos of a training (or ``batch``) folder, sorted: its files with a photo suffix that are not a
     sidecar (``NAME.KIND.ext``, KIND in :data:`SIDECAR_KINDS`). A name may hold dots: ``a.b.png`` is photo
     ``a.b`` (its depth is ``a.b.depth.exr``). Not returned, each appended to ``refused`` as ``(path, reason)``
-    (logged as a warning when ``refused`` is None): names with control characters, hidden, not UTF-8 or
-    over :data:`MAX_NAME_BYTES`; symbolic links that lead outside the folder; what is not a regular file; a
-    sidecar-named file whose photo is not there. A link inside the folder is a photo named by the link."""
+    (logged as a warning when ``refused`` is None): names with control characters or a backslash, hidden, not
+    UTF-8 or over :data:`MAX_NAME_BYTES`; symbolic links that lead outside the folder; what is not a regular file;
+    a sidecar-named file whose photo is not there, or of a file type its kind is not read from
+    (:data:`SIDECAR_SUFFIXES`: ``a.depth.png``). A link inside the folder is a photo named by the link."""
     d = Path(data_dir)
     if not d.is_dir():
         raise UsdRelightError(f"training folder not found: {d}")
@@ -111,6 +118,9 @@ def list_photos(data_dir, refused: list | None = None) -> list[Path]:
             out.append(p)
     bad += [(p, f"named like the {kind} sidecar of a photo {head!r} that is not in the folder")
             for p, head, kind in sidecars if head not in stems]
+    bad += [(p, f"a {kind} sidecar is read from {', '.join(SIDECAR_SUFFIXES[kind])} only (not {p.suffix}): photo "
+                f"{head!r} is built without it")
+            for p, head, kind in sidecars if head in stems and p.suffix.lower() not in SIDECAR_SUFFIXES[kind]]
     for p, reason in sorted(bad):
         if refused is None:
             log.warning("%r: not used: %s", p.name, reason)
@@ -135,11 +145,7 @@ def build_options(photo: Path, estimators: dict | None = None) -> BuildOptions:
     over a point map); what is missing falls back to ``estimators`` (BuildOptions fields ``geometry``,
     ``albedo_from``, ``model_paths``, ``device``: a sidecar wins over the estimator of its kind), then to
     build's priors."""
-    opts = BuildOptions(depth=_sidecar(photo, "depth", (".exr", ".npy", ".pfm")),
-                        points=_sidecar(photo, "points", (".npy", ".exr")),
-                        intrinsics=_sidecar(photo, "intrinsics", (".json",)),
-                        albedo=_sidecar(photo, "albedo", (".exr", ".png", ".npy")),
-                        shading=_sidecar(photo, "shading", (".exr", ".npy")))
+    opts = BuildOptions(**{kind: _sidecar(photo, kind, SIDECAR_SUFFIXES[kind]) for kind in SIDECAR_KINDS})
     if opts.depth is not None and opts.points is not None:
         opts.points = None
     est = dict(estimators or {})

@@ -1,0 +1,171 @@
+"""``usdrelight batch`` as a photo collection meets it (found by probing the command): a user's hidden folders in
+OUT survive, a dying worker fails no photo but its own, an ONNX model is checked before any photo and its bytes
+are part of every input hash, a photo folder missing its stage is redone, names USD cannot carry and sidecars of
+a type batch does not read are refused, a scheduler address Dask cannot parse and a full stdout are errors."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from argparse import Namespace
+
+import pytest
+
+from test_batch import FAST, _good
+from test_estimators import _half_albedo_model
+from usdrelight.batch.args import options_from_args
+from usdrelight.batch.manifest import COMPLETE, PAIR_FILES, RECORD, finished_record, make_job, read_manifest, \
+    remove_leftovers
+from usdrelight.batch.records import BatchOptions
+from usdrelight.batch.run import run_batch
+from usdrelight.batch.task import TEST_KILL_ENV
+from usdrelight.neural.pairs import list_photos
+
+from conftest import make_photo
+
+distributed = pytest.importorskip("distributed")
+
+
+def test_only_the_batchs_own_leftovers_are_removed(tmp_path):
+    """Before: every hidden folder with '.tmp-' or '.old-' in its name went, with the user's files in it."""
+    mine = [".photos.old-2023", ".notes.tmp-draft", ".a.tmp-abcd1234", ".a.usdrelight-batch-tmp-ABCD1234"]
+    for name in mine:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "keep.txt").write_text("precious")
+    ours = [".a.usdrelight-batch-tmp-k2_x9q0z", ".b.c.usdrelight-batch-old-4242-123456789"]
+    for name in ours:
+        (tmp_path / name).mkdir()
+    (tmp_path / ".d.usdrelight-batch-tmp-abcdefgh").symlink_to(tmp_path / ".photos.old-2023")
+    assert remove_leftovers(tmp_path) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(mine + [".d.usdrelight-batch-tmp-abcdefgh"])
+    assert all((tmp_path / n / "keep.txt").read_text() == "precious" for n in mine)
+
+
+def test_backslashed_names_and_unread_sidecar_types_are_refused(tmp_path):
+    """A backslash in a name broke the stage after the whole build (USD reads it as a separator); a.depth.png was
+    ignored in silence (depth sidecars are floats: .exr, .npy, .pfm), the photo built on the box-room prior."""
+    for name in ("a", "back\\slash", "fine"):
+        make_photo(tmp_path / f"{name}.png")
+    make_photo(tmp_path / "a.depth.png")
+    refused = []
+    got = list_photos(tmp_path, refused)
+    assert [p.name for p in got] == ["a.png", "fine.png"]
+    why = {p.name: r for p, r in refused}
+    assert set(why) == {"back\\slash.png", "a.depth.png"}
+    assert "backslash" in why["back\\slash.png"]
+    assert "depth sidecar is read from .exr, .npy, .pfm only (not .png)" in why["a.depth.png"]
+
+
+def test_a_photo_folder_missing_its_stage_or_pair_is_redone(tmp_path):
+    """A folder with batch.json (and pair.json) but without scene.usda or the renders was skipped as complete."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    photos.mkdir()
+    make_photo(photos / "p.png")
+    job = make_job(photos / "p.png", out, BatchOptions(pairs=True))
+    folder = out / "p"
+    for name in (RECORD,) + COMPLETE + PAIR_FILES:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text("{}")
+    (folder / RECORD).write_text(json.dumps({"name": "p", "status": "done", "input_hash": job.input_hash,
+                                             "photo": str(job.photo)}))
+    assert finished_record(job) is not None
+    for gone in ("renders/valid.exr", "scene.usda"):
+        (folder / gone).rename(folder / (gone.replace("/", "_") + ".bak"))
+        assert finished_record(job) is None, gone
+        (folder / (gone.replace("/", "_") + ".bak")).rename(folder / gone)
+    (folder / "geometry.usdc").unlink()
+    (folder / "geometry.usdc").symlink_to("versions/current/geometry.usdc")  # dangling: incomplete
+    assert finished_record(job) is None
+
+
+def _args(**kw):
+    base = dict(max_side=64, lights=2, iterations=6, verify_spp=0, pairs=False, spp=4, workers=1, scheduler=None,
+                retries=0, retry_failed=False, no_dashboard=True, geometry=None, albedo_from=None, model_path=(),
+                device=None)
+    return Namespace(**{**base, **kw})
+
+
+def test_an_onnx_model_is_checked_first_and_its_bytes_are_hashed(tmp_path, cli, monkeypatch):
+    """Before: a missing model failed every photo one by one (exit 0, recorded as input errors, never retried
+    after the model was fixed), and a changed model's photos were skipped as unchanged."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    make_photo(photos / "p.png")
+    rc, out, err = cli("batch", photos, "-o", tmp_path / "out", "--albedo-from", f"onnx:{tmp_path / 'nope.onnx'}")
+    assert rc == 2 and out == "" and "model not found" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out").exists()
+    (tmp_path / "junk.onnx").write_text("SECRET TEXT not a model")
+    rc, _, err = cli("batch", photos, "-o", tmp_path / "out", "--albedo-from", f"onnx:{tmp_path / 'junk.onnx'}")
+    assert rc == 2 and "cannot load ONNX model" in err and "SECRET" not in err and not (tmp_path / "out").exists()
+
+    model = tmp_path / "m.onnx"
+    _half_albedo_model(model)
+    monkeypatch.chdir(tmp_path)  # a relative model path is made absolute for the workers
+    first = options_from_args(_args(albedo_from="onnx:m.onnx"))
+    assert first.albedo_from == f"onnx:{model}" and len(first.model_digests) == 1
+    _half_albedo_model(model, input_name="image")  # the same bytes: the same hash
+    assert options_from_args(_args(albedo_from="onnx:m.onnx")).model_digests == first.model_digests
+    _half_albedo_model(model, input_name="x")  # another model (it loads): other input hashes
+    second = options_from_args(_args(albedo_from="onnx:m.onnx"))
+    assert second.model_digests != first.model_digests
+    assert make_job(photos / "p.png", tmp_path / "o", first).input_hash != \
+        make_job(photos / "p.png", tmp_path / "o", second).input_hash
+    # without ONNX models the hash is what it was (no new key)
+    assert "model_digests" not in BatchOptions().hashed()
+
+
+@pytest.fixture
+def dying_cluster():
+    """Two workers of one photo slot each, no retries, and a hook that SIGKILLs the worker of photo 'dies'."""
+    import dask
+    from distributed import LocalCluster
+
+    old = os.environ.get(TEST_KILL_ENV)
+    os.environ[TEST_KILL_ENV] = "dies:1"
+    try:
+        with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=40, resources={"photo": 1})
+        yield cluster
+        cluster.close()
+    finally:
+        if old is None:
+            os.environ.pop(TEST_KILL_ENV, None)
+        else:
+            os.environ[TEST_KILL_ENV] = old
+
+
+def test_a_dying_worker_fails_only_its_own_photo(dying_cluster, tmp_path):
+    """Before: Dask placed the waiting photos on the workers up front, so the photos queued behind 'dies' on its
+    worker failed with it ('1 workers died while trying to run it')."""
+    photos = tmp_path / "photos"
+    for i, name in enumerate(["dies", "p1", "p2", "p3", "p4"]):
+        _good(photos, name, 10 + i)
+    s = run_batch(photos, tmp_path / "out", BatchOptions(scheduler=dying_cluster.scheduler_address, **FAST))
+    status = {n: r.status for n, r in read_manifest(tmp_path / "out").items()}
+    assert status == {"dies": "failed", "p1": "done", "p2": "done", "p3": "done", "p4": "done"}, status
+    assert (s.done, s.failed) == (4, 1)
+
+
+def test_an_address_dask_cannot_parse_is_one_line(tmp_path, cli):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    make_photo(photos / "p.png")
+    rc, _, err = cli("batch", photos, "-o", tmp_path / "out", "--scheduler", "foo")
+    assert rc == 2 and "cannot reach the Dask scheduler foo" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_json_into_a_full_stdout_is_an_error(tmp_path):
+    """``--json > /dev/full``: the summary was lost and the exit status 0 (the flush's OSError was swallowed)."""
+    stage = tmp_path / "s.usda"
+    stage.write_text('#usda 1.0\n(\n    defaultPrim = "World"\n    metersPerUnit = 1\n    upAxis = "Y"\n)\n'
+                     'def Xform "World"\n{\n}\n')
+    ok = subprocess.run([sys.executable, "-m", "usdrelight", "validate", str(stage), "--json"], capture_output=True,
+                        text=True)
+    assert ok.returncode == 0 and json.loads(ok.stdout)
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "usdrelight", "validate", str(stage), "--json"], stdout=full,
+                           stderr=subprocess.PIPE, text=True)
+    assert p.returncode == 2 and p.stderr.strip() == "usdrelight: error: cannot write to stdout: No space left on " \
+        "device", p.stderr
