@@ -15,6 +15,7 @@ from pathlib import Path
 
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
+from usdrelight.native_io import captured_stderr
 from usdrelight.safe_paths import confined_path, made_folders, writable_parent
 from usdrelight.stage.timing import parse_frames
 from usdrelight.stage.usdz import is_usdz, unpack_usdz
@@ -78,8 +79,32 @@ def convert(src, dst, frames=None, **options) -> ConvertReport:
     else:
         check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
     check_destination(dst)
+    not_an_input(src, reader, [dst])
     with made_folders(dst.parent):  # a failed conversion leaves no empty folder behind
         return _convert(src, dst, reader, writer, options)
+
+
+def not_an_input(src: Path, reader, outputs) -> None:
+    """UsdRelightError when one of ``outputs`` is a file the source reads: a layer a USD stage composes (sublayers,
+    references, payloads) or an asset it names, an XML scene's include or mesh (the reader's ``source_files``).
+    Before: ``convert scene.usda asset.usda`` flattened the scene over the layer it references."""
+    from pxr import UsdUtils
+
+    if reader is None:
+        try:  # USD's own warnings on a broken layer are not this check's: opening the stage reports it
+            with captured_stderr():
+                layers, assets, _ = UsdUtils.ComputeAllDependencies(str(src))
+        except Exception:  # noqa: BLE001 - pxr raises Tf errors of its own types
+            return
+        inputs = [layer.realPath for layer in layers if layer.realPath] + [a for a in assets if a]
+    else:
+        source_files = getattr(reader, "source_files", None)
+        inputs = source_files(src) if source_files is not None else []
+    real = {os.path.realpath(p) for p in inputs}
+    for out in outputs:
+        if os.path.realpath(out) in real:
+            raise UsdRelightError(f"{out} is a file {src.name} reads: convert never writes over its source's own "
+                                  f"files (nothing was written)")
 
 
 def check_destination(dst: Path) -> None:
@@ -138,6 +163,7 @@ def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> Convert
     check_destination(dst)
     stage = open_stage(src)
     times = times if times is not None else parse_frames(None, stage)
+    not_an_input(src, None, [frame_path(dst, i) for i in range(len(times))])
     clash = next((p for p in map(lambda i: frame_path(dst, i), range(len(times))) if p.is_dir()), None)
     if clash is not None:  # before the first frame: never some frames written and then a failure
         raise UsdRelightError(f"cannot write {clash}: a folder of that name is in the way (nothing was written)")

@@ -40,7 +40,10 @@ def test_real_spot_scene_round_trips_through_usd(cli, tmp_path):
     np.testing.assert_allclose(rgb, 5.0 * np.array(kept["texture_mean"]), rtol=1e-5)
     assert 0.1 < min(kept["texture_mean"]) and max(kept["texture_mean"]) < 0.9
     assert UsdLux.ShapingAPI(light).GetShapingConeAngleAttr().Get() == pytest.approx(20.0)
-    assert cli("convert", tmp_path / "spot.usda", tmp_path / "spot.xml")[0] == 0
+    # the kept texture lies outside the USD file's folder: read only under --allow-path, as every other asset
+    rc, _, err = cli("convert", tmp_path / "spot.usda", tmp_path / "spot.xml")
+    assert rc == 2 and "spot texture (/World/light_1)" in err and "--allow-path" in err, err
+    assert cli("convert", tmp_path / "spot.usda", tmp_path / "spot.xml", "--allow-path", MITSUBA_DATA)[0] == 0
     original, ours = _render_xml(SPOT), _render_xml(tmp_path / "spot.xml")
     ref = np.array(load_mitsuba().Bitmap(str(SPOT.parent / "refs" / "test_spot_ref_rgb.exr")))[..., :3]
     assert ours.mean() == pytest.approx(original.mean(), rel=0.05)

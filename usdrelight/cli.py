@@ -28,13 +28,15 @@ EXIT_INTERNAL = 1
 
 def _setup_logging(verbosity: int) -> None:
     level = logging.WARNING - 10 * verbosity
-    try:
-        from rich.logging import RichHandler
+    handler, fmt = logging.StreamHandler(sys.stderr), "%(levelname)s %(message)s"
+    if sys.stderr.isatty():  # rich in a terminal; a file or pipe gets one line per record, never wrapped
+        try:
+            from rich.logging import RichHandler
 
-        handler = RichHandler(console=stderr_console(), show_time=False, show_path=False, markup=False)
-        fmt = "%(message)s"
-    except ImportError:  # pragma: no cover - rich is a dependency
-        handler, fmt = logging.StreamHandler(sys.stderr), "%(levelname)s %(message)s"
+            handler = RichHandler(console=stderr_console(), show_time=False, show_path=False, markup=False)
+            fmt = "%(message)s"
+        except ImportError:  # pragma: no cover - rich is a dependency
+            pass
     handler.setFormatter(logging.Formatter(fmt))
     root = logging.getLogger("usdrelight")
     root.handlers[:] = [handler]

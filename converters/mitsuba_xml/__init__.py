@@ -18,12 +18,13 @@ and ``area_lights`` (which reads texels through ``materials``).
 """
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 from usdrelight.errors import UsdRelightError
 
 from ..report import ReadReport, check_options
-from .parse import read_scene_file
+from .parse import parse_scene, read_scene_file
 from .to_usd import build_stage
 from .write import WRITE_OPTIONS, write_to_file, write_to_string
 
@@ -32,7 +33,16 @@ SUFFIXES = (".xml",)
 #: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
 READ_OPTIONS = {"usd_path": None}
 __all__ = ["NAME", "SUFFIXES", "READ_OPTIONS", "WRITE_OPTIONS", "read_from_file", "read_from_string",
-           "write_to_file", "write_to_string"]
+           "write_to_file", "write_to_string", "source_files"]
+
+
+def source_files(path) -> list[Path]:
+    """The scene file and every file it makes a reader read (its includes, meshes, textures ...), resolved: what
+    a conversion must never write over."""
+    path = Path(path)
+    files: set = set()
+    parse_scene(read_scene_file(path), str(path), path.parent.absolute(), Counter(), files)
+    return sorted({path.resolve(), *files})
 
 
 def read_from_string(text: str, base_dir, **options) -> ReadReport:

@@ -60,6 +60,8 @@ class XmlReader:
         self.include_count = 0
         self.elements = 0
         self.text_bytes = 0
+        self.files: set[Path] = set()
+        """Every file the scene makes us read (includes, meshes, textures ...), as resolved."""
 
     # ---- text and files -------------------------------------------------------------------
     def parse_text(self, text: str, source: str) -> ET.Element:
@@ -116,10 +118,12 @@ class XmlReader:
         what = "file referenced by the scene"
         if p.is_absolute():
             if check_read(p, self.root, what).is_file():
+                self.files.add(p)
                 return p
         else:
             for d in [here] + self.search:
                 if check_read(d / p, self.root, what).is_file():
+                    self.files.add((d / p).resolve())
                     return (d / p).resolve()
         raise UsdRelightError(f"file referenced by the scene not found: {name} (searched {here}"
                               f"{''.join(', ' + str(s) for s in self.search)})")
@@ -341,11 +345,14 @@ def integrator_json(p: Plugin) -> dict:
     return d
 
 
-def parse_scene(text: str, source: str, here: Path, warnings: Counter) -> list[Plugin]:
-    """The top-level objects of a scene document, includes expanded and file names resolved."""
+def parse_scene(text: str, source: str, here: Path, warnings: Counter, files: set | None = None) -> list[Plugin]:
+    """The top-level objects of a scene document, includes expanded and file names resolved; ``files``, when
+    given, gets every file the document makes us read (its includes, meshes, textures ...)."""
     reader = XmlReader(warnings, here)
     root = reader.parse_text(text, source)
     objs: list = []
     reader.scene_children(root, here, objs)
     attach_paths(objs, reader)
+    if files is not None:
+        files.update(reader.files)
     return objs

@@ -214,7 +214,7 @@ class UsdBuilder(AreaLights):
                 self.warnings["spot emitter texture (not in UsdLux: the light's colour is the texture's mean over "
                               "the cone; the texture kept in customData for XML export)"] += 1
                 mean = spot_texture_mean(tex.resolved, cutoff, beam, bool(tex.props.get("raw", False)))
-                extra = {"texture": self.asset(tex.resolved) if self.dir is None else tex.resolved,
+                extra = {"texture": self.asset(tex.resolved),  # relative to the USD file, as every asset
                          "texture_mean": [float(x) for x in mean],
                          "texture_props": {k: tex.props[k] for k in ("raw", "wrap_mode", "filter_type")
                                            if isinstance(tex.props.get(k), (bool, str))}}

@@ -169,7 +169,7 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     _restore_sampling(settings_extra, d)
     if hides_emitters(stage) and isinstance(d.get("integrator"), dict):  # a photo stage (usdrelight.stage.backplate)
         d["integrator"]["hide_emitters"] = True
-    _restore_extras(stage, d)
+    _restore_extras(stage, rec, d)
     _restore_area_lights(stage, rec, d)
     _restore_material_extras(stage, rec, d)
     files = [str(base / "meshes" / f"{k}.ply") for k, v in d.items() if isinstance(v, dict) and v.get("type") == "ply"]
@@ -215,29 +215,50 @@ def _restore_sampling(extra: dict, d: dict) -> None:
             where[key] = {k: v for k, v in kept.items() if isinstance(v, (bool, int, float, str))}
 
 
-def _restore_extras(stage, d: dict) -> None:
-    """Put back Mitsuba-only properties kept in customData['mitsuba'] by the XML reader."""
+#: What the XML export takes back from a light's customData['mitsuba'] (the XML reader writes nothing else there
+#: but the area-light keys): a spot emitter's texture, its mean and its bitmap's properties.
+SPOT_TEXTURE_KEYS = ("texture", "texture_mean", "texture_props")
+
+
+def kept_file(prim, path: str) -> str:
+    """A file named in ``prim``'s customData['mitsuba'], as an absolute path: relative to the layer that authored
+    that customData (the USD file the XML reader wrote), not to the working folder."""
+    for spec in prim.GetPrimStack():
+        if "mitsuba" in spec.customData:
+            return spec.layer.ComputeAbsolutePath(path)
+    return prim.GetStage().GetRootLayer().ComputeAbsolutePath(path)
+
+
+def _restore_extras(stage, rec, d: dict) -> None:
+    """Put back a spot emitter's texture kept in customData['mitsuba'] by the XML reader (:data:`SPOT_TEXTURE_KEYS`;
+    the file relative to the USD file, read only inside the scene's folder or under --allow-path, as every other
+    asset). Nothing else is taken from customData: a foreign one could otherwise put any property into the XML
+    or copy any file into the output's textures/ (other keys are ignored, warned)."""
+    root = stage_folder(stage)
     for prim in stage.Traverse():
         extra = kept_extra(prim)
+        extra = {k: v for k, v in extra.items() if k not in (AREA_TEXTURE_KEY, FLIP_NORMALS_KEY)}  # area lights
         if not extra:
             continue
-        key = safe_name(str(prim.GetPath()))
-        if key in d and isinstance(d[key], dict):
-            for k in (AREA_TEXTURE_KEY, FLIP_NORMALS_KEY):  # area lights: _restore_area_lights
-                extra.pop(k, None)
-            mean = extra.pop("texture_mean", None)
-            props = extra.pop("texture_props", None)  # the bitmap's raw / wrap_mode / filter_type
-            for k, v in extra.items():
-                if k == "texture" and isinstance(v, str):
-                    v = {"type": "bitmap", "filename": v}
-                    if isinstance(props, dict):
-                        v.update({p: props[p] for p in ("raw", "wrap_mode", "filter_type")
-                                  if isinstance(props.get(p), (bool, str))})
-                d[key][k] = v
-            if "texture" in extra and isinstance(mean, list) and len(mean) == 3 and \
-                    isinstance(d[key].get("intensity"), dict):  # the UsdLux colour was the texture's mean
-                value = np.asarray(d[key]["intensity"]["value"], np.float64)
-                d[key]["intensity"]["value"] = [float(v / m) if m > 0 else 0.0 for v, m in zip(value, mean)]
+        entry = d.get(safe_name(str(prim.GetPath())))
+        if not isinstance(entry, dict):  # materials and the render settings: read where they are exported
+            continue
+        spot = entry.get("type") == "spot"
+        if set(extra) - set(SPOT_TEXTURE_KEYS) or not spot:
+            rec.warnings["customData['mitsuba'] values usdrelight does not write (not exported)"] += 1
+        if not spot or not isinstance(extra.get("texture"), str):
+            continue
+        path = str(check_read(kept_file(prim, extra["texture"]), root, f"spot texture ({prim.GetPath()})"))
+        props, mean = extra.get("texture_props"), extra.get("texture_mean")
+        tex = {"type": "bitmap", "filename": path}
+        if isinstance(props, dict):
+            tex.update({p: props[p] for p in ("raw", "wrap_mode", "filter_type")
+                        if isinstance(props.get(p), (bool, str))})
+        entry["texture"] = tex
+        if isinstance(mean, list) and len(mean) == 3 and all(isinstance(m, (int, float)) for m in mean) and \
+                isinstance(entry.get("intensity"), dict):  # the UsdLux colour was the texture's mean
+            value = np.asarray(entry["intensity"]["value"], np.float64)
+            entry["intensity"]["value"] = [float(v / m) if m > 0 else 0.0 for v, m in zip(value, mean)]
 
 
 def _restore_area_lights(stage, rec, d: dict) -> None:
@@ -266,7 +287,7 @@ def _restore_area_lights(stage, rec, d: dict) -> None:
         kept = extra.get(AREA_TEXTURE_KEY)
         if isinstance(kept, dict) and isinstance(kept.get("file"), str) and isinstance(kept.get("mean"), list) \
                 and len(kept["mean"]) == 3:
-            path = str(check_read(stage.GetRootLayer().ComputeAbsolutePath(kept["file"]), root,
+            path = str(check_read(kept_file(prim, kept["file"]), root,
                                   f"area light texture ({light.path})"))
             mean = np.asarray(kept["mean"], np.float64)
             scale = np.divide(radiance, mean, out=np.zeros(3), where=mean > 0)
@@ -305,7 +326,10 @@ def _restore_material_extras(stage, rec, d: dict) -> None:
         inner = entry["bsdf"]
         while isinstance(inner.get("bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"), dict):
             inner = inner["bsdf_1" if inner.get("type") == "blendbsdf" else "bsdf"]
-        if isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS:
+        if isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS and not _plain(kept):
+            rec.warnings["a BSDF kept in customData with values usdrelight does not write (exported from the "
+                         "UsdPreviewSurface)"] += 1
+        elif isinstance(kept, dict) and kept.get("type") in KEPT_BSDFS:
             if _unchanged(item.material, extra.get("inputs") or {}):
                 kept = {k: (rgb_value(v) if isinstance(v, list) else v) for k, v in kept.items()}
                 if "dielectric" not in kept["type"]:  # inside the twosided / mask wrappers, as other opaque BSDFs
@@ -333,6 +357,19 @@ def _restore_coverage(mat, extra, entry: dict) -> None:
 #: BSDFs the XML reader keeps whole in a Material's customData (UsdPreviewSurface only approximates them).
 KEPT_BSDFS = ("conductor", "roughconductor", "dielectric", "roughdielectric", "thindielectric", "plastic",
               "roughplastic")
+
+
+def _plain(kept: dict) -> bool:
+    """Whether a kept BSDF holds only what the XML reader writes there: numbers, booleans, names (no file) and RGB
+    triples, no nested plugin (a foreign customData must not put a bitmap of any file into the XML)."""
+    def plain(k, v):
+        if isinstance(v, bool) or isinstance(v, (int, float)) and math.isfinite(v):
+            return True
+        if isinstance(v, str):
+            return k != "filename"
+        return isinstance(v, list) and len(v) == 3 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+    return all(plain(k, v) for k, v in kept.items())
 
 
 def _unchanged(m, inputs: dict) -> bool:

@@ -1,5 +1,5 @@
-"""``usdrelight batch`` in a terminal: the cluster's addresses and a progress bar over photos on stderr, the
-summary on stdout (only JSON with ``--json``)."""
+"""``usdrelight batch`` in a terminal: the cluster's addresses and a progress bar over photos on stderr (one line
+per photo where stderr is not a terminal), the summary on stdout (only JSON with ``--json``)."""
 from __future__ import annotations
 
 import sys
@@ -28,6 +28,10 @@ def run_command(args, console, emit) -> int:
 
         def progress(n, total, rec):
             bar.update(task, completed=n, total=total, description=f"{escape(rec.name)}: {rec.status}")
+            if not sys.stderr.isatty():  # a log file, nohup, CI: one line per photo instead of the bar
+                took = f" in {rec.seconds:.1f} s" if rec.seconds is not None else ""
+                console.print(f"batch {n}/{total}: {rec.name!r} {rec.status}{took}", highlight=False, markup=False,
+                              emoji=False, soft_wrap=True)
 
         res = run_batch(args.photos, args.output, options_from_args(args), progress=progress, on_cluster=on_cluster,
                         on_refused=on_refused)
