@@ -136,7 +136,11 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
                                       rec.warnings)
             if light is not None:
                 mats[key]["emission"] = [float(x) for x in emitted_radiance(light)]
-        arrays = {"points": (m.points @ conv[:3, :3].T).astype(np.float32), "faces": m.faces.astype(np.int32)}
+        points = m.points @ conv[:3, :3].T
+        if not np.all(np.abs(points) < np.finfo(np.float32).max):  # Blender keeps float32: 1e39 would be inf
+            raise UsdRelightError(f"{m.path}: points beyond what Blender's float32 holds (|x| up to "
+                                  f"{np.abs(points).max():.3g}; nothing was written)")
+        arrays = {"points": points.astype(np.float32), "faces": m.faces.astype(np.int32)}
         if m.normals is not None:
             arrays["normals"] = (m.normals @ conv[:3, :3].T).astype(np.float32)
         if m.uv is not None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -80,8 +81,33 @@ def convert(src, dst, frames=None, **options) -> ConvertReport:
         check_options(f"{writer.NAME} writer", options, writer.WRITE_OPTIONS)
     check_destination(dst)
     not_an_input(src, reader, [dst])
-    with made_folders(dst.parent):  # a failed conversion leaves no empty folder behind
+    with made_folders(dst.parent), no_partial_output(dst):  # a failed conversion leaves nothing behind
         return _convert(src, dst, reader, writer, options)
+
+
+@contextmanager
+def no_partial_output(dst: Path):
+    """On an exception inside the block, remove what it added to the folders a writer puts beside ``dst``
+    (``meshes/``, ``textures/``, the Blender script's ``STEM_data/``): a conversion that fails on its last texture
+    leaves none of its meshes in a folder that already existed (files that were there before stay)."""
+    sides = [dst.parent / s for s in SIDE_FOLDERS + (f"{dst.stem}_data",)]
+    before = {side: set(side.rglob("*")) if side.is_dir() and not side.is_symlink() else None for side in sides}
+    try:
+        yield
+    except BaseException:
+        for side, had in before.items():
+            if not side.is_dir() or side.is_symlink():
+                continue
+            for p in sorted(side.rglob("*"), key=lambda q: len(q.parts), reverse=True):  # deepest first
+                if had is not None and p in had:
+                    continue
+                if not (p.is_dir() and not p.is_symlink()):
+                    p.unlink(missing_ok=True)
+                elif not any(p.iterdir()):
+                    p.rmdir()
+            if had is None and not any(side.iterdir()):
+                side.rmdir()
+        raise
 
 
 def not_an_input(src: Path, reader, outputs) -> None:
@@ -168,7 +194,7 @@ def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> Convert
     if clash is not None:  # before the first frame: never some frames written and then a failure
         raise UsdRelightError(f"cannot write {clash}: a folder of that name is in the way (nothing was written)")
     files, warnings = [], {}
-    with made_folders(dst.parent):
+    with made_folders(dst.parent), no_partial_output(dst):
         for i, t in enumerate(times):
             out = writer.write_to_file(stage, frame_path(dst, i), **options, time=t)
             files += [f for f in out.files if f not in files]

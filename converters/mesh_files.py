@@ -25,6 +25,7 @@ UVs: USD's st, trimesh's uv and OBJ's vt all have t = 0 at the bottom of the ima
 """
 from __future__ import annotations
 
+import io
 from collections import Counter
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from usdrelight.atomic import write_bytes_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.read import read_scene
+from usdrelight.stage.read_geometry import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
@@ -51,6 +53,35 @@ ROOT = "/World"
 #: Z-up stage -> Y-up file, on column vectors: (x, y, z) -> (x, z, -y), -90 degrees about X (as Blender's
 #: glTF exporter does); the identity for a Y-up stage.
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def absolute_obj_indices(data: bytes) -> bytes | None:
+    """An OBJ file's bytes with its relative (negative) v/vt/vn indices made absolute, counted where each face,
+    line or point stands (OBJ's rule: -1 is the last vertex read so far); None when it has none. trimesh counts
+    them from the end of the whole file: a second object's vertices moved onto the first's faces, with no
+    warning."""
+    lines = data.split(b"\n")
+    counts = {b"v": 0, b"vt": 0, b"vn": 0}
+    changed = False
+    for i, line in enumerate(lines):
+        body = line.split(b"#", 1)[0]
+        parts = body.split()
+        if not parts:
+            continue
+        if parts[0] in counts:
+            counts[parts[0]] += 1
+        elif parts[0] in (b"f", b"l", b"p") and (b"-" in body or b"#" in line):  # (a comment after the indices
+            # stops trimesh's parser of mixed face formats: dropped)
+            out = [parts[0]]
+            for token in parts[1:]:
+                fields = token.split(b"/")
+                for j, kind in enumerate((b"v", b"vt", b"vn")[:len(fields)]):
+                    if fields[j].startswith(b"-") and fields[j][1:].isdigit():
+                        fields[j] = str(counts[kind] + 1 + int(fields[j])).encode()
+                out.append(b"/".join(fields))
+            lines[i] = b" ".join(out)
+            changed = changed or b"-" in body
+    return b"\n".join(lines) if changed else None
 
 
 def _trimesh():
@@ -116,7 +147,12 @@ def read_from_file(path, **options) -> ReadReport:
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     try:
-        scene = trimesh.load(str(path), force="scene", process=False)
+        fixed = absolute_obj_indices(path.read_bytes()) if path.suffix.lower() == ".obj" else None
+        if fixed is None:
+            scene = trimesh.load(str(path), force="scene", process=False)
+        else:  # the same file with its relative indices made absolute; its MTL and textures beside it as before
+            scene = trimesh.load(io.BytesIO(fixed), file_type="obj", force="scene", process=False,
+                                 resolver=trimesh.resolvers.FilePathResolver(str(path)))
     except Exception as exc:  # trimesh raises many types for broken files
         raise UsdRelightError(f"cannot read {path.name}: {type(exc).__name__}") from None
     schemas.register()
@@ -132,17 +168,18 @@ def read_from_file(path, **options) -> ReadReport:
             continue
         A = np.asarray(xf, np.float64)
         pts = np.asarray(mesh.vertices, np.float64) @ A[:3, :3].T + A[:3, 3]
-        nrm = np.asarray(mesh.vertex_normals, np.float64) @ np.linalg.inv(A[:3, :3])
+        nrm = np.asarray(mesh.vertex_normals, np.float64) @ normal_inverse(A[:3, :3])
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
         base = "".join(c if c.isalnum() else "_" for c in str(node)) or "Mesh"
         base = base if base[0].isalpha() else "_" + base
         used[base] += 1
         name = base if used[base] == 1 else f"{base}_{used[base]}"
         m = UsdGeom.Mesh.Define(stage, f"{ROOT}/{name}")
+        if not (np.all(np.abs(pts) < np.finfo(np.float32).max) and np.all(np.isfinite(nrm))):  # USD keeps float32
+            raise UsdRelightError(f"{path.name}: mesh {node} has non-finite (NaN/Inf) vertices or transform, or "
+                                  f"vertices beyond what float32 holds")
         pts = pts.astype(np.float32)
         faces = np.asarray(mesh.faces, np.int64)
-        if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(nrm))):
-            raise UsdRelightError(f"{path.name}: mesh {node} has non-finite (NaN/Inf) vertices or transform")
         if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
             raise UsdRelightError(f"{path.name}: mesh {node} has face indices outside its vertex list")
         m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))

@@ -11,6 +11,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from pxr import Usd
 
 from usdrelight.imageio import write_image
@@ -133,3 +134,71 @@ def test_warnings_into_a_file_are_one_line_each(tmp_path):
     warn = [line for line in p.stderr.splitlines() if line.startswith("WARNING")]
     assert warn and "one-sided BSDF 'diffuse'" in warn[0] and warn[0].endswith(": 1"), p.stderr
     assert all(line.startswith("WARNING ") for line in p.stderr.splitlines()), p.stderr
+
+
+def test_a_failed_conversion_leaves_nothing_in_a_folder_that_existed(tmp_path, cli):
+    """Before: the meshes were written, then the kept texture failed (exit 2) and meshes/*.ply stayed behind."""
+    (tmp_path / "scene").mkdir()
+    stage_path = _spot_stage(tmp_path / "scene", cli)
+    stage = Usd.Stage.Open(str(stage_path))
+    light = _kept_light(stage)
+    light.SetCustomDataByKey("mitsuba", json.dumps({**json.loads(light.GetCustomDataByKey("mitsuba")),
+                                                    "texture": "gone.png"}))
+    stage.GetRootLayer().Save()
+    out = tmp_path / "out"
+    (out / "meshes").mkdir(parents=True)
+    (out / "meshes" / "mine.ply").write_text("mine")
+    rc, _, err = cli("convert", stage_path, out / "scene.xml")
+    assert rc == 2, err
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == ["meshes", "meshes/mine.ply"]
+    assert (out / "meshes" / "mine.ply").read_text() == "mine"
+
+
+def test_degenerate_and_huge_transforms_are_not_internal_errors(tmp_path, cli):
+    """A zero scale was a LinAlgError (exit 1) on the way to XML or .blend; a radius of 1e39 went into the .blend's
+    float32 points as inf (all 2562 vertices at 0, a numpy overflow warning)."""
+    (tmp_path / "zero.xml").write_text('<scene version="3.0.0"><shape type="sphere"><transform name="to_world">'
+                                       '<scale value="0"/></transform></shape></scene>')
+    assert cli("convert", tmp_path / "zero.xml", tmp_path / "zero.usda")[0] == 0
+    rc, _, err = cli("convert", tmp_path / "zero.usda", tmp_path / "zero_out.xml")
+    assert rc == 0, err
+    (tmp_path / "big.obj").write_text("v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n")
+    rc, _, err = cli("convert", tmp_path / "big.obj", tmp_path / "big.usda")
+    assert rc == 2 and "beyond what float32 holds" in err and "RuntimeWarning" not in err, err
+
+
+def test_a_path_folder_outside_the_scene_is_checked_only_for_files_found_there(tmp_path, cli):
+    """Mitsuba's own test scenes say <path value="../../../common"/>: every file they use lies beside them, and
+    yet the eager check of the folder asked for --allow-path."""
+    scene = tmp_path / "a" / "b"
+    scene.mkdir(parents=True)
+    write_image(scene / "tex.png", np.full((4, 4, 3), 0.5, np.float32), "uint8", srgb=True)
+    (tmp_path / "common.png").write_bytes((scene / "tex.png").read_bytes())
+    body = ('<scene version="3.0.0"><path value="../.."/><shape type="rectangle"><bsdf type="diffuse">'
+            '<texture name="reflectance" type="bitmap"><string name="filename" value="{}"/></texture></bsdf>'
+            '</shape></scene>')
+    (scene / "near.xml").write_text(body.format("tex.png"))
+    rc, _, err = cli("convert", scene / "near.xml", scene / "near.usda")
+    assert rc == 0, err
+    (scene / "far.xml").write_text(body.format("common.png"))  # found only through the <path>: outside
+    rc, _, err = cli("convert", scene / "far.xml", scene / "far.usda")
+    assert rc == 2 and "outside the scene's folder" in err and "--allow-path" in err, err
+
+
+def test_relative_obj_indices_count_from_where_the_face_stands(tmp_path, cli):
+    """OBJ's -1 is the last vertex read so far; trimesh counted from the end of the file: object a's quad came
+    out on object b's vertices (the quad at x 0..1 gone, b's drawn twice), with no warning."""
+    (tmp_path / "neg.obj").write_text("o a\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf -4/-1 -3/-1 -2/-1 -1/-1\n"
+                                      "o b\nv 5 0 0\nv 6 0 0\nv 6 1 0\nv 5 1 0\nf 5 6 7 8 # -1\n")
+    rc, _, err = cli("convert", tmp_path / "neg.obj", tmp_path / "neg.usda")
+    assert rc == 0, err
+    tris, stage = [], Usd.Stage.Open(str(tmp_path / "neg.usda"))
+    for prim in stage.Traverse():
+        if prim.GetTypeName() == "Mesh":
+            pts = np.asarray(prim.GetAttribute("points").Get())
+            tris += [pts[f] for f in np.asarray(prim.GetAttribute("faceVertexIndices").Get()).reshape(-1, 3)]
+    quads = sorted({round(float(t[:, 0].min())) for t in tris})
+    assert quads == [0, 5] and len(tris) == 4  # two triangles on each quad, none across them
+    assert all(np.ptp(t[:, 0]) <= 1 for t in tris)
+    area = sum(0.5 * np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) for t in tris)
+    assert area == pytest.approx(2.0)

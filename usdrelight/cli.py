@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from . import __version__
@@ -175,10 +177,27 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (how batch schedulers and ``kill`` stop a job), raised where the main thread is, so it unwinds
+    through the same clean-up as Ctrl-C (temp folders, locks, the Dask cluster)."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
+def _quiet_after_interrupt() -> None:
+    """A second Ctrl-C while the first one's clean-up runs (closing the Dask cluster at exit) is ignored: it
+    printed a traceback from an atexit callback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         if getattr(args, "uses_render_device", False):
             from .device import select_device
@@ -188,7 +207,12 @@ def main(argv=None) -> int:
     except UsdRelightError as exc:
         sys.stderr.write(f"usdrelight: error: {one_line(exc)}\n")
         return EXIT_USER_ERROR
+    except Terminated:
+        _quiet_after_interrupt()
+        sys.stderr.write("usdrelight: terminated\n")
+        return 143
     except KeyboardInterrupt:
+        _quiet_after_interrupt()
         sys.stderr.write("usdrelight: interrupted\n")
         return 130
     except Exception as exc:  # never a traceback for the user unless asked
@@ -197,6 +221,9 @@ def main(argv=None) -> int:
         sys.stderr.write(f"usdrelight: error: unexpected {type(exc).__name__}: {one_line(exc)} "
                          f"(rerun with --debug for a traceback)\n")
         return EXIT_INTERNAL
+    finally:
+        if previous is not None and signal.getsignal(signal.SIGTERM) is _on_sigterm:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -121,8 +121,8 @@ class XmlReader:
                 self.files.add(p)
                 return p
         else:
-            for d in [here] + self.search:
-                if check_read(d / p, self.root, what).is_file():
+            for d in [here] + self.search:  # a file found through a <path> is checked where it is found
+                if (d / p).is_file() and check_read(d / p, self.root, what).is_file():
                     self.files.add((d / p).resolve())
                     return (d / p).resolve()
         raise UsdRelightError(f"file referenced by the scene not found: {name} (searched {here}"
@@ -148,7 +148,7 @@ class XmlReader:
                 self.defaults.setdefault(el.get("name"), el.get("value"))
             elif el.tag == "path":
                 folder = here / (self.sub(el.get("value")) or "")
-                self.search.append(check_read(folder, self.root, "<path> folder").resolve())
+                self.search.append(folder.resolve())  # checked per file found through it (resolve)
             elif el.tag == "include":
                 fname = self.resolve(self.sub(el.get("filename")), here)
                 self.include_depth += 1

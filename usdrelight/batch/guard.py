@@ -87,7 +87,8 @@ def output_lock(out: Path):
             except (OSError, ValueError, IndexError):
                 holder = "another process"
             raise UsdRelightError(f"output folder {out} is in use by another batch ({holder}, lock "
-                                  f"{Path(out) / LOCK_NAME}); wait for it to end or choose another -o"
+                                  f"{Path(out) / LOCK_NAME}); wait for it to end or choose another -o (if no batch runs "
+                                  f"there, that process is another program: remove the lock file)"
                                   if "being written" in str(exc) else str(exc)) from None
         yield out
 

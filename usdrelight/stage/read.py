@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import check_resolution
 from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
-from .read_geometry import mesh_area, read_material, read_mesh
+from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
 from .lux import uniform_scale
 from .read_lux import read_light
 from .validate import open_stage
@@ -179,7 +179,7 @@ def ellipsoid_mesh(shape: ShapeRecord, subdivisions: int = 4) -> MeshRecord:
     m = shape.to_world
     if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: keep the outside counter-clockwise
         faces = faces[:, [0, 2, 1]]
-    normals = unit @ np.linalg.inv(m[:3, :3])
+    normals = unit @ normal_inverse(m[:3, :3])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     return MeshRecord(shape.path, unit @ m[:3, :3].T + m[:3, 3], faces, normals, None, shape.material,
                       shape.double_sided)

@@ -16,6 +16,14 @@ from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, MeshRecord, TextureRecord
 
 
+def normal_inverse(a: np.ndarray) -> np.ndarray:
+    """The inverse of a 3x3 transform ``a`` (normals go as ``n @ inverse``); a singular one's pseudo-inverse."""
+    try:
+        return np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(a)
+
+
 #: Counted for a material with opacity < 1; renderers that render it (Mitsuba: a mask) drop the line.
 OPACITY_WARNING = "UsdPreviewSurface opacity < 1 (rendered opaque)"
 
@@ -357,7 +365,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         v_uv = uv if ukind == "point" else (np.repeat(uv, len(pts), 0) if ukind == "constant" else None)
     w_pts = v_pts @ A.T + xf[:3, 3]
     if v_n is not None:
-        v_n = v_n @ np.linalg.inv(A)
+        v_n = v_n @ normal_inverse(A)
         ln = np.linalg.norm(v_n, axis=1, keepdims=True)
         v_n = np.where(ln > 0, v_n / np.maximum(ln, 1e-300), 0.0)
     ds = bool(mesh.GetDoubleSidedAttr().Get(t))
