@@ -10,7 +10,7 @@ shapes in metres, Y up.
 UVs and material as glTF PBR (:mod:`.mesh_materials`): metallic, roughness, emissive and the base colour, a
 factor or the albedo texture embedded as an sRGB 8-bit PNG times baseColorFactor (UsdUVTexture scale; a bias
 is baked into the texels), a Lambertian UsdPreviewSurface as metallic 0, roughness 1. ``.ply`` / ``.obj``
-carry geometry, normals and UVs only (the material is named in a warning). Cameras and lights have no place
+carry geometry, the authored normals and UVs only (:mod:`.obj_ply`; the material is named in a warning). Cameras and lights have no place
 in these formats and are named in a warning.
 
 ``read_from_file("X.glb", usd_path=None) -> ReadReport``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
@@ -41,6 +41,7 @@ from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
+from .obj_ply import obj_bytes, ply_bytes
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "mesh files"
@@ -53,6 +54,17 @@ ROOT = "/World"
 #: Z-up stage -> Y-up file, on column vectors: (x, y, z) -> (x, z, -y), -90 degrees about X (as Blender's
 #: glTF exporter does); the identity for a Y-up stage.
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
+def missing_mtl(path: Path) -> list[str]:
+    """The material libraries an OBJ file names (``mtllib``) that are not files beside it (trimesh goes on
+    without them, in silence)."""
+    names = []
+    for line in path.read_bytes().split(b"\n"):
+        parts = line.split(b"#", 1)[0].split()
+        if parts[:1] == [b"mtllib"]:
+            names += [n.decode("utf-8", "replace") for n in parts[1:]]
+    return [n for n in names if not (path.parent / n).is_file()]
 
 
 def absolute_obj_indices(data: bytes) -> bytes | None:
@@ -109,27 +121,25 @@ def write_to_file(stage, path, **options) -> WriteReport:
     if fmt == "glb":
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)
-    scene = trimesh.Scene()
-    for m in rec.meshes:
-        if fmt == "glb":
+    if fmt != "glb":
+        warnings[f"materials in a .{fmt} file (not exported)"] += len(rec.meshes)
+        if fmt == "ply" and len({m.uv is None for m in rec.meshes}) > 1:
+            warnings["UVs of only some meshes (one PLY vertex list: not exported)"] += 1
+        if fmt == "ply" and len({m.normals is None for m in rec.meshes}) > 1:
+            warnings["normals of only some meshes (one PLY vertex list: not exported)"] += 1
+        data = (obj_bytes if fmt == "obj" else ply_bytes)(rec.meshes, axes)
+    else:
+        scene = trimesh.Scene()
+        for m in rec.meshes:
             visual = trimesh.visual.TextureVisuals(uv=texture_uv(m), material=pbr_material(trimesh, m.material,
                                                                                          warnings))
-        else:
-            visual = trimesh.visual.TextureVisuals(uv=m.uv) if m.uv is not None else None
-            warnings[f"materials in a .{fmt} file (not exported)"] += 1
-        # the visual goes in with the normals: assigning it later would drop the given normals from trimesh's cache
-        normals = None if m.normals is None else m.normals @ axes.T
-        mesh = trimesh.Trimesh(m.points @ axes.T, m.faces, vertex_normals=normals, visual=visual, process=False,
-                               validate=False)
-        scene.add_geometry(mesh, node_name=m.path.strip("/").replace("/", "_"),
-                           geom_name=m.path.strip("/").replace("/", "_"))
-    if fmt == "glb":
+            # the visual goes in with the normals: assigning it later would drop the given normals from the cache
+            normals = None if m.normals is None else m.normals @ axes.T
+            mesh = trimesh.Trimesh(m.points @ axes.T, m.faces, vertex_normals=normals, visual=visual,
+                                   process=False, validate=False)
+            scene.add_geometry(mesh, node_name=m.path.strip("/").replace("/", "_"),
+                               geom_name=m.path.strip("/").replace("/", "_"))
         data = trimesh.exchange.gltf.export_glb(scene, include_normals=True)
-    elif fmt == "ply":
-        data = trimesh.exchange.ply.export_ply(trimesh.util.concatenate(scene.dump()), encoding="binary",
-                                               vertex_normal=True)
-    else:
-        data = trimesh.exchange.obj.export_obj(scene, include_normals=True, include_texture=False).encode("utf-8")
     write_bytes_atomic(path, data)
     return WriteReport([str(path)], dict(warnings))  # logged by the CLI, a line per kind
 
@@ -160,6 +170,9 @@ def read_from_file(path, **options) -> ReadReport:
     stage = create_stage(Path(usd_path).absolute() if usd_path is not None else None, ROOT, Kind.Tokens.assembly)
     warnings: Counter = Counter()
     used: Counter = Counter()
+    if path.suffix.lower() == ".obj":
+        for name in missing_mtl(path):
+            warnings[f"OBJ mtllib {name!r} not found (its materials: white)"] += 1
     for node in scene.graph.nodes_geometry:
         xf, geom_name = scene.graph[node]
         mesh = scene.geometry[geom_name]
@@ -195,5 +208,7 @@ def read_from_file(path, **options) -> ReadReport:
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
         author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, path.suffix.lower() != ".glb",
                         warnings)
+    if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
+        raise UsdRelightError(f"{path.name}: no mesh in the file (nothing was written)")
     check_finite(stage, path.name)
     return ReadReport(stage, dict(warnings))

@@ -112,12 +112,25 @@ def _mtl_floats(material, key: str, default):
         return default
 
 
+def _placeholder(material) -> bool:
+    """Whether ``material`` is what trimesh makes up for a mesh with UVs and no material of its own (an OBJ with
+    ``vt`` and no MTL, a PLY with s/t): ``empty_material()``, a 2x2 image of (100, 100, 100, 255), no MTL keys."""
+    if not hasattr(material, "kwargs") or material.kwargs or getattr(material, "image", None) is None:
+        return False
+    img = np.asarray(material.image)
+    return img.shape == (2, 2, 4) and bool(np.all(img == np.array([100, 100, 100, 255])))
+
+
 def _material_terms(material, warnings: Counter) -> dict:
     """What a trimesh material says: base (linear RGBA factor), image (PIL or None), metallic, roughness,
     emissive (linear RGB factor), emissive_image."""
     out = {"base": np.ones(4), "image": None, "metallic": 0.0, "roughness": 1.0, "emissive": np.zeros(3),
            "emissive_image": None}
     if material is None:
+        return out
+    if _placeholder(material):
+        warnings["mesh with UVs and no material (white, as a mesh without either; not trimesh's 2x2 grey "
+                 "placeholder texture)"] += 1
         return out
     if hasattr(material, "baseColorFactor"):  # glTF PBR
         out["base"] = _rgb_factor(material.baseColorFactor, np.ones(4))
