@@ -40,6 +40,7 @@ from usdrelight.stage.read_geometry import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
+from .gltf_extras import emissive_strengths, glb_json, unconverted
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
 from .report import ReadReport, WriteReport, check_options
@@ -173,6 +174,9 @@ def read_from_file(path, **options) -> ReadReport:
     if path.suffix.lower() == ".obj":
         for name in missing_mtl(path):
             warnings[f"OBJ mtllib {name!r} not found (its materials: white)"] += 1
+    doc = glb_json(path) if path.suffix.lower() == ".glb" else None
+    strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
+    warnings.update(unconverted(doc) if doc else {})
     for node in scene.graph.nodes_geometry:
         xf, geom_name = scene.graph[node]
         mesh = scene.geometry[geom_name]
@@ -195,9 +199,11 @@ def read_from_file(path, **options) -> ReadReport:
         faces = np.asarray(mesh.faces, np.int64)
         if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
             raise UsdRelightError(f"{path.name}: mesh {node} has face indices outside its vertex list")
+        if np.linalg.det(A[:3, :3]) < 0:  # a mirroring node flips the front face (glTF 2.0, 3.7.4): keep it
+            faces = faces[:, ::-1]
         m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts))
-        m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, np.int32)))
-        m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(mesh.faces, np.int32).reshape(-1)))
+        m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+        m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.astype(np.int32).reshape(-1)))
         m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         m.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, pts.min(0))), Gf.Vec3f(*map(float, pts.max(0)))]))
         m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(nrm.astype(np.float32)))
@@ -206,6 +212,14 @@ def read_from_file(path, **options) -> ReadReport:
         if uv is not None and len(uv) == len(pts) and np.all(np.isfinite(uv)):
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
                 Vt.Vec2fArray.FromNumpy(np.asarray(uv, np.float32)))
+        material = getattr(mesh.visual, "material", None)
+        strength = strengths.get(getattr(material, "name", None))
+        if strength is not None and getattr(material, "emissiveFactor", None) is not None \
+                and id(material) not in strengthened:  # a material shared by several nodes: scaled once
+            material.emissiveFactor = np.asarray(material.emissiveFactor, np.float64) * strength
+            strengthened.add(id(material))
+        if getattr(material, "doubleSided", False):  # glTF: no back-face culling for this material
+            m.CreateDoubleSidedAttr(True)
         author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, path.suffix.lower() != ".glb",
                         warnings)
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing

@@ -1,0 +1,71 @@
+"""What a glTF binary holds beyond the meshes trimesh reads: read from the file's own JSON chunk, so the reader
+can apply what changes a material (``KHR_materials_emissive_strength``: trimesh drops it, and a Blender export of
+a 10x emitter came out 10x too dark) and name in a warning what USD does not get from it (lights, cameras,
+animations, other extensions), instead of dropping them in silence.
+
+Spec: glTF 2.0 section 4.4 (GLB: a 12-byte header, then chunks of (length, type, data); the first is JSON).
+"""
+from __future__ import annotations
+
+import json
+import struct
+from collections import Counter
+from pathlib import Path
+
+GLB_MAGIC, JSON_CHUNK = 0x46546C67, 0x4E4F534A
+#: Extensions the reader applies (emissive strength) or that only carry what trimesh reads itself.
+APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization"}
+
+
+def glb_json(path: Path) -> dict | None:
+    """The JSON document of a ``.glb`` file (None when it is not one, or its JSON chunk is unreadable)."""
+    try:
+        with open(path, "rb") as fh:
+            magic, _version, _length = struct.unpack("<III", fh.read(12))
+            if magic != GLB_MAGIC:
+                return None
+            size, kind = struct.unpack("<II", fh.read(8))
+            if kind != JSON_CHUNK or size > 64 << 20:
+                return None
+            doc = json.loads(fh.read(size).decode("utf-8"))
+    except (OSError, ValueError, struct.error, UnicodeDecodeError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def emissive_strengths(doc: dict) -> dict[str, float]:
+    """Material name -> ``KHR_materials_emissive_strength.emissiveStrength`` (a name two materials share with
+    different strengths is left out: trimesh names materials, not indices)."""
+    out: dict[str, float] = {}
+    clash = set()
+    for mat in doc.get("materials", []) or []:
+        if not isinstance(mat, dict):
+            continue
+        ext = (mat.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}
+        strength = ext.get("emissiveStrength") if isinstance(ext, dict) else None
+        name = mat.get("name")
+        if isinstance(strength, (int, float)) and not isinstance(strength, bool) and isinstance(name, str):
+            if name in out and out[name] != float(strength):
+                clash.add(name)
+            out[name] = float(strength)
+    return {k: v for k, v in out.items() if k not in clash}
+
+
+def unconverted(doc: dict) -> Counter:
+    """One warning per kind of what the file holds and the USD stage does not get."""
+    warnings: Counter = Counter()
+    nodes = [n for n in doc.get("nodes", []) or [] if isinstance(n, dict)]
+    lights = ((doc.get("extensions") or {}).get("KHR_lights_punctual") or {}).get("lights") or []
+    if lights:
+        warnings["glTF lights (KHR_lights_punctual: not converted)"] += len(lights)
+    cameras = sum("camera" in n for n in nodes)
+    if cameras:
+        warnings["glTF cameras (not converted)"] += cameras
+    if doc.get("animations"):
+        warnings["glTF animations (not converted: the meshes at rest)"] += len(doc["animations"])
+    if doc.get("skins"):
+        warnings["glTF skins (not converted: the meshes at rest)"] += len(doc["skins"])
+    for name in sorted(set(doc.get("extensionsUsed", []) or []) - APPLIED - {"KHR_lights_punctual"}):
+        if isinstance(name, str):
+            warnings[f"glTF extension {name} (not converted)"] += 1
+    return warnings
