@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,12 +17,13 @@ import pytest
 
 from test_batch import FAST, _good
 from test_estimators import _half_albedo_model
+from usdrelight.atomic import lock_token, stage_lock
 from usdrelight.batch.args import options_from_args
 from usdrelight.batch.manifest import COMPLETE, PAIR_FILES, RECORD, finished_record, make_job, read_manifest, \
     remove_leftovers
 from usdrelight.batch.records import BatchOptions
 from usdrelight.batch.run import run_batch
-from usdrelight.batch.task import TEST_HOLD_ENV, TEST_KILL_ENV
+from usdrelight.batch.task import TEST_HOLD_ENV, TEST_KILL_ENV, process_photo
 from usdrelight.neural.pairs import list_photos
 
 from conftest import make_photo
@@ -197,3 +199,25 @@ def test_sigterm_stops_a_batch_as_cleanly_as_ctrl_c(tmp_path):
     assert lines[-1] == "usdrelight: terminated" and "Traceback" not in err, err
     assert not (out / ".usdrelight.lock").exists()
     assert not (out / "hold").exists()  # the held photo never published
+
+
+def test_a_photo_finished_after_its_batch_ended_is_not_published(tmp_path):
+    """With --scheduler, an interrupted batch exited and released its lock, and the external worker still
+    published its photo into OUT a second later (another batch could have started there)."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    _good(photos, "late", 30)
+    opts = BatchOptions(**FAST)
+    with stage_lock(out):
+        token = lock_token(out)
+        assert token and token == lock_token(out)
+        ours = process_photo(make_job(photos / "late.exr", out, opts, token))
+    assert ours.status == "done" and (out / "late" / "batch.json").is_file()
+    shutil.rmtree(out / "late")
+    assert lock_token(out) is None  # the batch ended
+    rec = process_photo(make_job(photos / "late.exr", out, opts, token))
+    assert rec.status == "failed" and rec.error_kind == "crash" and "not published" in rec.error
+    assert sorted(p.name for p in out.iterdir()) == []  # no folder, no temp folder
+    with stage_lock(out):  # another batch holds it now: its token differs
+        assert lock_token(out) != token
+        rec = process_photo(make_job(photos / "late.exr", out, opts, token))
+    assert rec.status == "failed" and not (out / "late").exists()

@@ -183,7 +183,8 @@ def test_a_second_batch_on_the_output_folder_is_refused_and_disturbs_nothing(hel
     assert held["second_rc"] == 2 and held["second_out"] == ""
     lock = out / ".usdrelight.lock"
     assert held["second_err"] == (f"usdrelight: error: output folder {out} is in use by another batch (PID "
-                                  f"{held['pid']}, lock {lock}); wait for it to end or choose another -o\n")
+                                  f"{held['pid']}, lock {lock}); wait for it to end or choose another -o (if no "
+                                  f"batch runs there, that process is another program: remove the lock file)\n")
     assert held["lock"].split()[0] == str(held["pid"])
     assert len(held["temp_dirs"]) == 1  # the first batch's photo in progress ...
     assert held["second_disturbed"] == {} and held["second_removed"] == []  # ... and nothing touched

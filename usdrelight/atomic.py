@@ -221,6 +221,17 @@ def stage_lock(folder: str | os.PathLike):
             lock.unlink(missing_ok=True)
 
 
+def lock_token(folder: str | os.PathLike) -> str | None:
+    """What identifies the lock now held on ``folder`` (its holder's PID, the lock file's inode and time): equal
+    tokens mean the same holder still holds it; None when there is no lock."""
+    lock = Path(folder) / LOCK_NAME
+    try:
+        st = os.stat(lock, follow_symlinks=False)
+    except OSError:
+        return None
+    return f"{_lock_pid(lock)}:{st.st_ino}:{st.st_mtime_ns}"
+
+
 def _acquire(lock: Path, folder: Path) -> None:
     if lock.is_symlink():  # usdrelight's locks are plain files: a link there was put by someone else
         raise UsdRelightError(f"{lock} is a symbolic link, not a lock usdrelight made: remove it and run again")

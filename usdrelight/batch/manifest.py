@@ -52,7 +52,7 @@ def input_hash(files, options: BatchOptions) -> str:
     return h.hexdigest()
 
 
-def make_job(photo: Path, out_dir: Path, options: BatchOptions) -> PhotoJob:
+def make_job(photo: Path, out_dir: Path, options: BatchOptions, lock_token: str = "") -> PhotoJob:
     """The job of ``photo``, an entry of the photo folder: named, and its sidecars found, by the entry's own
     name (a symbolic link's, never its target's). UsdRelightError when a sidecar leads out of the folder or
     an input cannot be read."""
@@ -63,7 +63,7 @@ def make_job(photo: Path, out_dir: Path, options: BatchOptions) -> PhotoJob:
     except OSError as exc:
         name = Path(exc.filename).name if exc.filename else photo.name
         raise UsdRelightError(f"cannot read {name!r}: {exc.strerror or exc}") from None
-    return PhotoJob(photo.stem, photo, files, digest, Path(out_dir).resolve(), options)
+    return PhotoJob(photo.stem, photo, files, digest, Path(out_dir).resolve(), options, lock_token)
 
 
 def read_manifest(out_dir: Path) -> dict[str, PhotoRecord]:

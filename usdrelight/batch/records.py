@@ -84,6 +84,10 @@ class PhotoJob:
     """The batch output folder (absolute)."""
     options: BatchOptions
     """The batch's options."""
+    lock_token: str = ""
+    """:func:`usdrelight.atomic.lock_token` of ``out_dir`` while the batch that sent the job holds it: a worker
+    publishes the photo only while it is still the same (an external worker finishing after its batch ended, or
+    was interrupted, writes nothing); "" = no check."""
 
 
 @dataclass

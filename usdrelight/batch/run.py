@@ -18,6 +18,7 @@ import logging
 import time
 from pathlib import Path
 
+from ..atomic import lock_token
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import MANIFEST, list_photos
 from .guard import LOOPBACK, check_path_text, loopback_dashboard, output_lock, resolve_workers
@@ -117,12 +118,13 @@ def _refused_record(path: Path, reason: str) -> PhotoRecord:
 def _locked(photos, refused, out, options, workers, progress, on_cluster, on_refused, t0) -> BatchSummary:
     """run_batch's work while it holds the output folder's lock."""
     remove_leftovers(out)
+    token = lock_token(out) or ""  # the workers publish only while this batch holds the folder
     previous = read_manifest(out)
     rows: dict[str, PhotoRecord] = {}
     per_photo, todo, jobs = [], [], []
     for p in photos:
         try:
-            jobs.append(make_job(p, out, options))
+            jobs.append(make_job(p, out, options, token))
         except UsdRelightError as exc:  # a sidecar out of the folder, an unreadable input
             refused.append((p, one_line(exc)))
     for p, reason in sorted(refused):

@@ -13,7 +13,7 @@ import signal
 import time
 from pathlib import Path
 
-from ..atomic import fsync_tree, publish, temp_dir_beside, write_bytes_atomic, write_text_atomic
+from ..atomic import fsync_tree, lock_token, publish, temp_dir_beside, write_bytes_atomic, write_text_atomic
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import make_pair_files
 from ..stage.layout import USER_LIGHTS
@@ -29,6 +29,10 @@ TEST_HOLD_ENV = "USDRELIGHT_BATCH_TEST_HOLD"
 """Test-only hook, ``NAME``: the worker processing photo NAME, after the build, writes
 ``OUT_DIR/.test-hold-NAME`` and waits (at most 120 s) until ``OUT_DIR/.test-go-NAME`` exists: a batch held
 mid-photo, with its temp folder, for tests of what a second batch may touch."""
+
+
+class BatchEnded(UsdRelightError):
+    """The batch that sent a photo no longer holds the output folder when the photo is done."""
 
 
 def _one_line(exc: BaseException) -> str:
@@ -92,12 +96,15 @@ def process_photo(job: PhotoJob) -> PhotoRecord:
         rec.seconds = time.perf_counter() - t0
         write_text_atomic(tmp / RECORD, json.dumps(rec.to_dict(), indent=2, sort_keys=True) + "\n")
         fsync_tree(tmp)
+        if job.lock_token and lock_token(job.out_dir) != job.lock_token:
+            raise BatchEnded(f"the batch that sent this photo no longer holds {job.out_dir} (it ended or was "
+                             f"interrupted): not published")
         _replace(tmp, final)
     except Exception as exc:  # a bad photo must not stop the batch: it is recorded with its error
         shutil.rmtree(tmp, ignore_errors=True)
         rec.status = "failed"
         rec.error = _one_line(exc)
-        rec.error_kind = "input" if isinstance(exc, UsdRelightError) else "crash"
+        rec.error_kind = "input" if isinstance(exc, UsdRelightError) and not isinstance(exc, BatchEnded) else "crash"
         rec.seconds = time.perf_counter() - t0
         log.warning("%s: failed: %s", job.name, rec.error)
     return rec
