@@ -171,7 +171,7 @@ class XmlReader:
     def element(self, el: ET.Element, here: Path, in_emitter: bool = False):
         tag = el.tag
         if tag in ("shape", "emitter", "bsdf", "texture", "sensor", "film", "sampler", "rfilter", "integrator",
-                   "medium", "phase", "volume"):
+                   "medium", "phase", "volume", "shapegroup"):
             p = Plugin(tag, self.sub(el.get("type")), self.sub(el.get("id")), el.get("name"), source=str(here))
             for child in el:
                 if not isinstance(child.tag, str):
@@ -215,6 +215,8 @@ class XmlReader:
             if tag in ("rgb", "color"):
                 nums = [float(x) for x in re.split(r"[,\s]+", val.strip()) if x]
                 return tuple(nums * 3 if len(nums) == 1 else nums[:3])
+            if tag == "spectrum" and val is None and el.get("filename") is not None:  # an .spd file
+                return self.spectrum(self.spd_pairs(self.resolve(self.sub(el.get("filename")), here)), in_emitter)
             if tag == "spectrum":
                 return self.spectrum(val, in_emitter)
             if tag in ("point", "vector"):
@@ -228,6 +230,17 @@ class XmlReader:
             raise UsdRelightError(f"bad <{tag} name='{el.get('name')}'> value {val!r}: {exc}") from None
         self.warnings[f"XML element <{tag}> (ignored)"] += 1
         return None
+
+    @staticmethod
+    def spd_pairs(path: Path) -> str:
+        """A spectrum file (lines "wavelength value", # comments) as the "wl:value, ..." text of a <spectrum>."""
+        if path.stat().st_size > 1 << 20:
+            raise ValueError(f"spectrum file {path.name} is over 1 MB")
+        rows = [line.split("#", 1)[0].split() for line in path.read_text(errors="replace").splitlines()]
+        rows = [r for r in rows if r]
+        if any(len(r) != 2 for r in rows):
+            raise ValueError(f"spectrum file {path.name}: each line is 'wavelength value'")
+        return ", ".join(f"{float(a)!r}:{float(b)!r}" for a, b in rows)
 
     def spectrum(self, val: str, in_emitter: bool):
         """A <spectrum> as the RGB Mitsuba's RGB variants use: a uniform value as it is, a sampled one
@@ -345,6 +358,30 @@ def integrator_json(p: Plugin) -> dict:
     return d
 
 
+def expand_instances(objs: list, warnings: Counter) -> list:
+    """Each ``<shape type="instance">`` of a ``<shapegroup>`` as copies of the group's shapes, their to_world
+    composed with the instance's (USD gets each instance's own geometry); the groups themselves draw nothing."""
+    out = []
+    for p in objs:
+        if p.tag == "shapegroup":
+            continue
+        if p.tag != "shape" or p.type != "instance":
+            out.append(p)
+            continue
+        group = next((c for c in p.children if c.tag == "shapegroup"), None)
+        if group is None:
+            warnings["<shape type='instance'> without a shapegroup (ignored)"] += 1
+            continue
+        warnings["shapegroup instances (each written as its own copy of the group's shapes)"] += 1
+        M = p.props.get("to_world", np.eye(4))
+        for s in expand_instances([c for c in group.children if c.tag == "shape"], warnings):
+            copy = Plugin(s.tag, s.type, None, s.name, {**s.props, "to_world": M @ s.props.get("to_world", np.eye(4))},
+                          s.children, s.source)
+            copy.resolved = s.resolved
+            out.append(copy)
+    return out
+
+
 def parse_scene(text: str, source: str, here: Path, warnings: Counter, files: set | None = None) -> list[Plugin]:
     """The top-level objects of a scene document, includes expanded and file names resolved; ``files``, when
     given, gets every file the document makes us read (its includes, meshes, textures ...)."""
@@ -353,6 +390,7 @@ def parse_scene(text: str, source: str, here: Path, warnings: Counter, files: se
     objs: list = []
     reader.scene_children(root, here, objs)
     attach_paths(objs, reader)
+    objs = expand_instances(objs, warnings)
     if files is not None:
         files.update(reader.files)
     return objs

@@ -75,6 +75,9 @@ class UsdBuilder(AreaLights):
         if emitter is not None and emitter.type != "area":
             self.warnings[f"'{emitter.type}' emitter on a shape (ignored)"] += 1
         emitter = emitter if emitter is not None and emitter.type == "area" else None
+        for c in p.children:
+            if c.tag == "medium":  # USD has no participating media: the surface is converted without it
+                self.warnings[f"<medium type='{c.type}'> on a shape (participating media: not converted)"] += 1
         if emitter is not None:
             if p.type in ("rectangle", "sphere", "disk"):
                 self.area_light(p, emitter, M)
