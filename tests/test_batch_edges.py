@@ -221,3 +221,42 @@ def test_a_photo_finished_after_its_batch_ended_is_not_published(tmp_path):
         assert lock_token(out) != token
         rec = process_photo(make_job(photos / "late.exr", out, opts, token))
     assert rec.status == "failed" and not (out / "late").exists()
+
+
+def test_a_lost_scheduler_is_one_error_not_photos_blamed_on_workers(tmp_path):
+    """Before: exit 0, the photos left recorded failed as 'worker died while processing the photo
+    (FutureCancelledError ... scheduler-connection-lost)' and a raw distributed.client error line."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    _good(photos, "hold", 21)
+    env = dict(os.environ, **{TEST_HOLD_ENV: "hold", "PYTHONUNBUFFERED": "1"})
+    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    sched = subprocess.Popen(dask + ["--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
+                                     str(tmp_path / "s.json")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [sched]
+    try:
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "s.json").exists():
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        time.sleep(0.5)
+        address = json.loads((tmp_path / "s.json").read_text())["address"]
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads",
+                                       "1", "--resources", "photo=1", "--no-dashboard"], env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        batch = subprocess.Popen([sys.executable, "-m", "usdrelight", "batch", str(photos), "-o", str(out),
+                                  "--scheduler", address, "--max-side", "64", "--lights", "2", "--iterations", "6"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        procs.append(batch)
+        while not (out / ".test-hold-hold").exists():
+            assert batch.poll() is None and time.monotonic() < deadline + 60, batch.stderr.read()
+            time.sleep(0.2)
+        sched.kill()
+        _, err = batch.communicate(timeout=90)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert batch.returncode == 2, err
+    assert f"usdrelight: error: lost the Dask scheduler {address}" in err and "1 photo(s) not processed" in err, err
+    assert "worker died" not in err and "Traceback" not in err, err
+    assert "hold" not in read_manifest(out)  # not recorded as a failure: the next run takes it up

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import contextmanager
+from concurrent.futures import CancelledError
 from pathlib import Path
 
 from ..atomic import lock_token
@@ -165,7 +167,31 @@ def _entry(rec: PhotoRecord, outcome: str) -> dict:
             "error": rec.error}
 
 
+@contextmanager
+def _quiet_dask():
+    """Dask's own log records (a lost scheduler's reconnect tracebacks, 'marked as failed because 1 workers
+    died') off stderr while the batch reports those events itself in one line; kept with -vv."""
+    _dask()  # imported first: its logging configuration sets the levels this overrides
+    if logging.getLogger("usdrelight").getEffectiveLevel() <= logging.DEBUG:
+        yield
+        return
+    names = ["distributed"] + [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
+    before = {n: logging.getLogger(n).level for n in names}
+    for n in names:
+        logging.getLogger(n).setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for n, level in before.items():
+            logging.getLogger(n).setLevel(level)
+
+
 def _run(todo, options, workers, rows, summary, out, progress, on_cluster, done0, total) -> None:
+    with _quiet_dask():
+        _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluster, done0, total)
+
+
+def _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluster, done0, total) -> None:
     t = time.perf_counter()
     client, cluster = _client(options, workers)
     try:
@@ -202,6 +228,11 @@ def _run(todo, options, workers, rows, summary, out, progress, on_cluster, done0
             job = in_flight.pop(fut)
             try:
                 rec = fut.result()
+            except CancelledError as exc:  # the scheduler went away (not this photo's fault: no crash recorded)
+                left = 1 + len(in_flight) + len(pending)
+                raise UsdRelightError(f"lost the Dask scheduler {summary.scheduler} ({one_line(exc)[:120]}): "
+                                      f"{left} photo(s) not processed, the others recorded; run the batch again "
+                                      f"to finish") from None
             except Exception as exc:  # the task's worker died (KilledWorker) or the cluster failed
                 rec = _crash_record(job, exc)
                 log.warning("%s: %s", job.name, rec.error)
