@@ -42,6 +42,7 @@ def converter_for(path: str | Path):
     suffix = Path(path).suffix.lower()
     name = REGISTRY.get(suffix)
     if name is None:
-        known = ", ".join(sorted(REGISTRY)) or "none yet"
-        raise UsdRelightError(f"no converter for '{suffix or Path(path).name}' files (supported: {known})")
+        known = ", ".join(sorted(REGISTRY) + list(USD_SUFFIXES))
+        hint = " (a .gltf with its .bin: export it as a binary .glb)" if suffix == ".gltf" else ""
+        raise UsdRelightError(f"no converter for '{suffix or Path(path).name}' files{hint} (supported: {known})")
     return importlib.import_module(f"{__name__}.{name}")

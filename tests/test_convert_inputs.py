@@ -202,3 +202,9 @@ def test_relative_obj_indices_count_from_where_the_face_stands(tmp_path, cli):
     assert all(np.ptp(t[:, 0]) <= 1 for t in tris)
     area = sum(0.5 * np.linalg.norm(np.cross(t[1] - t[0], t[2] - t[0])) for t in tris)
     assert area == pytest.approx(2.0)
+
+
+def test_an_unknown_suffix_names_every_supported_one(tmp_path, cli):
+    (tmp_path / "a.gltf").write_text("{}")
+    rc, _, err = cli("convert", tmp_path / "a.gltf", tmp_path / "a.usda")
+    assert rc == 2 and "export it as a binary .glb" in err and ".usda" in err and ".glb" in err, err
