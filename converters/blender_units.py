@@ -201,7 +201,8 @@ def foreign_unit_scale(lights) -> float:
         unit = float(getattr(lights, "unit_scale", 1.0))
     except (TypeError, ValueError):
         return 1.0
-    return unit if math.isfinite(unit) and unit > 0 else 1.0
+    # Blender keeps it in float32: 0.01 arrives as 0.009999999776; the decimal it was typed as is the unit
+    return float(f"{unit:.7g}") if math.isfinite(unit) and unit > 0 else 1.0
 
 
 def blender_light_to_usd(b: dict, up_axis: str = "Y", meters_per_unit: float = 1.0, unit_scale: float = 1.0) -> dict:
