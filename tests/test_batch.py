@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -107,18 +108,19 @@ def test_bad_batch_folder_is_one_line_exit_2(tmp_path, cli):
     assert rc == 2 and "no photos" in err
 
 
-@pytest.fixture
-def kill_cluster():
-    """A real LocalCluster whose workers kill themselves on chosen photos (the test-only hook), with one
-    retry after a worker death and one photo per worker at a time (the ``photo`` resource, as `usdrelight batch`
-    configures its own); reached through ``--scheduler`` as an existing cluster would be."""
+@contextmanager
+def killing_cluster(hook: str, allowed_failures: int):
+    """A real LocalCluster of two worker processes, one photo slot each (the ``photo`` resource, as `usdrelight
+    batch` configures its own), whose workers kill themselves on the photos the test-only hook names (``hook``:
+    NAME:TIMES,...), and ``allowed_failures`` retries after a worker death; reached through ``--scheduler`` as an
+    existing cluster would be."""
     import dask
     from distributed import LocalCluster
 
     old = os.environ.get(TEST_KILL_ENV)
-    os.environ[TEST_KILL_ENV] = "killonce:1,killalways:9"  # inherited by the worker processes
+    os.environ[TEST_KILL_ENV] = hook  # inherited by the worker processes
     try:
-        with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        with dask.config.set({"distributed.scheduler.allowed-failures": allowed_failures}):
             cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                                    silence_logs=40, resources={"photo": 1})
         yield cluster
@@ -128,6 +130,13 @@ def kill_cluster():
             os.environ.pop(TEST_KILL_ENV, None)
         else:
             os.environ[TEST_KILL_ENV] = old
+
+
+@pytest.fixture
+def kill_cluster():
+    """Workers killed once on 'killonce', on every try on 'killalways'; one retry."""
+    with killing_cluster("killonce:1,killalways:9", 1) as cluster:
+        yield cluster
 
 
 def test_a_killed_worker_loses_nothing_and_a_changed_photo_is_redone(kill_cluster, tmp_path):

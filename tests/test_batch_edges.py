@@ -15,7 +15,7 @@ from argparse import Namespace
 
 import pytest
 
-from test_batch import FAST, _good
+from test_batch import FAST, _good, killing_cluster
 from test_estimators import _half_albedo_model
 from usdrelight.atomic import lock_token, stage_lock
 from usdrelight.batch.args import options_from_args
@@ -23,7 +23,7 @@ from usdrelight.batch.manifest import COMPLETE, PAIR_FILES, RECORD, finished_rec
     remove_leftovers
 from usdrelight.batch.records import BatchOptions
 from usdrelight.batch.run import run_batch
-from usdrelight.batch.task import TEST_HOLD_ENV, TEST_KILL_ENV, process_photo
+from usdrelight.batch.task import TEST_HOLD_ENV, process_photo
 from usdrelight.neural.pairs import list_photos
 
 from conftest import make_photo
@@ -121,23 +121,9 @@ def test_an_onnx_model_is_checked_first_and_its_bytes_are_hashed(tmp_path, cli, 
 
 @pytest.fixture
 def dying_cluster():
-    """Two workers of one photo slot each, no retries, and a hook that SIGKILLs the worker of photo 'dies'."""
-    import dask
-    from distributed import LocalCluster
-
-    old = os.environ.get(TEST_KILL_ENV)
-    os.environ[TEST_KILL_ENV] = "dies:1"
-    try:
-        with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
-            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=40, resources={"photo": 1})
+    """Two workers of one photo slot each, no retries, and the worker of photo 'dies' SIGKILLed once."""
+    with killing_cluster("dies:1", 0) as cluster:
         yield cluster
-        cluster.close()
-    finally:
-        if old is None:
-            os.environ.pop(TEST_KILL_ENV, None)
-        else:
-            os.environ[TEST_KILL_ENV] = old
 
 
 def test_a_dying_worker_fails_only_its_own_photo(dying_cluster, tmp_path):

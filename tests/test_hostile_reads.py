@@ -93,7 +93,7 @@ def test_a_non_text_include_names_the_file_only(cli, dirs):
 
 @pytest.mark.parametrize("body", [
     '<path value="../outside"/><shape type="ply"><string name="filename" value="mesh.ply"/></shape>',
-    '<path value="/"/>',
+    '<path value="/"/><shape type="ply"><string name="filename" value="etc/passwd"/></shape>',  # found through it
     '<shape type="rectangle"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
     '<string name="filename" value="../outside/tex.exr"/></texture></bsdf></shape>',
     '<emitter type="envmap"><string name="filename" value="../outside/tex.exr"/></emitter>',
