@@ -57,6 +57,14 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def display_exposure(image: np.ndarray) -> float:
+    """What a linear image is divided by for its 8-bit sRGB view (relit PNGs, video frames): ``max(1, its 99.5th
+    percentile)``: never above 1, so a view is never brightened (a relit PNG whose few pixels above 1 made it
+    divide by a percentile below 1 came out up to 1.8x brighter than its EXR), and a clip that is mostly
+    overexposed is scaled down to fit. A sequence uses its first frame's for every frame."""
+    return max(1.0, float(np.percentile(image, 99.5)))
+
+
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB encoding; input clipped to [0, 1]."""
     x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)

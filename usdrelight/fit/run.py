@@ -19,9 +19,11 @@ from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import MAX_SPP, check_spp, render_record
 from ..safe_paths import writable_parent
+from ..stage.layout import SCENE
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
 from ..stage.usdz import refuse_usdz
+from ..stage.versions import is_stage_folder
 from .adam import fit_adam
 from .fast import FastSettings, fit_fast_coarse_to_fine
 from .problem import FitProblem, load_problem
@@ -150,6 +152,10 @@ def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, pro
     fit_report.json and a plot of error against run time there. ``progress(i, n, mse)`` is called per step.
     Returns the :class:`~usdrelight.fit.result.FitReport` (MSE and PSNR in the linear units of D, seconds)."""
     refuse_usdz(stage_path, "fit")
+    path = Path(stage_path)
+    if path.is_file() and (path.name != SCENE or not is_stage_folder(path.absolute().parent)):
+        raise UsdRelightError(f"{stage_path} is not the scene.usda of a stage `usdrelight build` made: fit writes "
+                              f"its fitted lights into such a stage's own layers (nothing was written)")
     with stage_lock(Path(stage_path).absolute().parent):
         return _fit_unlocked(stage_path, settings or FitSettings(), report_dir, progress)
 

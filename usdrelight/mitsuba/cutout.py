@@ -16,10 +16,12 @@ the upsampling matches Mitsuba's bilinear lookup of the source to 2.4e-7 for rep
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import srgb_to_linear
+from ..imageio import read_raw, srgb_to_linear
 from ..stage.records import TextureRecord
 from .runtime import load_mitsuba
 
@@ -40,11 +42,23 @@ def cutout_spec(tex: TextureRecord, threshold: float) -> dict:
                        "bias": float(tex.bias[CHANNELS.get(tex.channel, 0)])}}
 
 
+MITSUBA_BITMAPS = (".png", ".jpg", ".jpeg", ".exr", ".hdr", ".rgbe", ".pfm", ".ppm", ".tga", ".bmp")
+"""The files Mitsuba's bitmap plugin decodes (Bitmap::FileFormat); others are read by OpenImageIO and baked."""
+
+
+def mitsuba_reads(path: str) -> bool:
+    """Whether Mitsuba's bitmap plugin reads ``path`` itself (a file inside a .usdz package: by its own suffix)."""
+    inner = path[path.index("[") + 1:-1] if path.endswith("]") and "[" in path else path
+    return Path(inner).suffix.lower() in MITSUBA_BITMAPS
+
+
 def _read_texels(path: str) -> np.ndarray:
     """The file's stored values as float32 (H, W, C) in [0, 1] for integer formats, no colour conversion; read
     through USD's asset resolver (``x.usdz[tex.png]`` works) and decoded by Mitsuba, as its bitmap plugin would."""
     from pxr import Ar
 
+    if not mitsuba_reads(path):  # a TIFF, a .tx / .tex mipmap: OpenImageIO reads what Mitsuba's bitmap cannot
+        return read_raw(path)[0]
     asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(path))
     if asset is None:
         raise UsdRelightError(f"cannot read texture {path}")

@@ -22,7 +22,7 @@ import numpy as np
 from ..imageio import read_texture_rgb, srgb_to_linear
 from ..stage.lux import direction_to_cell, emitted_radiance, latlong_directions, world_scale
 from ..stage.records import TextureRecord
-from .cutout import CHANNELS, _read_texels
+from .cutout import CHANNELS, _read_texels, mitsuba_reads
 
 WRAP_MODES = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "clamp"}
 FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # (u, v) <-> (s, t): v = 1 - t
@@ -94,7 +94,7 @@ def texture_dict(tex: TextureRecord, warnings) -> dict:
     if tex.channel not in ("rgb", "r", "g", "b", "a"):
         warnings[f"UsdUVTexture output '{tex.channel}' (rgb used)"] += 1
         tex = replace(tex, channel="rgb")
-    if needs_bake(tex):
+    if needs_bake(tex) or not mitsuba_reads(tex.path):  # (a .tif or .tx: its texels read by OpenImageIO)
         d["raw"] = True
         d["bake"] = {"channel": tex.channel, "linear": tex.linear, "scale": [float(x) for x in tex.scale[:4]],
                      "bias": [float(x) for x in tex.bias[:4]]}

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..atomic import result_group
 from ..errors import UsdRelightError
-from ..imageio import read_map, write_image
+from ..imageio import display_exposure, read_map, write_image
 from ..mitsuba.render import aov_kind, render_stage, stale_aov_files
 from ..onnx_runtime import first_line, open_session
 from ..safe_paths import confined_path
@@ -218,12 +218,13 @@ def find_aovs(stage_path, rec) -> dict:
     return found
 
 
-def write_relit(out_dir, name: str, image: np.ndarray) -> tuple[Path, Path]:
-    """``out_dir/name.exr`` (linear float) and ``out_dir/name.png`` (sRGB 8-bit, scaled down by the 99.5th
-    percentile when the image exceeds 1)."""
+def write_relit(out_dir, name: str, image: np.ndarray, exposure: float | None = None) -> tuple[Path, Path]:
+    """``out_dir/name.exr`` (linear float) and ``out_dir/name.png`` (sRGB 8-bit of the image divided by
+    ``exposure``, by default its own :func:`~usdrelight.imageio.display_exposure`: scaled down only when more than
+    0.5% of it is above 1, never brightened)."""
     out = Path(out_dir)
     exr = write_image(out / f"{name}.exr", image, "float")
-    view = image / max(float(np.percentile(image, 99.5)), 1e-6) if image.max() > 1 else image
+    view = image / (display_exposure(image) if exposure is None else exposure)
     png = write_image(out / f"{name}.png", view, "uint8", srgb=True)
     return exr, png
 

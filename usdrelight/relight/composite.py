@@ -34,9 +34,10 @@ All images are linear RGB (H, W, 3) at one resolution; ``valid`` (H, W) marks pi
 * ``residual`` (run by :class:`usdrelight.relight.session.RelightSession`, not here): the ``transfer`` picture
   times exp(g), g a network's log gain bounded to +-0.7 (:mod:`usdrelight.neural.residual`); an untrained
   network returns ``transfer``.
-* ``add``: I' = I + A, with A the render of the added lights only: differential rendering in the spirit of
-  Debevec's object insertion ("keep the photo's light and add mine"); no added light gives I back, and light
-  is only ever added.
+* ``add``: I' = I + A, with A the render of the added lights only, divided by each pixel's coverage (the
+  image border and depth cuts get their surface's light, not half of it: a 1-pixel darker frame before;
+  nothing where no geometry is): differential rendering in the spirit of Debevec's object insertion ("keep the
+  photo's light and add mine"); no added light gives I back, and light is only ever added.
 """
 from __future__ import annotations
 
@@ -128,10 +129,15 @@ def render_photo(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     half covered by the 2.5D mesh, at a depth cut or the image border, holds half its surface's radiance, as
     Mitsuba renders it); a photo's pixel is covered whole. So D~ is divided by the coverage, and the pixels that
     see no geometry at all are filled from the pixels around them."""
+    return hole_fill(per_covered_area(beauty, coverage), np.asarray(coverage) > 0)
+
+
+def per_covered_area(beauty: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """D~ divided by each pixel's coverage (float32, >= 0): the radiance of the surface a pixel sees, whole or in
+    part; 0 where it sees none (not filled: ``add`` adds no light where no geometry is)."""
     cov = np.asarray(coverage, np.float64)
-    seen = cov > 0
-    out = np.where(seen[..., None], np.maximum(beauty, 0.0) / np.maximum(cov, 1e-6)[..., None], 0.0)
-    return hole_fill(out.astype(np.float32), seen)
+    out = np.where((cov > 0)[..., None], np.maximum(beauty, 0.0) / np.maximum(cov, 1e-6)[..., None], 0.0)
+    return out.astype(np.float32)
 
 
 def _split_high(log_img: np.ndarray, sigma: float) -> np.ndarray:

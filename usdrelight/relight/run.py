@@ -20,7 +20,7 @@ from rich.progress import track
 from ..atomic import result_group
 from ..engine.fast import EngineSettings, check_area_samples
 from ..errors import UsdRelightError
-from ..imageio import write_image
+from ..imageio import display_exposure, write_image
 from ..neural.model import write_relit
 from ..safe_paths import confined_path, writable_parent
 from ..stage.animated_lights import write_sequence_layer
@@ -94,11 +94,13 @@ def not_relit(name: Path) -> bool:
     return RELIT_NAMES.fullmatch(name.as_posix()) is None
 
 
-def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame, mp4: Mp4Writer | None = None) -> FrameFiles:
-    """Write one frame (relit EXR + PNG, D~ EXR; appended to ``mp4``); its ``seconds`` add ``write`` (on the
-    writer thread) to the frame's compute times, and ``total`` is compute + write."""
+def _write_frame(out_dir: Path, suffix: str, frame: RelitFrame, mp4: Mp4Writer | None = None,
+                 exposure: float | None = None) -> FrameFiles:
+    """Write one frame (relit EXR + PNG, the PNG divided by ``exposure``; D~ EXR; appended to ``mp4``); its
+    ``seconds`` add ``write`` (on the writer thread) to the frame's compute times, and ``total`` is compute +
+    write."""
     t = time_module.perf_counter()
-    exr, png = write_relit(out_dir, f"relit{suffix}", frame.image)
+    exr, png = write_relit(out_dir, f"relit{suffix}", frame.image, exposure)
     diffuse = write_image(out_dir / f"render_diffuse{suffix}.exr", frame.diffuse, "float")
     if mp4 is not None:
         mp4.add(frame.image)
@@ -220,8 +222,11 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         first, lit = None, False  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
             frame = session.render(common + extra, time_code=t, allow_dark=len(plan) > 1)  # a dark frame of a clip
-            first, lit = (frame if first is None else first), lit or frame.lights > 0
-            pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4))
+            if first is None:  # one exposure for every PNG of the clip, the first frame's, as its video has
+                first, exposure = frame, display_exposure(frame.image)
+            lit = lit or frame.lights > 0
+            pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4,
+                                         exposure))
             while len(pending) > WRITE_QUEUE:
                 written.append(pending.popleft().result())
         written += [f.result() for f in pending]  # a failed write raises here: the group publishes nothing

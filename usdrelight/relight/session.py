@@ -39,8 +39,8 @@ from ..stage.read import read_lights, read_scene
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
-from .composite import (MODES, add_composite, ratio_apply, ratio_reference, render_photo, transfer_apply,
-                        transfer_reference)
+from .composite import (MODES, add_composite, per_covered_area, ratio_apply, ratio_reference, render_photo,
+                        transfer_apply, transfer_reference)
 from .light_match import match_angles, match_weight, scene_centre
 
 log = logging.getLogger(__name__)
@@ -349,7 +349,7 @@ class RelightSession:
             image = render_photo(beauty, aovs.coverage)
             sec["composite"] = perf_counter() - t
         else:
-            image = add_composite(self.photo, beauty)
+            image = add_composite(self.photo, per_covered_area(beauty, aovs.coverage))
             sec["composite"] = perf_counter() - t
         sec["total"] = perf_counter() - t0
         return RelitFrame(image, beauty, albedo, valid, len(all_lights), sec, self.time, aovs.coverage)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import UsdRelightError
-from ..imageio import linear_to_srgb
+from ..imageio import display_exposure, linear_to_srgb
 from ..safe_paths import writable_parent
 
 CRF = 16
@@ -71,7 +71,7 @@ class Mp4Writer:
 
         h, w = image.shape[:2]
         if self._container is None:
-            self.exposure = max(1.0, float(np.percentile(image, 99.5)))
+            self.exposure = display_exposure(image)
             self._container = self._av.open(str(self._tmp), "w", format="mp4")
             rate = Fraction(self.fps).limit_denominator(1001)
             self._stream = self._container.add_stream("libx264", rate=rate)

@@ -289,6 +289,8 @@ def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
         resolution = check_resolution(res[0], res[1], f"{settings.GetPath()}") if res is not None else None
         targets = settings.GetCameraRel().GetTargets()
         cam_prim = stage.GetPrimAtPath(targets[0]) if targets else None
+        if targets and not (cam_prim and cam_prim.IsA(UsdGeom.Camera)):  # was "Accessed invalid null prim", exit 1
+            raise UsdRelightError(f"{settings.GetPath()}: camera {targets[0]} is not a Camera on the stage")
         products = _read_products(stage, settings)
     if cam_prim is None:
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)

@@ -92,7 +92,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         ies = lux_get(sh.GetShapingIesFileAttr(), t, warnings)
         if ies and ies.path:
             warnings["ShapingAPI IES profile (ignored)"] += 1
-    _ignored_lux(prim, warnings)
+    _ignored_lux(prim, t, warnings)
     typ = prim.GetTypeName()
     if prim.IsA(UsdGeom.Mesh):
         return LightRecord(kind="mesh", area=area, **common)
@@ -149,14 +149,15 @@ def _light_texture(prim, asset, what: str) -> TextureRecord:
     return TextureRecord(asset.resolvedPath, "raw" if stores_floats(asset.resolvedPath) else "sRGB")
 
 
-def _ignored_lux(prim, warnings) -> None:
-    """UsdLux controls no renderer here represents: diffuse/specular multipliers, ShadowAPI, light/shadow
-    linking (one warning line per kind; README "UsdLux attributes not represented")."""
-    from pxr import Usd, UsdLux
+def _ignored_lux(prim, t, warnings) -> None:
+    """UsdLux controls no renderer here represents, at time code ``t``: diffuse/specular multipliers (0 included:
+    it was read as unset), ShadowAPI, light/shadow linking (one warning line per kind; README "UsdLux attributes
+    not represented")."""
+    from pxr import UsdLux
 
-    t = Usd.TimeCode.Default()
     api = UsdLux.LightAPI(prim)
-    if any(float(lux_get(a, t, warnings) or 1.0) != 1.0 for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())):
+    multipliers = [lux_get(a, t, warnings) for a in (api.GetDiffuseAttr(), api.GetSpecularAttr())]
+    if any(m is not None and float(m) != 1.0 for m in multipliers):
         warnings["UsdLux diffuse/specular multipliers (ignored: 1 used)"] += 1
     sh = UsdLux.ShadowAPI(prim)  # applied, or authored under the names before 21.02 (shadow:enable ...)
     if prim.HasAPI(UsdLux.ShadowAPI) or prim.GetAttribute("shadow:enable") or prim.GetAttribute("shadow:color"):

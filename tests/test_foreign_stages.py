@@ -1,0 +1,91 @@
+"""``fit`` and ``render`` on stages other tools wrote (found by probing): fit never rewrites a stage it did not
+build, a RenderSettings camera naming nothing is one error, a TIFF or .tx texture renders (Mitsuba's bitmap
+cannot read them: OpenImageIO does), a UsdLux diffuse multiplier of 0 is warned like any other."""
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from pxr import Sdf, UsdLux, UsdRender, UsdShade
+
+from usd_scenes import add_closed_form_light, diffuse_material, looking_down_at_floor
+from usdrelight.imageio import read_map, write_image
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("name", ["scene.usda", "shot.usda"])
+def test_fit_refuses_a_stage_it_did_not_build(name, tmp_path, cli):
+    """Before, on a hand-written scene.usda: exit 0, the user's file re-exported without its comments, and the
+    fitted lights garbage-collected; on shot.usda: the whole fit ran, then 'scene.usda missing'."""
+    path = tmp_path / name
+    stage = looking_down_at_floor(path)
+    add_closed_form_light(stage, "point")
+    stage.GetRootLayer().Save()
+    text = path.read_text().replace("#usda 1.0", "#usda 1.0\n# hand-written by a TD: keep this comment", 1)
+    path.write_text(text)
+    before = _sha(path)
+    rc, out, err = cli("fit", path, "--lights", "1", "--max-side", "32")
+    assert rc == 2 and "is not the scene.usda of a stage `usdrelight build` made" in err, err
+    assert _sha(path) == before and sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_a_render_settings_camera_naming_nothing_is_one_error(tmp_path, cli):
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    add_closed_form_light(stage, "point")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets([Sdf.Path("/World/Nope")])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out")
+    assert rc == 2 and err.strip() == "usdrelight: error: /Render/Settings: camera /World/Nope is not a Camera on " \
+        "the stage", err  # before: 'unexpected RuntimeError: Accessed invalid null prim', exit 1
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".tx"])
+def test_a_tiff_or_tx_texture_renders_as_its_png_does(suffix, tmp_path, cli):
+    """Mitsuba's bitmap reads PNG, JPEG, EXR, HDR, PFM, PPM, TGA, BMP: a .tif or .tx was 'Unknown file format',
+    exit 1. Its texels are read by OpenImageIO and baked."""
+    oiio = pytest.importorskip("OpenImageIO")
+    tex = np.zeros((8, 8, 3), np.float32)
+    tex[:, :4] = (0.8, 0.2, 0.1)
+    tex[:, 4:] = (0.1, 0.3, 0.9)
+    write_image(tmp_path / "t.png", tex, "uint8")
+    if suffix == ".tx":
+        assert oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, str(tmp_path / "t.png"), str(tmp_path / "t.tx"))
+    else:
+        write_image(tmp_path / "t.tif", tex, "uint8")
+    colour = {}
+    for s in (".png", suffix):
+        stage = looking_down_at_floor(tmp_path / f"s{s}.usda")
+        add_closed_form_light(stage, "dome")
+        mat = diffuse_material(stage, "/World/Looks/Tex", texture=f"./t{s}")
+        UsdShade.MaterialBindingAPI(stage.GetPrimAtPath("/World/Floor")).Bind(mat)
+        stage.GetRootLayer().Save()
+        rc, _, err = cli("render", tmp_path / f"s{s}.usda", "-o", tmp_path / f"out{s}", "--spp", "16")
+        assert rc == 0, err
+        colour[s] = read_map(tmp_path / f"out{s}" / "renders" / "color.exr", 3)
+    np.testing.assert_allclose(colour[suffix], colour[".png"], atol=2e-3)
+    assert colour[".png"].std() > 0.05  # the texture is seen, not a constant
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5])
+def test_a_diffuse_multiplier_of_zero_is_warned_too(value, tmp_path, cli):
+    """``inputs:diffuse = 0`` was read as unset ('x or 1.0') and rendered at full strength in silence."""
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    add_closed_form_light(stage, "point")
+    UsdLux.LightAPI(stage.GetPrimAtPath("/World/L")).CreateDiffuseAttr(value)
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out", "--spp", "4")
+    assert rc == 0 and "UsdLux diffuse/specular multipliers (ignored: 1 used)" in err, err
+    # time-sampled: read at the frame rendered
+    attr = UsdLux.LightAPI(stage.GetPrimAtPath("/World/L")).GetDiffuseAttr()
+    attr.Clear()
+    attr.Set(1.0, 1.0)
+    attr.Set(value, 5.0)
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out5", "--spp", "4", "--time", "5")
+    assert rc == 0 and "UsdLux diffuse/specular multipliers" in err, err
