@@ -4,6 +4,7 @@ cannot read them: OpenImageIO does), a UsdLux diffuse multiplier of 0 is warned 
 from __future__ import annotations
 
 import hashlib
+import json
 
 import numpy as np
 import pytest
@@ -43,6 +44,11 @@ def test_a_render_settings_camera_naming_nothing_is_one_error(tmp_path, cli):
     rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out")
     assert rc == 2 and err.strip() == "usdrelight: error: /Render/Settings: camera /World/Nope is not a Camera on " \
         "the stage", err  # before: 'unexpected RuntimeError: Accessed invalid null prim', exit 1
+    rc, out, _ = cli("validate", tmp_path / "s.usda", "--json")  # before: 0 errors, exit 0
+    report = json.loads(out)
+    assert rc == 1 and report["errors"] == 1
+    assert report["findings"][-1]["validator"] == "usdrelight:ReadScene" and "/World/Nope" in \
+        report["findings"][-1]["message"]
 
 
 @pytest.mark.parametrize("suffix", [".tif", ".tx"])

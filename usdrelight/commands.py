@@ -11,6 +11,8 @@ import sys
 
 import numpy as np
 
+from .errors import UsdRelightError, one_line
+
 
 log = logging.getLogger("usdrelight")
 
@@ -80,9 +82,16 @@ def cmd_build(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from .stage.validate import errors_only, open_stage, validate_stage
+    from .stage.read import read_scene
+    from .stage.validate import Finding, errors_only, open_stage, validate_stage
     stage = open_stage(args.stage)
     findings = validate_stage(stage)
+    try:  # what usdrelight's own reader refuses (a camera naming nothing, bad indices, a negative light ...) or
+        # leaves out, as render and fit would say it: the pxr validators pass such stages
+        rec = read_scene(stage)
+        findings += [Finding("usdrelight:ReadScene", "Warn", f"{kind}: {n}", []) for kind, n in rec.warnings.items()]
+    except UsdRelightError as exc:
+        findings.append(Finding("usdrelight:ReadScene", "Error", one_line(exc), []))
     errors = errors_only(findings)
     summary = {"stage": str(args.stage), "errors": len(errors), "findings": [f.__dict__ for f in findings]}
     lines = [f"{f.severity}: [{f.validator}] {f.message} {' '.join(f.sites)}".rstrip() for f in findings]
