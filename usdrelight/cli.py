@@ -171,7 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     sv.set_defaults(func=cmd_serve)
 
     v = sub.add_parser("validate", parents=[common], help="run every pxr.UsdValidation validator",
-                       description="Exit 0 only when no validator reports an error: every pxr.UsdValidation validator, and usdrelight's own reader (usdrelight:ReadScene: what render and fit would refuse, as errors; what they leave out, as warnings).")
+                       description="Exit 0 only when no validator reports an error: every pxr.UsdValidation validator, "
+                                   "and usdrelight's own reader (usdrelight:ReadScene: what render and fit would "
+                                   "refuse, as errors; what they leave out, as warnings).")
     v.add_argument("stage", type=Path)
     v.set_defaults(func=cmd_validate)
     return p
