@@ -25,23 +25,28 @@ SIDES = 16
 """Sides of the polygon circumscribing a disk (its area is SIDES tan(pi / SIDES) / pi = 1.013 the disk's)."""
 
 
+def _length(v: np.ndarray) -> np.ndarray:
+    """(N,) lengths of (N, 3) vectors (einsum: several times faster than a norm's reduction over the last axis)."""
+    return np.sqrt(np.einsum("ij,ij->i", v, v))
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    n = _length(v)[:, None]
     return v / np.where(n > 0, n, 1.0)
 
 
 def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle between unit vectors (N, 3), accurate near 0 and pi (pbrt's ``AngleBetween``)."""
     dot = np.einsum("ij,ij->i", a, b)
-    near = 2.0 * np.arcsin(np.clip(np.linalg.norm(b - a, axis=1) / 2, 0.0, 1.0))
-    far = np.pi - 2.0 * np.arcsin(np.clip(np.linalg.norm(a + b, axis=1) / 2, 0.0, 1.0))
-    return np.where(dot < 0, far, near)
+    half = np.where(dot < 0, _length(a + b), _length(b - a)) / 2
+    angle = 2.0 * np.arcsin(np.clip(half, 0.0, 1.0))
+    return np.where(dot < 0, np.pi - angle, angle)
 
 
 def triangle_solid_angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """(N,) solid angle (sr) of the triangles with corners at the vectors a, b, c (N, 3) from the viewpoint
     (Van Oosterom and Strackee 1983: tan(W / 2) = |a . (b x c)| / (abc + (a.b) c + (a.c) b + (b.c) a))."""
-    la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+    la, lb, lc = _length(a), _length(b), _length(c)
     num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
     den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb \
         + np.einsum("ij,ij->i", b, c) * la
@@ -111,6 +116,7 @@ class DiskFan:
         th = 2 * np.pi * np.arange(SIDES + 1) / SIDES
         self.corners = centre + (np.cos(th)[:, None] * ax + np.sin(th)[:, None] * ay) / math.cos(math.pi / SIDES)
         self.to_centre = centre[None] - o  # (the corners: (SIDES + 1, 3), the first one repeated)
+        self.b = _unit(self.to_centre)
         solid = np.stack([triangle_solid_angle(self.corners[k] - o, self.to_centre, self.corners[k + 1] - o)
                           for k in range(SIDES)], 1)
         self.cdf = np.cumsum(np.where(facing[:, None], solid, 0.0), axis=1)
@@ -125,13 +131,13 @@ class DiskFan:
         before = np.where(k > 0, self.cdf[rows, np.maximum(k - 1, 0)], 0.0)
         width = self.cdf[rows, k] - before
         v1 = np.clip((t - before) / np.where(width > 0, width, 1.0), 0.0, 1.0)
-        b = _unit(self.to_centre)
+        b = self.b
         cp, ok = triangle_sweep(_unit(self.corners[k] - self.o), b, _unit(self.corners[k + 1] - self.o), v1)
         # the rim's point q on the line from the centre through cp's point of the plane (the ellipse's own
         # coordinates (s, t) scaled to length 1)
         rel = self._on_plane(cp) - self.to_centre
         st = np.stack([rel @ self.ax, rel @ self.ay], 1) @ self.gram_inv
-        st = st / np.maximum(np.linalg.norm(st, axis=1), 1e-300)[:, None]
+        st = st / np.maximum(np.sqrt(np.einsum("ij,ij->i", st, st)), 1e-300)[:, None]
         q = _unit(self.to_centre + st[:, :1] * self.ax + st[:, 1:] * self.ay)
         gap_cp, gap_q = _one_minus_cos(cp, b), _one_minus_cos(q, b)
         w = arc_point(b, cp, np.broadcast_to(u2, (n,)) * gap_q)
