@@ -86,15 +86,19 @@ def convert(src, dst, frames=None, **options) -> ConvertReport:
 
 
 @contextmanager
-def no_partial_output(dst: Path):
+def no_partial_output(dst: Path, frames=()):
     """On an exception inside the block, remove what it added to the folders a writer puts beside ``dst``
     (``meshes/``, ``textures/``, the Blender script's ``STEM_data/``): a conversion that fails on its last texture
-    leaves none of its meshes in a folder that already existed (files that were there before stay)."""
+    leaves none of its meshes in a folder that already existed (files that were there before stay). ``frames``:
+    the files of ``convert --frames``, removed too when a later frame fails (they would name the removed meshes)."""
     sides = [dst.parent / s for s in SIDE_FOLDERS + (f"{dst.stem}_data",)]
     before = {side: set(side.rglob("*")) if side.is_dir() and not side.is_symlink() else None for side in sides}
     try:
         yield
     except BaseException:
+        for f in frames:
+            if f.is_file() and not f.is_symlink():
+                f.unlink()
         for side, had in before.items():
             if not side.is_dir() or side.is_symlink():
                 continue
@@ -194,7 +198,7 @@ def _convert_frames(src: Path, dst: Path, frames: str, options: dict) -> Convert
     if clash is not None:  # before the first frame: never some frames written and then a failure
         raise UsdRelightError(f"cannot write {clash}: a folder of that name is in the way (nothing was written)")
     files, warnings = [], {}
-    with made_folders(dst.parent), no_partial_output(dst):
+    with made_folders(dst.parent), no_partial_output(dst, [frame_path(dst, i) for i in range(len(times))]):
         for i, t in enumerate(times):
             out = writer.write_to_file(stage, frame_path(dst, i), **options, time=t)
             files += [f for f in out.files if f not in files]

@@ -8,6 +8,7 @@ Spec: glTF 2.0 section 4.4 (GLB: a 12-byte header, then chunks of (length, type,
 from __future__ import annotations
 
 import json
+import math
 import struct
 from collections import Counter
 from pathlib import Path
@@ -44,7 +45,8 @@ def emissive_strengths(doc: dict) -> dict[str, float]:
         ext = (mat.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}
         strength = ext.get("emissiveStrength") if isinstance(ext, dict) else None
         name = mat.get("name")
-        if isinstance(strength, (int, float)) and not isinstance(strength, bool) and isinstance(name, str):
+        if isinstance(strength, (int, float)) and not isinstance(strength, bool) and isinstance(name, str) \
+                and math.isfinite(strength) and strength >= 0:  # (JSON's NaN, a negative one: not applied)
             if name in out and out[name] != float(strength):
                 clash.add(name)
             out[name] = float(strength)

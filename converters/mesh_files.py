@@ -62,9 +62,9 @@ def missing_mtl(path: Path) -> list[str]:
     without them, in silence)."""
     names = []
     for line in path.read_bytes().split(b"\n"):
-        parts = line.split(b"#", 1)[0].split()
-        if parts[:1] == [b"mtllib"]:
-            names += [n.decode("utf-8", "replace") for n in parts[1:]]
+        parts = line.split(b"#", 1)[0].strip().split(None, 1)
+        if parts[:1] == [b"mtllib"] and len(parts) == 2:  # the rest of the line, as trimesh reads it (Blender
+            names.append(parts[1].strip().decode("utf-8", "replace"))  # writes "mtllib my scene.mtl" unquoted)
     return [n for n in names if not (path.parent / n).is_file()]
 
 

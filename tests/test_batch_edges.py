@@ -44,6 +44,9 @@ def test_only_the_batchs_own_leftovers_are_removed(tmp_path):
     assert remove_leftovers(tmp_path) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(mine + [".d.usdrelight-batch-tmp-abcdefgh"])
     assert all((tmp_path / n / "keep.txt").read_text() == "precious" for n in mine)
+    # the names of versions before the tags, only for this batch's photos ('a'): the others stay
+    assert remove_leftovers(tmp_path, {"a", "photos"}) == 1 and not (tmp_path / ".a.tmp-abcd1234").exists()
+    assert (tmp_path / ".photos.old-2023" / "keep.txt").is_file() and (tmp_path / ".notes.tmp-draft").is_dir()
 
 
 def test_backslashed_names_and_unread_sidecar_types_are_refused(tmp_path):

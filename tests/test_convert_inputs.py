@@ -12,8 +12,9 @@ import sys
 
 import numpy as np
 import pytest
-from pxr import Usd
+from pxr import Gf, Usd, UsdGeom, UsdLux
 
+from usd_scenes import looking_down_at_floor
 from usdrelight.imageio import write_image
 
 SPOT_XML = """<scene version="3.0.0">
@@ -208,3 +209,19 @@ def test_an_unknown_suffix_names_every_supported_one(tmp_path, cli):
     (tmp_path / "a.gltf").write_text("{}")
     rc, _, err = cli("convert", tmp_path / "a.gltf", tmp_path / "a.usda")
     assert rc == 2 and "export it as a binary .glb" in err and ".usda" in err and ".glb" in err, err
+
+
+def test_a_later_frame_that_fails_leaves_no_frame_naming_removed_meshes(tmp_path, cli):
+    """`convert --frames`: the clean-up of a failed frame removed the meshes the earlier frames name, and the
+    earlier frames stayed, broken. Now none stays."""
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    light = UsdLux.SphereLight.Define(stage, "/World/L")
+    light.CreateTreatAsPointAttr(True)
+    light.CreateIntensityAttr().Set(5.0, 0.0)
+    light.CreateIntensityAttr().Set(-1.0, 2.0)  # a negative light at t = 2: that frame fails
+    UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(0, 1, 0))
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "out" / "scene.xml", "--frames", "0:2")
+    assert rc == 2 and "negative" in err, err
+    left = sorted(p.name for p in (tmp_path / "out").rglob("*")) if (tmp_path / "out").exists() else []
+    assert left == [], left

@@ -43,10 +43,11 @@ def test_a_spectrum_file_is_the_spectrum_it_lists(tmp_path, cli):
         colours.append(np.asarray(shape.material.diffuse, np.float64))
     np.testing.assert_allclose(colours[0], colours[1], rtol=1e-6)
     assert colours[0][2] < colours[0][0]  # more reflective at long wavelengths: redder
-    (tmp_path / "bad.spd").write_text("400 0.5 9\n")
-    (tmp_path / "bad.xml").write_text(body.format('<spectrum name="reflectance" filename="bad.spd"/>'))
-    rc, _, err = cli("convert", tmp_path / "bad.xml", tmp_path / "bad.usda")
-    assert rc == 2 and "each line is 'wavelength value'" in err, err
+    for text in ("400 0.5 9\n", "# only a comment\n"):  # the second: an IndexError, exit 1 before
+        (tmp_path / "bad.spd").write_text(text)
+        (tmp_path / "bad.xml").write_text(body.format('<spectrum name="reflectance" filename="bad.spd"/>'))
+        rc, _, err = cli("convert", tmp_path / "bad.xml", tmp_path / "bad.usda")
+        assert rc == 2 and "each line is 'wavelength value'" in err, err
 
 
 @pytest.mark.parametrize("medium", ["homogeneous"])

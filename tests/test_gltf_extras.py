@@ -8,6 +8,7 @@ import json
 import struct
 
 import numpy as np
+import pytest
 from pxr import Usd, UsdGeom, UsdShade
 
 
@@ -80,3 +81,17 @@ def test_what_usd_does_not_get_is_named(tmp_path, cli):
                  "glTF extension KHR_texture_transform (not converted): 1"):
         assert line in err, err
     assert "emissive_strength" not in err  # applied, not warned
+
+
+@pytest.mark.parametrize("strength", [-2.0, float("nan")])
+def test_a_negative_or_nan_strength_is_not_applied(strength, tmp_path, cli):
+    """A negative one made trimesh's emissiveFactor setter raise (exit 1); JSON's NaN went into the stage."""
+    doc, binary = _triangle_doc()
+    doc["materials"][0]["extensions"]["KHR_materials_emissive_strength"]["emissiveStrength"] = strength
+    _glb(tmp_path / "t.glb", doc, binary)
+    rc, _, err = cli("convert", tmp_path / "t.glb", tmp_path / "t.usda")
+    assert rc == 0, err
+    stage = Usd.Stage.Open(str(tmp_path / "t.usda"))
+    mesh = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+    surf = UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()[0].ComputeSurfaceSource()[0]
+    np.testing.assert_allclose(surf.GetInput("emissiveColor").Get(), [1.0, 0.5, 0.25], rtol=1e-6)

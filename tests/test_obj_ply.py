@@ -92,6 +92,10 @@ def test_what_a_mesh_file_lacks_is_named_not_made_up(tmp_path, cli):
     (tmp_path / "gone.obj").write_text("mtllib missing.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     rc, _, err = cli("convert", tmp_path / "gone.obj", tmp_path / "gone.usda")
     assert rc == 0 and "OBJ mtllib 'missing.mtl' not found" in err, err
+    (tmp_path / "my scene.mtl").write_text("newmtl red\nKd 0.8 0.1 0.1\n")  # Blender writes such names unquoted
+    (tmp_path / "spaced.obj").write_text("mtllib my scene.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    rc, _, err = cli("convert", tmp_path / "spaced.obj", tmp_path / "spaced.usda")
+    assert rc == 0 and "not found" not in err, err
     for body in ("", "SECRET TEXT\n"):
         (tmp_path / "none.obj").write_text(body)
         rc, _, err = cli("convert", tmp_path / "none.obj", tmp_path / "none.usda")

@@ -210,11 +210,13 @@ def main(argv=None) -> int:
         sys.stderr.write(f"usdrelight: error: {one_line(exc)}\n")
         return EXIT_USER_ERROR
     except Terminated:
-        _quiet_after_interrupt()
+        if argv is None:  # the CLI process itself, about to exit (not main() called by a library or a test)
+            _quiet_after_interrupt()
         sys.stderr.write("usdrelight: terminated\n")
         return 143
     except KeyboardInterrupt:
-        _quiet_after_interrupt()
+        if argv is None:
+            _quiet_after_interrupt()
         sys.stderr.write("usdrelight: interrupted\n")
         return 130
     except Exception as exc:  # never a traceback for the user unless asked

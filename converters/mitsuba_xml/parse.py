@@ -238,8 +238,8 @@ class XmlReader:
             raise ValueError(f"spectrum file {path.name} is over 1 MB")
         rows = [line.split("#", 1)[0].split() for line in path.read_text(errors="replace").splitlines()]
         rows = [r for r in rows if r]
-        if any(len(r) != 2 for r in rows):
-            raise ValueError(f"spectrum file {path.name}: each line is 'wavelength value'")
+        if len(rows) < 2 or any(len(r) != 2 for r in rows):
+            raise ValueError(f"spectrum file {path.name}: each line is 'wavelength value', two lines at least")
         return ", ".join(f"{float(a)!r}:{float(b)!r}" for a, b in rows)
 
     def spectrum(self, val: str, in_emitter: bool):

@@ -33,6 +33,7 @@ TEMP_TAG, OLD_TAG = ".usdrelight-batch-tmp-", ".usdrelight-batch-old-"
 """In the names of the hidden folders of unfinished and of replaced photos, ``.NAME.usdrelight-batch-tmp-XXXXXXXX``
 (8 random characters) and ``.NAME.usdrelight-batch-old-PID-NS``: what :func:`remove_leftovers` removes between
 runs, and nothing else (a user's ``.photos.old-2023`` or ``.notes.tmp-draft`` stays)."""
+_LEGACY = re.compile(r"\.(.+)\.(?:tmp-[a-z0-9_]{8}|old-[0-9]+-[0-9]+)")
 _LEFTOVER = re.compile(r"\..+(" + re.escape(TEMP_TAG) + r"[a-z0-9_]{8}|" + re.escape(OLD_TAG) + r"[0-9]+-[0-9]+)")
 
 
@@ -120,12 +121,15 @@ def reusable(job: PhotoJob, previous: PhotoRecord | None) -> PhotoRecord | None:
     return None
 
 
-def remove_leftovers(out_dir: Path) -> int:
+def remove_leftovers(out_dir: Path, names=()) -> int:
     """Remove temp and replaced folders left by killed workers or an interrupted run (named as :data:`TEMP_TAG`
-    and :data:`OLD_TAG` say, real folders, not links); returns how many."""
+    and :data:`OLD_TAG` say, real folders, not links), and those of versions before these tags
+    (``.NAME.tmp-XXXXXXXX``, ``.NAME.old-PID-NS``) for the photo names ``names`` of this batch only; returns how
+    many."""
     n = 0
     for p in Path(out_dir).iterdir():
-        if _LEFTOVER.fullmatch(p.name) and p.is_dir() and not p.is_symlink():
+        legacy = _LEGACY.fullmatch(p.name)
+        if (_LEFTOVER.fullmatch(p.name) or legacy and legacy.group(1) in names) and p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)
             n += 1
     return n

@@ -119,7 +119,7 @@ def _refused_record(path: Path, reason: str) -> PhotoRecord:
 
 def _locked(photos, refused, out, options, workers, progress, on_cluster, on_refused, t0) -> BatchSummary:
     """run_batch's work while it holds the output folder's lock."""
-    remove_leftovers(out)
+    remove_leftovers(out, {p.stem for p in photos})
     token = lock_token(out) or ""  # the workers publish only while this batch holds the folder
     previous = read_manifest(out)
     rows: dict[str, PhotoRecord] = {}
@@ -153,7 +153,7 @@ def _locked(photos, refused, out, options, workers, progress, on_cluster, on_ref
     if todo:
         _run(todo, options, workers, rows, summary, out, progress, on_cluster, len(jobs) - len(todo), len(jobs))
     write_manifest(out, rows)
-    remove_leftovers(out)
+    remove_leftovers(out, {p.stem for p in photos})
     summary.manifest_done = sum(r.status == "done" for r in rows.values())
     summary.manifest_failed = sum(r.status == "failed" for r in rows.values())
     summary.per_photo.sort(key=lambda e: e["name"])
