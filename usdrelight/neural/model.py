@@ -197,7 +197,7 @@ class NeuralResult:
     exr: Path
     """Linear RGB (Rec.709) float EXR."""
     png: Path
-    """sRGB 8-bit PNG for viewing (scaled down by the 99.5th percentile when the image exceeds 1)."""
+    """sRGB 8-bit PNG for viewing (divided by max(1, its 99.5th percentile): :func:`write_relit`)."""
     seconds: dict = field(default_factory=dict)
     """Wall time per step (hole_fill, network, write; total when the caller adds it)."""
 
