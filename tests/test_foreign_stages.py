@@ -95,3 +95,33 @@ def test_a_diffuse_multiplier_of_zero_is_warned_too(value, tmp_path, cli):
     stage.GetRootLayer().Save()
     rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out5", "--spp", "4", "--time", "5")
     assert rc == 0 and "UsdLux diffuse/specular multipliers" in err, err
+
+
+def test_two_products_of_one_file_and_a_udim_texture_are_one_error_each(tmp_path, cli):
+    """Before: the second product wrote over the first in silence (beauty.exr held the albedo); a UDIM texture
+    was 'texture not found' with no word of UDIM."""
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    add_closed_form_light(stage, "point")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets([Sdf.Path("/World/Camera")])
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    for name, source in (("a", "color"), ("b", "albedo")):
+        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+        var.CreateSourceNameAttr(source)
+        prod = UsdRender.Product.Define(stage, f"/Render/P{name}")
+        prod.CreateProductNameAttr("beauty.exr")
+        prod.CreateOrderedVarsRel().SetTargets([var.GetPath()])
+        settings.CreateProductsRel().AddTarget(prod.GetPath())
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out")
+    assert rc == 2 and "RenderProducts Pa and Pb both write beauty.exr" in err, err
+    assert not (tmp_path / "out" / "beauty.exr").exists()
+
+    stage = looking_down_at_floor(tmp_path / "u.usda")
+    add_closed_form_light(stage, "dome")
+    mat = diffuse_material(stage, "/World/Looks/Tex", texture="./tex.<UDIM>.png")
+    UsdShade.MaterialBindingAPI(stage.GetPrimAtPath("/World/Floor")).Bind(mat)
+    stage.GetRootLayer().Save()
+    write_image(tmp_path / "tex.1001.png", np.full((4, 4, 3), 0.5, np.float32), "uint8")
+    rc, _, err = cli("render", tmp_path / "u.usda", "-o", tmp_path / "out2")
+    assert rc == 2 and "UDIM tiles are not read" in err, err

@@ -252,6 +252,12 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     wanted = {aov_kind(v) for p in products for v in p.vars}
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
+    seen: dict = {}
+    for name, path in paths.items():  # two products of one file: the second wrote over the first in silence
+        if path in seen:
+            raise UsdRelightError(f"RenderProducts {seen[path]} and {name} both write {path.relative_to(base)} "
+                                  f"(nothing was rendered)")
+        seen[path] = name
     taken = [name for name, path in paths.items() if not stage_free(path.relative_to(base))]
     if taken and is_stage_folder(base):  # the stage's scene file is read only when a name needs it
         raise UsdRelightError(f"RenderProduct {taken[0]} productName {paths[taken[0]].relative_to(base)} would "

@@ -18,10 +18,7 @@ from .records import MaterialRecord, MeshRecord, TextureRecord
 
 def normal_inverse(a: np.ndarray) -> np.ndarray:
     """The inverse of a 3x3 transform ``a`` (normals go as ``n @ inverse``); a singular one's pseudo-inverse."""
-    try:
-        return np.linalg.inv(a)
-    except np.linalg.LinAlgError:
-        return np.linalg.pinv(a)
+    return np.linalg.inv(a) if abs(np.linalg.det(a)) > 0 else np.linalg.pinv(a)
 
 
 #: Counted for a material with opacity < 1; renderers that render it (Mitsuba: a mask) drop the line.
@@ -41,7 +38,8 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
         return None
     resolved = asset.resolvedPath or ""
     if not resolved:
-        raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()})")
+        udim = " (UDIM tiles are not read: name one tile's file)" if "<UDIM>" in asset.path else ""
+        raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()}){udim}")
     check_read(resolved, stage_folder(shader.GetPrim().GetStage()), f"texture (used by {shader.GetPath()})")
     if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
         check_image_size(resolved)
