@@ -34,7 +34,7 @@ def _estimate(o, n, ax=AX, ay=AY, count=200_000, seed=0):
     out = []
     for oi, ni in zip(o, n):
         pts = np.repeat(oi[None], count, 0)
-        fan = DiskFan(pts, CENTRE, ax, ay, np.ones(count, bool))
+        fan = DiskFan(pts, CENTRE, ax, ay)
         v, weight = fan.sample(rng.random(count), rng.random(count))
         cos = np.maximum(v @ ni, 0) / np.linalg.norm(v, axis=1)
         out.append(float(np.mean(cos * weight) / np.pi))
@@ -79,7 +79,7 @@ def test_triangle_solid_angle_is_exact_for_an_octant():
 def test_far_tiny_and_edge_on_points_stay_finite():
     """A 1 mm disk a kilometre off, a point on the disk's plane and one behind it: finite, >= 0, 0 on the plane."""
     o = np.array([[0.0, 0.0, -1e6], [1e3, 0.0, -1e3], [5.0, 0.0, 1.0], [0.0, 0.0, 2.0]])
-    fan = DiskFan(o, CENTRE, AX * 1e-3, AY * 1e-3, np.ones(len(o), bool))
+    fan = DiskFan(o, CENTRE, AX * 1e-3, AY * 1e-3)
     v, weight = fan.sample(0.3, 0.7)
     assert np.all(np.isfinite(v)) and np.all(np.isfinite(weight)) and np.all(weight >= 0) and weight[2] == 0 and np.all(np.isfinite(fan.solid)) and np.all(fan.solid >= 0)
     assert fan.solid[0] == pytest.approx(np.pi * 1e-6 / (1e6 + 1) ** 2, rel=0.02)  # ~ area / d^2

@@ -244,7 +244,7 @@ def disk_light(tr: LightTransport, light: LightRecord, samples: int, rng, textur
     # sample in its own 1/n stratum (a 4 x 4 grid has 4 values of u1: 4 of the 16 triangles, a 50 m disk 16% dark)
     out = np.zeros((tr.surface.n_pixels, 3))
     for sl in _chunks(len(idx), SIDES):  # the fan's (pixels, SIDES) arrays stay bounded
-        fan = DiskFan(tr.origins[idx[sl]], centre, ax, ay, np.ones(len(idx[sl]), bool))
+        fan = DiskFan(tr.origins[idx[sl]], centre, ax, ay)
         out[idx[sl]] = _solid_angle_estimate(tr, light, idx[sl], fan, u, textures, None)
     far = np.nonzero(near < 1)[0]
     if len(far):  # both estimators are unbiased: blended, no seam where one takes over

@@ -101,7 +101,7 @@ def sample_spherical_triangle(a: np.ndarray, b: np.ndarray, c: np.ndarray, u1: n
 class DiskFan:
     """A disk of centre ``centre`` (3,) spanned by the radius vectors ``ax``, ``ay`` (3,) (orthogonal and equal for
     a circle; any two independent vectors for the ellipse of a stretched disk), seen from the points ``o`` (N, 3)
-    on the side ``facing`` (N,) bool: ``solid`` (N,) the circumscribed polygon's solid angle (0 where not facing).
+    (those the caller keeps: on the side the disk lights): ``solid`` (N,) the circumscribed polygon's solid angle.
 
     A sample picks a triangle (centre, corner k, corner k + 1) by its solid angle and sweeps it by Arvo's first
     step to a direction cp on the polygon's edge; the arc from the centre's direction towards cp leaves the disk
@@ -109,7 +109,7 @@ class DiskFan:
     cp, where the corners beyond the rim would be rejected): its density is (1 / solid) (1 - b . cp) / (1 - b . q),
     so its weight is solid (1 - b . q) / (1 - b . cp), at most ``solid``. Every sample lands on the disk."""
 
-    def __init__(self, o: np.ndarray, centre: np.ndarray, ax: np.ndarray, ay: np.ndarray, facing: np.ndarray):
+    def __init__(self, o: np.ndarray, centre: np.ndarray, ax: np.ndarray, ay: np.ndarray):
         self.o, self.centre, self.ax, self.ay = o, centre, ax, ay
         self.normal = np.cross(ax, ay)
         self.gram_inv = np.linalg.inv(np.array([[ax @ ax, ax @ ay], [ax @ ay, ay @ ay]]))
@@ -119,7 +119,7 @@ class DiskFan:
         self.b = _unit(self.to_centre)
         solid = np.stack([triangle_solid_angle(self.corners[k] - o, self.to_centre, self.corners[k + 1] - o)
                           for k in range(SIDES)], 1)
-        self.cdf = np.cumsum(np.where(facing[:, None], solid, 0.0), axis=1)
+        self.cdf = np.cumsum(solid, axis=1)
         self.solid = self.cdf[:, -1]
 
     def sample(self, u1, u2) -> tuple[np.ndarray, np.ndarray]:
