@@ -215,7 +215,8 @@ def _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluste
         completed = _dask()[1].as_completed()
 
         def submit_more() -> None:
-            while pending and len(in_flight) < _slots(client, limit):
+            slots = _slots(client, limit)  # asked once per finished photo, not once per photo handed out
+            while pending and len(in_flight) < slots:
                 job = pending.pop(0)
                 fut = client.submit(process_photo, job, key=f"photo-{job.name}-{job.input_hash[:12]}", pure=False,
                                     resources=limit)
