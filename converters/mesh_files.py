@@ -36,7 +36,7 @@ from usdrelight.atomic import write_bytes_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.read import read_scene
-from usdrelight.stage.read_geometry import normal_inverse
+from usdrelight.stage.mesh_math import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 

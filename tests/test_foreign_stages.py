@@ -125,3 +125,46 @@ def test_two_products_of_one_file_and_a_udim_texture_are_one_error_each(tmp_path
     write_image(tmp_path / "tex.1001.png", np.full((4, 4, 3), 0.5, np.float32), "uint8")
     rc, _, err = cli("render", tmp_path / "u.usda", "-o", tmp_path / "out2")
     assert rc == 2 and "UDIM tiles are not read" in err, err
+
+
+@pytest.mark.parametrize("interpolation", ["vertex", "faceVarying"])
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_zero_length_normals_shade_as_the_surface_does(interpolation, mirrored, tmp_path):
+    """Authored zero-length normals rendered black in Mitsuba and the fast engine (which then said no pixel saw
+    geometry). They take the surface's own front normal, under a mirroring transform too: the floor's centre
+    is the closed form albedo / pi * I / r^2 in both renderers."""
+    from collections import Counter
+
+    from pxr import Gf, UsdGeom
+    from usdrelight.engine import open_renderer
+    from usdrelight.stage.read import read_scene
+    from usdrelight.stage.read_geometry import read_mesh
+    from usdrelight.stage.validate import open_stage
+
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    expected = add_closed_form_light(stage, "point")
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Floor"))
+    mesh.CreateNormalsAttr([(0, 0, 0)] * 4)
+    mesh.SetNormalsInterpolation(interpolation)
+    if mirrored:
+        UsdGeom.Xformable(mesh).AddScaleOp().Set(Gf.Vec3f(-1, 1, 1))
+    stage.GetRootLayer().Save()
+    stage = open_stage(tmp_path / "s.usda")
+    warnings = Counter()
+    xf = np.diag([-1.0 if mirrored else 1.0, 1, 1, 1])
+    (rec,) = read_mesh(stage.GetPrimAtPath("/World/Floor"), xf, read_material_of(stage), warnings)
+    np.testing.assert_allclose(rec.normals, np.tile([0.0, 1.0, 0.0], (len(rec.normals), 1)))
+    assert warnings["zero-length normals (the surface's own normal used)"] == 1
+    scene = read_scene(stage)
+    for engine in ("fast", "mitsuba"):
+        beauty = open_renderer(scene, engine, max_side=32, spp=16).render(scene.lights).beauty
+        centre = beauty[11:13, 15:17].mean()
+        assert centre == pytest.approx(expected, rel=0.02), (engine, centre, expected)
+
+
+def read_material_of(stage):
+    from collections import Counter
+
+    from usdrelight.stage.read_geometry import read_material
+
+    return read_material(stage.GetPrimAtPath("/World/Floor"), Counter())

@@ -1,8 +1,8 @@
 """Read the geometry of a USD stage: materials (UsdPreviewSurface) and meshes, as :mod:`records <usdrelight.stage.records>`.
 
 Meshes: polygons fan-triangulated (holes ignored with a warning); normals and st with vertex / varying /
-faceVarying / uniform / constant interpolation, indexed or not; leftHanded orientation and mirroring
-transforms flip the winding; material-bind GeomSubsets split a mesh into one record per material.
+faceVarying / uniform / constant interpolation, indexed or not (zero-length normals take the surface's own,
+with a warning); leftHanded orientation and mirroring transforms flip the winding; material-bind GeomSubsets split a mesh into one record per material.
 Materials: UsdPreviewSurface inputs as constants or UsdUVTexture records. What is not represented is
 counted in ``warnings`` (one line per kind). Matrices: column-vector convention (see records).
 """
@@ -13,12 +13,11 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import check_image_size
 from ..safe_paths import check_read, stage_folder
+from .mesh_math import fan_triangles, fill_zero_normals, normal_inverse
+from .mesh_math import mesh_area as _area
 from .records import MaterialRecord, MeshRecord, TextureRecord
 
-
-def normal_inverse(a: np.ndarray) -> np.ndarray:
-    """The inverse of a 3x3 transform ``a`` (normals go as ``n @ inverse``); a singular one's pseudo-inverse."""
-    return np.linalg.inv(a) if abs(np.linalg.det(a)) > 0 else np.linalg.pinv(a)
+__all__ = ["OPACITY_WARNING", "mesh_area", "normal_inverse", "read_material", "read_mesh"]
 
 
 #: Counted for a material with opacity < 1; renderers that render it (Mitsuba: a mask) drop the line.
@@ -252,18 +251,6 @@ def _one_sided(mat_prim) -> bool:
 
 
 # ---- meshes -----------------------------------------------------------------------------------
-def _fan(counts: np.ndarray):
-    """Fan triangulation: (corner indices (T, 3), face of each triangle (T,))."""
-    counts = counts.astype(np.int64)
-    starts = np.cumsum(counts) - counts
-    ntri = np.maximum(counts - 2, 0)
-    tri_face = np.repeat(np.arange(len(counts)), ntri)
-    first = np.cumsum(ntri) - ntri
-    k = np.arange(int(ntri.sum())) - np.repeat(first, ntri)
-    c0 = starts[tri_face]
-    return np.stack([c0, c0 + k + 1, c0 + k + 2], 1), tri_face
-
-
 def _primvar(pv, n_points, n_corners, n_faces, t):
     """Flattened primvar values at time code ``t`` and their interpolation class: 'point' | 'corner' | 'face' |
     'constant'."""
@@ -309,7 +296,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         warnings["mesh holeIndices (holes filled)"] += 1
     if mesh.GetSubdivisionSchemeAttr().Get(t) not in (None, "none"):
         warnings["subdivision surfaces (rendered as the control mesh)"] += 1
-    corners, tri_face = _fan(counts)
+    corners, tri_face = fan_triangles(counts)
     left = mesh.GetOrientationAttr().Get(t) == UsdGeom.Tokens.leftHanded
     A = xf[:3, :3]
     if left != (np.linalg.det(A) < 0):
@@ -366,6 +353,8 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         v_n = v_n @ normal_inverse(A)
         ln = np.linalg.norm(v_n, axis=1, keepdims=True)
         v_n = np.where(ln > 0, v_n / np.maximum(ln, 1e-300), 0.0)
+        if fill_zero_normals(w_pts, faces, v_n):
+            warnings["zero-length normals (the surface's own normal used)"] += 1
     ds = bool(mesh.GetDoubleSidedAttr().Get(t))
     # GeomSubsets bound to their own materials split the triangles.
     subsets = UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()
@@ -394,5 +383,4 @@ def _compact(path, pts, faces, normals, uv, material, ds) -> MeshRecord:
 
 def mesh_area(mesh: MeshRecord) -> float:
     """World-space surface area of a mesh record (the sum of its triangles' areas)."""
-    p = mesh.points[mesh.faces]
-    return float(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+    return _area(mesh.points, mesh.faces)
