@@ -1,11 +1,14 @@
 """Mitsuba XML features met in scenes others wrote (found by probing): shapegroup instances (before: "<ref
 id='grp'> names no object defined before it", a wrong error), spectra from .spd files (before: "'NoneType' object
-has no attribute 'strip'"), a participating medium (before: dropped in silence)."""
+has no attribute 'strip'"), a participating medium (before: dropped in silence), a Z-up stage's round trip
+(before: back labelled Y-up), duplicate ids (before: the last one won in silence)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from pxr import UsdGeom
 
+from usd_scenes import add_closed_form_light, looking_down_at_floor
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.validate import open_stage
 
@@ -57,3 +60,37 @@ def test_a_medium_is_named_not_dropped(medium, tmp_path, cli):
                                     f'</medium></shape></scene>')
     rc, _, err = cli("convert", tmp_path / "m.xml", tmp_path / "m.usda")
     assert rc == 0 and f"<medium type='{medium}'> on a shape (participating media: not converted): 1" in err, err
+
+
+def test_a_z_up_stage_comes_back_z_up_from_its_xml(tmp_path, cli):
+    """The XML keeps a Z-up stage's coordinates (metres); the stage read back was labelled Y-up, so usdview showed
+    it lying on its side. The export now says so in a comment before <scene>, which the reader reads back."""
+    for up in ("Y", "Z"):
+        stage = looking_down_at_floor(tmp_path / f"{up}.usda")
+        add_closed_form_light(stage, "point")
+        UsdGeom.SetStageUpAxis(stage, up)
+        stage.GetRootLayer().Save()
+        assert cli("convert", tmp_path / f"{up}.usda", tmp_path / up / "s.xml")[0] == 0
+        assert ("usdrelight: upAxis Z" in (tmp_path / up / "s.xml").read_text()) == (up == "Z")
+        assert cli("convert", tmp_path / up / "s.xml", tmp_path / f"{up}_back.usda")[0] == 0
+        back = open_stage(tmp_path / f"{up}_back.usda")
+        assert UsdGeom.GetStageUpAxis(back) == up
+        a, b = read_scene(open_stage(tmp_path / f"{up}.usda")), read_scene(back)
+        np.testing.assert_allclose(np.sort(b.meshes[0].points, 0), np.sort(a.meshes[0].points, 0), atol=1e-5)
+    # only the prologue counts: the same words inside the scene (a comment by someone else) do not
+    (tmp_path / "late.xml").write_text('<scene version="3.0.0"><!-- usdrelight: upAxis Z --><shape type="sphere"/>'
+                                       '</scene>')
+    assert cli("convert", tmp_path / "late.xml", tmp_path / "late.usda")[0] == 0
+    assert UsdGeom.GetStageUpAxis(open_stage(tmp_path / "late.usda")) == "Y"
+
+
+def test_two_objects_with_one_id_are_refused_as_mitsuba_refuses_them(tmp_path, cli):
+    """Before: the second silently replaced the first for every later <ref> (Mitsuba: 'duplicate ID')."""
+    (tmp_path / "d.xml").write_text('<scene version="3.0.0">'
+                                    '<bsdf type="diffuse" id="m"><rgb name="reflectance" value="0.9,0.1,0.1"/></bsdf>'
+                                    '<bsdf type="diffuse" id="m"><rgb name="reflectance" value="0.1,0.1,0.9"/></bsdf>'
+                                    '<shape type="sphere"><ref id="m"/></shape></scene>')
+    rc, _, err = cli("convert", tmp_path / "d.xml", tmp_path / "d.usda")
+    assert rc == 2 and err.strip() == "usdrelight: error: two objects have id 'm' (<bsdf> and <bsdf>): Mitsuba " \
+        "refuses duplicate ids", err
+    assert not (tmp_path / "d.usda").exists()

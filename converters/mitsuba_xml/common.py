@@ -43,6 +43,17 @@ VECTOR_KEYS = {"direction", "up"}
 AREA_TEXTURE_KEY = "area_texture"
 FLIP_NORMALS_KEY = "flip_normals"
 
+#: Written before ``<scene>`` by the XML export of a Z-up stage (whose coordinates it keeps, in metres); the XML
+#: reader labels the stage it builds Z-up when the document starts with it (Mitsuba ignores comments).
+UP_AXIS_Z_COMMENT = "<!-- usdrelight: upAxis Z -->"
+
+
+def written_up_axis(text: str) -> str:
+    """"Z" when the document's prologue (what stands before its first element) holds
+    :data:`UP_AXIS_Z_COMMENT`, else "Y" (Mitsuba's scenes have no up axis; its envmap's up is +Y)."""
+    start = text.find("<scene")
+    return "Z" if UP_AXIS_Z_COMMENT in text[:start if start >= 0 else 0] else "Y"
+
 
 @dataclass
 class Plugin:

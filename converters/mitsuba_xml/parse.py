@@ -190,6 +190,9 @@ class XmlReader:
                 elif v is not None:
                     p.props[self.sub(child.get("name"))] = v
             if p.id:
+                if p.id in self.ids:  # Mitsuba's parser refuses the document ("duplicate ID")
+                    raise UsdRelightError(f"two objects have id '{p.id}' (<{self.ids[p.id].tag}> and <{tag}>): "
+                                          f"Mitsuba refuses duplicate ids")
                 self.ids[p.id] = p
             return p
         return self.value(el, here, in_emitter)

@@ -29,7 +29,7 @@ from usdrelight.stage.lux import frame_pointing_along
 from usdrelight.stage.validate import check_finite
 
 from .area_lights import AreaLights
-from .common import Plugin, PrimNamer, horizontal_fov, rel_path, spot_texture_mean
+from .common import Plugin, PrimNamer, horizontal_fov, rel_path, spot_texture_mean, written_up_axis
 from .materials import MaterialBuilder
 from .parse import integrator_json, parse_scene
 
@@ -301,7 +301,7 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
     warnings = Counter()
     objs = parse_scene(text, source, here, warnings)
     usd_path = Path(usd_path).absolute() if usd_path is not None else None
-    stage = create_stage(usd_path, ROOT, Kind.Tokens.assembly)
+    stage = create_stage(usd_path, ROOT, Kind.Tokens.assembly, up_axis=written_up_axis(text))
     b = UsdBuilder(stage, usd_path.parent if usd_path is not None else None, warnings)
     integrator = None
     for p in objs:

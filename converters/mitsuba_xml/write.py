@@ -34,7 +34,7 @@ from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
 from ..report import WriteReport, check_options
-from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, VECTOR_KEYS, kept_extra, rel_path
+from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, UP_AXIS_Z_COMMENT, VECTOR_KEYS, kept_extra, rel_path
 
 #: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
 #: integrator's path length as in Mitsuba (2 = direct light only, 3 = one indirect bounce). A sampler or
@@ -186,6 +186,8 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     ET.indent(root, space="    ")
     comment = ("<!-- Written by usdrelight from a USD stage. Units: UsdLux radiance L = intensity * 2^exposure * "
                "color; point lights: intensity = L [W/sr]; directional: irradiance = L. -->\n")
+    if rec.up_axis == "Z":  # coordinates are the stage's (in metres): the label comes back with them
+        comment += f"{UP_AXIS_Z_COMMENT}\n"
     return WriteReport(files, dict(rec.warnings), comment + ET.tostring(root, encoding="unicode") + "\n")
 
 
