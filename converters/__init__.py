@@ -33,7 +33,7 @@ from .report import ReadReport, WriteReport, check_options
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 #: suffix -> module name inside this package.
 REGISTRY: dict[str, str] = {".xml": "mitsuba_xml", ".blend": "blender", ".py": "blender",
-                            ".glb": "mesh_files", ".ply": "mesh_files", ".obj": "mesh_files"}
+                            ".glb": "mesh_files", ".gltf": "mesh_files", ".ply": "mesh_files", ".obj": "mesh_files"}
 __all__ = ["REGISTRY", "USD_SUFFIXES", "ReadReport", "WriteReport", "check_options", "converter_for"]
 
 
@@ -43,6 +43,5 @@ def converter_for(path: str | Path):
     name = REGISTRY.get(suffix)
     if name is None:
         known = ", ".join(sorted(REGISTRY) + list(USD_SUFFIXES))
-        hint = " (a .gltf with its .bin: export it as a binary .glb)" if suffix == ".gltf" else ""
-        raise UsdRelightError(f"no converter for '{suffix or Path(path).name}' files{hint} (supported: {known})")
+        raise UsdRelightError(f"no converter for '{suffix or Path(path).name}' files (supported: {known})")
     return importlib.import_module(f"{__name__}.{name}")

@@ -3,7 +3,12 @@ can apply what changes a material (``KHR_materials_emissive_strength``: trimesh 
 a 10x emitter came out 10x too dark) and name in a warning what USD does not get from it (lights, cameras,
 animations, other extensions), instead of dropping them in silence.
 
-Spec: glTF 2.0 section 4.4 (GLB: a 12-byte header, then chunks of (length, type, data); the first is JSON).
+A ``.gltf`` (the JSON as its own file) names its buffers and images by URI: :func:`gltf_files` reads each that is
+not a ``data:`` URI from beside the file, percent-decoded (glTF URIs are RFC 3986), only inside the file's folder
+or one allowed with ``--allow-path``, and gives them to trimesh as a mapping (trimesh neither decodes URIs nor
+reads outside the file's folder; it dropped an image it could not find in silence).
+
+Spec: glTF 2.0 sections 3.6, 4.4 (GLB: a 12-byte header, then chunks of (length, type, data); the first is JSON).
 """
 from __future__ import annotations
 
@@ -12,8 +17,14 @@ import math
 import struct
 from collections import Counter
 from pathlib import Path
+from urllib.parse import unquote, urlparse
+
+from usdrelight.errors import UsdRelightError
+from usdrelight.safe_paths import check_read
 
 GLB_MAGIC, JSON_CHUNK = 0x46546C67, 0x4E4F534A
+#: The largest JSON document read (a .glb's JSON chunk, a .gltf file).
+MAX_JSON = 64 << 20
 #: Extensions the reader applies (emissive strength) or that only carry what trimesh reads itself.
 APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization"}
 
@@ -26,12 +37,50 @@ def glb_json(path: Path) -> dict | None:
             if magic != GLB_MAGIC:
                 return None
             size, kind = struct.unpack("<II", fh.read(8))
-            if kind != JSON_CHUNK or size > 64 << 20:
+            if kind != JSON_CHUNK or size > MAX_JSON:
                 return None
             doc = json.loads(fh.read(size).decode("utf-8"))
     except (OSError, ValueError, struct.error, UnicodeDecodeError):
         return None
     return doc if isinstance(doc, dict) else None
+
+
+def gltf_json(path: Path) -> dict:
+    """The JSON document of a ``.gltf`` file; UsdRelightError when it is not one."""
+    try:
+        if path.stat().st_size > MAX_JSON:
+            raise UsdRelightError(f"{path.name}: larger than {MAX_JSON >> 20} MiB of JSON")
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, ValueError, UnicodeDecodeError):
+        doc = None
+    if not isinstance(doc, dict) or not isinstance(doc.get("asset"), dict):
+        raise UsdRelightError(f"cannot read {path.name}: not a glTF 2.0 JSON document")
+    return doc
+
+
+def gltf_files(doc: dict, path: Path, warnings: Counter) -> dict[str, bytes]:
+    """URI -> bytes of the buffers and images the ``.gltf`` at ``path`` names as files (``data:`` URIs are left to
+    trimesh). A missing buffer, or a URI that is not a relative file (``http:``, ``file:``, an absolute path), is
+    an error; a file outside the folder is one unless ``--allow-path`` allows it; a missing image is warned (its
+    material untextured)."""
+    out: dict[str, bytes] = {}
+    for kind in ("buffers", "images"):
+        for item in doc.get(kind, []) or []:
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if not isinstance(uri, str) or uri.startswith("data:") or uri in out:
+                continue
+            name = unquote(uri)
+            if urlparse(uri).scheme or Path(name).is_absolute():
+                raise UsdRelightError(f"{path.name}: {kind[:-1]} URI {uri!r} is not a file beside it (only relative "
+                                      f"file URIs and data: URIs are read)")
+            file = check_read(path.parent / name, path.parent, f"{path.name}'s {kind[:-1]}")
+            if not file.is_file():
+                if kind == "buffers":
+                    raise UsdRelightError(f"{path.name}: buffer {name} not found beside it")
+                warnings[f"glTF image not found (its material untextured): {name}"] += 1
+                continue
+            out[uri] = file.read_bytes()
+    return out
 
 
 def emissive_strengths(doc: dict) -> dict[str, float]:

@@ -1,4 +1,4 @@
-"""USD stage <-> mesh files for tools that do not read USD: glTF binary (.glb), PLY and OBJ, through trimesh.
+"""USD stage <-> mesh files for tools that do not read USD: glTF (.glb; .gltf: JSON), PLY and OBJ, through trimesh.
 
 Units and axes: every file is written, and read, as metres with +Y up (glTF's convention by its spec; OBJ and
 PLY have no unit or up axis of their own, so they follow glTF). The writer applies the stage's metersPerUnit
@@ -13,7 +13,8 @@ is baked into the texels), a Lambertian UsdPreviewSurface as metallic 0, roughne
 carry geometry, the authored normals and UVs only (:mod:`.obj_ply`; the material is named in a warning). Cameras and lights have no place
 in these formats and are named in a warning.
 
-``read_from_file("X.glb", usd_path=None) -> ReadReport``: each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
+``read_from_file("X.glb", usd_path=None) -> ReadReport``: a ``.gltf``'s buffers and images are read from beside it
+(:func:`.gltf_extras.gltf_files`: inside its folder or ``--allow-path``); each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
 points, triangles, normals and ``st``, and a UsdPreviewSurface from its glTF PBR or OBJ/MTL material (base
 colour factor x texture, emissive, metallic/roughness factors) and its vertex colours
 (``primvars:displayColor``); an embedded or MTL texture is written as
@@ -40,13 +41,13 @@ from usdrelight.stage.mesh_math import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
-from .gltf_extras import emissive_strengths, glb_json, unconverted
+from .gltf_extras import emissive_strengths, glb_json, gltf_files, gltf_json, unconverted
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "mesh files"
-SUFFIXES = (".glb", ".ply", ".obj")
+SUFFIXES = (".glb", ".gltf", ".ply", ".obj")
 #: Reader options -> defaults: ``usd_path``, where to create the USD layer (None: in memory).
 READ_OPTIONS = {"usd_path": None}
 #: Writer options: none (the formats carry no render settings).
@@ -106,7 +107,7 @@ def _trimesh():
 
 
 def write_to_file(stage, path, **options) -> WriteReport:
-    """Write the stage's meshes to ``path`` (.glb, .ply or .obj) in metres, Y up (a Z-up stage rotated by
+    """Write the stage's meshes to ``path`` (.glb, .gltf with its buffers and textures embedded, .ply or .obj) in metres, Y up (a Z-up stage rotated by
     :data:`Z_UP_TO_Y_UP`); the report names what the format cannot hold."""
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
     trimesh = _trimesh()
@@ -119,10 +120,10 @@ def write_to_file(stage, path, **options) -> WriteReport:
         if n:
             warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     fmt = path.suffix.lower().lstrip(".")
-    if fmt == "glb":
+    if fmt in ("glb", "gltf"):
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)
-    if fmt != "glb":
+    if fmt not in ("glb", "gltf"):
         warnings[f"materials in a .{fmt} file (not exported)"] += len(rec.meshes)
         if fmt == "ply" and len({m.uv is None for m in rec.meshes}) > 1:
             warnings["UVs of only some meshes (one PLY vertex list: not exported)"] += 1
@@ -140,7 +141,8 @@ def write_to_file(stage, path, **options) -> WriteReport:
                                    process=False, validate=False)
             scene.add_geometry(mesh, node_name=m.path.strip("/").replace("/", "_"),
                                geom_name=m.path.strip("/").replace("/", "_"))
-        data = trimesh.exchange.gltf.export_glb(scene, include_normals=True)
+        data = trimesh.exchange.gltf.export_glb(scene, include_normals=True) if fmt == "glb" else \
+            trimesh.exchange.gltf.export_gltf(scene, include_normals=True, embed_buffers=True)["model.gltf"]
     write_bytes_atomic(path, data)
     return WriteReport([str(path)], dict(warnings))  # logged by the CLI, a line per kind
 
@@ -157,24 +159,30 @@ def read_from_file(path, **options) -> ReadReport:
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
+    warnings: Counter = Counter()
+    suffix = path.suffix.lower()
+    doc = glb_json(path) if suffix == ".glb" else gltf_json(path) if suffix == ".gltf" else None
     try:
-        fixed = absolute_obj_indices(path.read_bytes()) if path.suffix.lower() == ".obj" else None
-        if fixed is None:
+        fixed = absolute_obj_indices(path.read_bytes()) if suffix == ".obj" else None
+        if suffix == ".gltf":  # its buffers and images read by usdrelight (checked, URIs decoded), given as a mapping
+            scene = trimesh.load(io.BytesIO(path.read_bytes()), file_type="gltf", force="scene", process=False,
+                                 resolver=gltf_files(doc, path, warnings))
+        elif fixed is None:
             scene = trimesh.load(str(path), force="scene", process=False)
         else:  # the same file with its relative indices made absolute; its MTL and textures beside it as before
             scene = trimesh.load(io.BytesIO(fixed), file_type="obj", force="scene", process=False,
                                  resolver=trimesh.resolvers.FilePathResolver(str(path)))
+    except UsdRelightError:
+        raise
     except Exception as exc:  # trimesh raises many types for broken files
         raise UsdRelightError(f"cannot read {path.name}: {type(exc).__name__}") from None
     schemas.register()
     usd_dir = Path(usd_path).absolute().parent if usd_path is not None else None
     stage = create_stage(Path(usd_path).absolute() if usd_path is not None else None, ROOT, Kind.Tokens.assembly)
-    warnings: Counter = Counter()
     used: Counter = Counter()
-    if path.suffix.lower() == ".obj":
+    if suffix == ".obj":
         for name in missing_mtl(path):
             warnings[f"OBJ mtllib {name!r} not found (its materials: white)"] += 1
-    doc = glb_json(path) if path.suffix.lower() == ".glb" else None
     strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
     warnings.update(unconverted(doc) if doc else {})
     for node in scene.graph.nodes_geometry:
@@ -220,7 +228,7 @@ def read_from_file(path, **options) -> ReadReport:
             strengthened.add(id(material))
         if getattr(material, "doubleSided", False):  # glTF: no back-face culling for this material
             m.CreateDoubleSidedAttr(True)
-        author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, path.suffix.lower() != ".glb",
+        author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, suffix not in (".glb", ".gltf"),
                         warnings)
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
         raise UsdRelightError(f"{path.name}: no mesh in the file (nothing was written)")

@@ -206,9 +206,9 @@ def test_relative_obj_indices_count_from_where_the_face_stands(tmp_path, cli):
 
 
 def test_an_unknown_suffix_names_every_supported_one(tmp_path, cli):
-    (tmp_path / "a.gltf").write_text("{}")
-    rc, _, err = cli("convert", tmp_path / "a.gltf", tmp_path / "a.usda")
-    assert rc == 2 and "export it as a binary .glb" in err and ".usda" in err and ".glb" in err, err
+    (tmp_path / "a.fbx").write_text("{}")
+    rc, _, err = cli("convert", tmp_path / "a.fbx", tmp_path / "a.usda")
+    assert rc == 2 and "no converter for '.fbx' files" in err and ".usda" in err and ".gltf" in err, err
 
 
 def test_a_later_frame_that_fails_leaves_no_frame_naming_removed_meshes(tmp_path, cli):
