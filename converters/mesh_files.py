@@ -59,14 +59,15 @@ Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 def missing_mtl(path: Path) -> list[str]:
-    """The material libraries an OBJ file names (``mtllib``) that are not files beside it (trimesh goes on
-    without them, in silence)."""
+    """The material libraries an OBJ file names (``mtllib``) that are not files in its folder (trimesh goes on
+    without them, in silence; it reads none outside the folder)."""
     names = []
     for line in path.read_bytes().split(b"\n"):
         parts = line.split(b"#", 1)[0].strip().split(None, 1)
         if parts[:1] == [b"mtllib"] and len(parts) == 2:  # the rest of the line, as trimesh reads it (Blender
             names.append(parts[1].strip().decode("utf-8", "replace"))  # writes "mtllib my scene.mtl" unquoted)
-    return [n for n in names if not (path.parent / n).is_file()]
+    folder = path.parent.resolve()  # trimesh reads nothing outside the OBJ's folder (its resolver's root)
+    return [n for n in names if not (path.parent / n).is_file() or folder not in (path.parent / n).resolve().parents]
 
 
 def absolute_obj_indices(data: bytes) -> bytes | None:
@@ -182,7 +183,7 @@ def read_from_file(path, **options) -> ReadReport:
     used: Counter = Counter()
     if suffix == ".obj":
         for name in missing_mtl(path):
-            warnings[f"OBJ mtllib {name!r} not found (its materials: white)"] += 1
+            warnings[f"OBJ mtllib {name!r} not found in the file's folder (its materials: white)"] += 1
     strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
     warnings.update(unconverted(doc) if doc else {})
     for node in scene.graph.nodes_geometry:

@@ -96,6 +96,11 @@ def test_what_a_mesh_file_lacks_is_named_not_made_up(tmp_path, cli):
     (tmp_path / "spaced.obj").write_text("mtllib my scene.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     rc, _, err = cli("convert", tmp_path / "spaced.obj", tmp_path / "spaced.usda")
     assert rc == 0 and "not found" not in err, err
+    (tmp_path / "sub").mkdir()  # a library outside the OBJ's folder: trimesh does not read it (was: no word)
+    (tmp_path / "sub" / "up.obj").write_text("mtllib ../my scene.mtl\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\n"
+                                             "f 1 2 3\n")
+    rc, _, err = cli("convert", tmp_path / "sub" / "up.obj", tmp_path / "up.usda")
+    assert rc == 0 and "OBJ mtllib '../my scene.mtl' not found in the file's folder" in err, err
     for body in ("", "SECRET TEXT\n"):
         (tmp_path / "none.obj").write_text(body)
         rc, _, err = cli("convert", tmp_path / "none.obj", tmp_path / "none.usda")
