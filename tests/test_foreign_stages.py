@@ -168,3 +168,57 @@ def read_material_of(stage):
     from usdrelight.stage.read_geometry import read_material
 
     return read_material(stage.GetPrimAtPath("/World/Floor"), Counter())
+
+
+def test_what_render_products_ask_beyond_usdrelight_is_named_and_the_rest_rendered(tmp_path, cli):
+    """A Houdini-like stage: a beauty (Ci), a depth product of sourceName 'Pz' and a product with its own
+    resolution. Before: 'unsupported RenderVar sourceName Pz' failed the whole render, the product's own
+    resolution and a dangling renderSettingsPrimPath went unmentioned."""
+    from pxr import Gf
+
+    stage = looking_down_at_floor(tmp_path / "s.usda")  # its RenderSettings: a color product
+    add_closed_form_light(stage, "point")
+    settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings"))
+    for name, source in (("pz", "Pz"), ("big", "albedo")):
+        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+        var.CreateSourceNameAttr(source)
+        prod = UsdRender.Product.Define(stage, f"/Render/Products/{name}")
+        prod.CreateProductNameAttr(f"renders/{name}.exr")
+        prod.CreateOrderedVarsRel().SetTargets([var.GetPath()])
+        settings.GetProductsRel().AddTarget(prod.GetPath())
+    UsdRender.Product(stage.GetPrimAtPath("/Render/Products/big")).CreateResolutionAttr(Gf.Vec2i(64, 48))
+    settings.GetProductsRel().AddTarget("/Render/Products/gone")
+    UsdRender.Settings.Define(stage, "/Render/Other")
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Nope")
+    stage.GetRootLayer().Save()
+    rc, out, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out", "--spp", "4", "--json")
+    assert rc == 0, err
+    for line in ("RenderProduct pz: unsupported RenderVar sourceName 'Pz' (sourceType raw) (not rendered): 1",
+                 "RenderProduct's own resolution (the RenderSettings' used): 1",
+                 "RenderSettings products naming no RenderProduct (skipped): 1",
+                 "renderSettingsPrimPath /Render/Nope names no RenderSettings (/Render/Settings used): 1"):
+        assert line in err, err
+    assert sorted(json.loads(out)["files"]) == ["big", "color"]
+    albedo = read_map(tmp_path / "out" / "renders" / "big.exr", 3)
+    assert albedo.shape == (24, 32, 3) and np.allclose(albedo, 0.5, atol=1e-3)  # the settings' 32 x 24
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out2", "--aov", "pz")  # asked for: an error
+    assert rc == 2 and "unsupported RenderVar sourceName 'Pz'" in err, err
+    for name in ("color", "big"):  # nothing renderable left: one error, not an empty render
+        settings.GetProductsRel().RemoveTarget(f"/Render/Products/{name}")
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out3")
+    assert rc == 2 and "no declared RenderProduct can be rendered (RenderProduct pz: unsupported RenderVar " \
+        "sourceName 'Pz'" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "out3").exists()
+
+
+def test_several_render_settings_without_a_choice_are_named(tmp_path):
+    from usdrelight.stage.read import read_scene
+
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    UsdRender.Settings.Define(stage, "/Render/Zother")
+    stage.SetMetadata("renderSettingsPrimPath", "")
+    assert read_scene(stage).warnings["2 RenderSettings and no renderSettingsPrimPath to choose (/Render/Settings "
+                                      "used)"] == 1
+    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
+    assert not [k for k in read_scene(stage).warnings if "RenderSettings" in k]

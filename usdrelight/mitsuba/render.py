@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import result_group
-from ..errors import UsdRelightError
+from ..errors import UsdRelightError, one_line
 from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
 from ..stage.backplate import hides_emitters
@@ -52,6 +52,27 @@ def aov_kind(var: RenderVarRecord) -> str:
         return "normal" if source_name == "N" else source_name
     raise UsdRelightError(f"unsupported RenderVar sourceName '{source_name}' (sourceType {source_type}); "
                           f"supported: C.* (lpe), color, albedo, valid, depth, normal")
+
+
+def _renderable(products: list, warnings) -> list:
+    """The products with RenderVars that :func:`aov_kind` all knows; each other one counted in ``warnings``, and
+    none left is one error naming why."""
+    keep, why = [], []
+    for p in products:
+        try:
+            [aov_kind(v) for v in p.vars]
+            reason = None if p.vars else "has no RenderVars"
+        except UsdRelightError as exc:
+            reason = one_line(exc).split(";")[0]
+        if reason is None:
+            keep.append(p)
+        else:
+            why.append(f"RenderProduct {p.name}: {reason}")
+            warnings[f"{why[-1]} (not rendered)"] += 1
+    if not keep:
+        raise UsdRelightError(f"no declared RenderProduct can be rendered ({why[0]}; supported sourceNames: C.* "
+                              f"(lpe), color, albedo, valid, depth, normal)")
+    return keep
 
 
 @dataclass(frozen=True)
@@ -249,6 +270,8 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     if max_depth < 1:
         raise UsdRelightError("--max-depth must be >= 1")
     products = [declared[n] for n in names]
+    if not aovs:  # all of them: what usdrelight cannot compute (a Houdini stage's Pz, crypto ...) is left out, named
+        products = _renderable(products, rec.warnings)
     wanted = {aov_kind(v) for p in products for v in p.vars}
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}

@@ -68,7 +68,9 @@ def stage_meters_per_unit(stage) -> float:
 
 
 # ---- camera and settings ----------------------------------------------------------------------
-def _settings_prim(stage):
+def _settings_prim(stage, warnings):
+    """The stage's ``renderSettingsPrimPath`` RenderSettings, else the first one found (warned when the path names
+    none, or when several exist and no path chooses); None when the stage has none."""
     from pxr import UsdRender
 
     path = stage.GetMetadata("renderSettingsPrimPath")
@@ -76,10 +78,13 @@ def _settings_prim(stage):
         prim = stage.GetPrimAtPath(path)
         if prim and prim.IsA(UsdRender.Settings):
             return UsdRender.Settings(prim)
-    for prim in stage.Traverse():
-        if prim.IsA(UsdRender.Settings):
-            return UsdRender.Settings(prim)
-    return None
+    found = [p for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
+    if found and path:
+        warnings[f"renderSettingsPrimPath {path} names no RenderSettings ({found[0].GetPath()} used)"] += 1
+    elif len(found) > 1:
+        warnings[f"{len(found)} RenderSettings and no renderSettingsPrimPath to choose ({found[0].GetPath()} "
+                 f"used)"] += 1
+    return UsdRender.Settings(found[0]) if found else None
 
 
 def _conform(settings, warnings) -> tuple[float, str]:
@@ -96,20 +101,40 @@ def _conform(settings, warnings) -> tuple[float, str]:
     return par, policy
 
 
-def _read_products(stage, settings) -> tuple[ProductRecord, ...]:
+#: SettingsBase attributes a RenderProduct may override: rendered with the RenderSettings' values.
+PRODUCT_OVERRIDES = ("resolution", "pixelAspectRatio", "aspectRatioConformPolicy", "dataWindowNDC",
+                     "instantaneousShutter", "disableMotionBlur")
+
+
+def _read_products(stage, settings, warnings) -> tuple[ProductRecord, ...]:
+    """The RenderProducts of ``settings`` and their RenderVars; targets naming nothing are skipped, a product's
+    own camera or SettingsBase values (the settings' are rendered) and a settings' dataWindowNDC other than the
+    full image (the full image is rendered) counted in ``warnings``."""
     from pxr import UsdRender
 
+    window = settings.GetDataWindowNDCAttr().Get()
+    if window is not None and tuple(window) != (0.0, 0.0, 1.0, 1.0):
+        warnings["RenderSettings dataWindowNDC (the full image rendered)"] += 1
     products = []
     for ppath in settings.GetProductsRel().GetTargets():
         prod = UsdRender.Product(stage.GetPrimAtPath(ppath))
         if not prod:
+            warnings["RenderSettings products naming no RenderProduct (skipped)"] += 1
             continue
+        own = [n for n in PRODUCT_OVERRIDES if prod.GetPrim().GetAttribute(n).HasAuthoredValue()
+               and prod.GetPrim().GetAttribute(n).Get() != settings.GetPrim().GetAttribute(n).Get()]
+        if prod.GetCameraRel().GetTargets() and prod.GetCameraRel().GetTargets() != settings.GetCameraRel().GetTargets():
+            own.append("camera")
+        for name in own:
+            warnings[f"RenderProduct's own {name} (the RenderSettings' used)"] += 1
         render_vars = []
         for vpath in prod.GetOrderedVarsRel().GetTargets():
             var = UsdRender.Var(stage.GetPrimAtPath(vpath))
             if var:
                 render_vars.append(RenderVarRecord(vpath.name, str(var.GetSourceNameAttr().Get()),
                                                    str(var.GetSourceTypeAttr().Get()), str(var.GetDataTypeAttr().Get())))
+            else:
+                warnings["RenderProduct orderedVars naming no RenderVar (skipped)"] += 1
         products.append(ProductRecord(ppath.name, str(prod.GetProductNameAttr().Get()), tuple(render_vars)))
     return tuple(products)
 
@@ -281,7 +306,7 @@ def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
     first UsdGeom.Camera) at time code ``t``."""
     from pxr import UsdGeom
 
-    settings = _settings_prim(stage)
+    settings = _settings_prim(stage, warnings)
     cam_prim, resolution, products, conform = None, None, (), (1.0, "expandAperture")
     if settings is not None:
         conform = _conform(settings, warnings)
@@ -291,7 +316,7 @@ def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
         cam_prim = stage.GetPrimAtPath(targets[0]) if targets else None
         if targets and not (cam_prim and cam_prim.IsA(UsdGeom.Camera)):  # was "Accessed invalid null prim", exit 1
             raise UsdRelightError(f"{settings.GetPath()}: camera {targets[0]} is not a Camera on the stage")
-        products = _read_products(stage, settings)
+        products = _read_products(stage, settings, warnings)
     if cam_prim is None:
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
     camera = None
