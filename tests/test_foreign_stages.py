@@ -222,3 +222,19 @@ def test_several_render_settings_without_a_choice_are_named(tmp_path):
                                       "used)"] == 1
     stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
     assert not [k for k in read_scene(stage).warnings if "RenderSettings" in k]
+
+
+@pytest.mark.parametrize("mpu", [1.0, 0.01])
+def test_the_depth_aov_is_in_the_stages_own_units(mpu, tmp_path, cli):
+    """The camera 1 stage unit above the floor: depth 1 in a metre stage and in a centimetre one (before: 0.01,
+    metres, though the AOV's doc says scene units, as USD renderers write it)."""
+    from pxr import UsdGeom
+
+    stage = looking_down_at_floor(tmp_path / "s.usda", aovs=("color", "depth"))
+    add_closed_form_light(stage, "point")
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("render", tmp_path / "s.usda", "-o", tmp_path / "out", "--spp", "4")
+    assert rc == 0, err
+    depth = read_map(tmp_path / "out" / "renders" / "depth.exr", 1)
+    assert depth[12, 16] == pytest.approx(1.0, rel=1e-3) and depth.min() > 0.99

@@ -5,7 +5,8 @@
 * Geometric AOVs come from one ray through each pixel centre (noise-free; nudged by 1/64 px so it
   never passes exactly through a vertex of a pixel mesh):
   ``albedo`` (diffuse reflectance of the hit BSDF), ``valid`` (1 = hit), ``depth`` (camera-space
-  z-depth in metres (stage units x metersPerUnit), 0 = no hit), ``normal`` (world-space shading normal).
+  z-depth in the stage's units, as USD renderers write it; :func:`render_record` gives metres; 0 = no hit),
+  ``normal`` (world-space shading normal).
 * Only the AOVs asked for are computed; each product is written as a linear float EXR at
   ``<out_dir>/<productName>`` (out_dir defaults to the stage's folder), atomically.
 
@@ -200,7 +201,8 @@ def render_passes(mi, scene, spp: int, seed: int, pixels: int) -> np.ndarray:
 
 def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int = 3, seed: int = 0,
                   hide_emitters: bool = False) -> dict:
-    """Render the quantities in ``wanted`` (beauty and/or GEOMETRIC names) for a scene record.
+    """Render the quantities in ``wanted`` (beauty and/or GEOMETRIC names) for a scene record (depth in metres,
+    as the record is).
 
     ``hide_emitters``: camera rays do not see emitters directly (the environment through holes in a 2.5D
     mesh, for instance); their light still reaches the surfaces."""
@@ -251,7 +253,7 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     """Render the RenderProducts the stage's UsdRender settings declare (optionally only those named in ``aovs``)
     with Mitsuba's path tracer (``spp`` samples per pixel, paths of ``max_depth``, deterministic for ``seed``)
     into ``out_dir`` (default: the stage's folder), at the settings' resolution. Beauty AOVs are linear
-    radiance in the stage's units of light; albedo, valid, depth (metres along the view axis) and normal
+    radiance in the stage's units of light; albedo, valid, depth (stage units along the view axis) and normal
     (world space) come from one ray per pixel centre. ``time``: the USD time code lights are read at (default:
     :func:`usdrelight.stage.timing.frame_time`)."""
     t0 = time_module.perf_counter()
@@ -288,6 +290,8 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     stamp = stage_stamp(stage, rec.resolution)
     t1 = time_module.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed, hide_emitters=hides_emitters(stage))
+    if "depth" in images:  # the record is in metres; the stage's depth AOV is in its own units (0 stays 0)
+        images["depth"] = (images["depth"] / rec.meters_per_unit).astype(np.float32)
     t2 = time_module.perf_counter()
     files = {}
     # every AOV of this render appears at once (atomic.result_group); AOVs not rendered now stay as they were
