@@ -17,6 +17,11 @@ def _safe_name(path: str) -> str:
     return "".join(c if c.isalnum() or c in "_-." else "_" for c in path.strip("/")) or "mesh"
 
 
+def _lines(fmt: str, rows: np.ndarray) -> list[str]:
+    """One ``fmt % row`` line per row (rows as Python numbers: the same text as f-strings of them)."""
+    return [fmt % tuple(r) for r in rows.tolist()]
+
+
 def obj_bytes(meshes, axes: np.ndarray) -> bytes:
     """A Wavefront OBJ of ``meshes`` (see the module docstring)."""
     out = ["# usdrelight: metres, +Y up"]
@@ -26,19 +31,22 @@ def obj_bytes(meshes, axes: np.ndarray) -> bytes:
         uv = None if m.uv is None else np.asarray(m.uv, np.float64)
         nrm = None if m.normals is None else np.asarray(m.normals, np.float64) @ axes.T
         out.append(f"o {_safe_name(m.path)}")
-        out += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in pts]
+        out += _lines("v %.9g %.9g %.9g", pts)
         if uv is not None:
-            out += [f"vt {s:.9g} {t:.9g}" for s, t in uv]
+            out += _lines("vt %.9g %.9g", uv)
         if nrm is not None:
-            out += [f"vn {x:.9g} {y:.9g} {z:.9g}" for x, y, z in nrm]
-        for face in np.asarray(m.faces, np.int64):
-            corners = []
-            for i in face:
-                v = f"{nv + i + 1}"
-                t = f"{nt + i + 1}" if uv is not None else ""
-                n = f"/{nn + i + 1}" if nrm is not None else ""
-                corners.append(v + (f"/{t}" if t or n else "") + n)
-            out.append("f " + " ".join(corners))
+            out += _lines("vn %.9g %.9g %.9g", nrm)
+        faces = np.asarray(m.faces, np.int64)
+        columns = [faces + nv + 1]  # per corner: v, then vt and vn where the mesh has them (same index)
+        corner = "%d"
+        if uv is not None:
+            columns.append(faces + nt + 1)
+            corner += "/%d"
+        if nrm is not None:
+            columns.append(faces + nn + 1)
+            corner += "/%d" if uv is not None else "//%d"
+        table = np.stack(columns, axis=2).reshape(len(faces), -1)  # (F, 3 corners x fields)
+        out += _lines("f " + " ".join([corner] * 3), table)
         nv += len(pts)
         nt += 0 if uv is None else len(uv)
         nn += 0 if nrm is None else len(nrm)
