@@ -144,49 +144,51 @@ def _bound(light: LightRecord, textures: dict) -> float:
     return light_texels(light.texture, textures).max() if light.kind == "rect" and light.texture is not None else 1.0
 
 
+class _AreaPoints:
+    """Area sampling in :func:`_solid_angle_estimate`'s terms: ``sample(u1, u2)`` is one point of the disk or rect
+    (stratified in its area, the same for every pixel) and the weight that turns the estimator's
+    1 / (pi n) sum cos(theta) weight V into area sampling's A / (pi n) sum cos(theta) cos(theta_l) / d^2 V."""
+
+    def __init__(self, light: LightRecord, origins: np.ndarray):
+        self.light, self.origins = light, origins
+        self.area, self.n_l = world_area(light), light_direction(light)
+
+    def local(self, u1: float, u2: float) -> np.ndarray:
+        """The point (u1, u2) in the light's own frame (before ``to_world``)."""
+        light = self.light
+        if light.kind == "disk":
+            r, phi = light.radius * math.sqrt(u1), 2 * math.pi * u2
+            return np.array([r * math.cos(phi), r * math.sin(phi), 0.0])
+        return np.array([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, 0.0])
+
+    def sample(self, u1: float, u2: float):
+        y = self.light.to_world[:3, :3] @ self.local(u1, u2) + self.light.to_world[:3, 3]
+        v = y[None] - self.origins
+        dist = np.linalg.norm(v, axis=1)
+        cos_l = np.maximum(-(v @ self.n_l) / np.maximum(dist, 1e-300), 0.0)
+        return v, self.area * cos_l / np.maximum(dist, 1e-12) ** 2
+
+
 def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None,
                  pixels: np.ndarray | None = None) -> np.ndarray:
-    """Disk or rect light: stratified points on the shape (in the light's frame, mapped by ``to_world``); a rect's
-    texture weights each point by its texel (:func:`rect_texture_at`; texels read once into ``textures``).
-    ``pixels``: the indices of the valid pixels to compute (the others 0); None: all."""
+    """Disk or rect light by area sampling: stratified points on the shape (in the light's frame, mapped by
+    ``to_world``), shared by every pixel; a rect's texture weights each point by its texel
+    (:func:`rect_texture_at`; texels read once into ``textures``). ``pixels``: the indices of the valid pixels to
+    compute (the others 0); None: all."""
     surf = tr.surface
     pixels = np.arange(surf.n_pixels) if pixels is None else pixels
-    if world_area(light) <= 0:  # a zero-size panel emits nothing (UsdLux allows the size 0)
-        return np.zeros((surf.n_pixels, 3))
-    u1, u2 = stratified(1, samples, rng)
-    u1, u2 = u1[0], u2[0]
-    if light.kind == "disk":
-        r, phi = light.radius * np.sqrt(u1), 2 * np.pi * u2
-        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.zeros_like(r)], 1)
-    else:
-        local = np.stack([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, np.zeros_like(u1)], 1)
-    ys = local @ light.to_world[:3, :3].T + light.to_world[:3, 3]
-    textured = light.kind == "rect" and light.texture is not None
-    textures = {} if textures is None else textures  # read once here, for the lookups and the bound
-    texel = rect_texture_at(light, local, textures) if textured else None
-    n_l = light_direction(light)
-    o, nrm = tr.origins[pixels], surf.n[pixels]
-    acc = np.zeros((len(pixels), 3) if textured else len(pixels))
-    for i, y in enumerate(ys):  # one shadow-ray batch per light sample: memory stays at N rays
-        v = y[None] - o
-        dist = np.linalg.norm(v, axis=1)
-        om = v / np.maximum(dist, 1e-300)[:, None]
-        g = np.maximum(np.einsum("ij,ij->i", nrm, om), 0.0) * np.maximum(-(om @ n_l), 0.0) / np.maximum(dist, 1e-12) ** 2
-        live = g > 0
-        if live.any():
-            vis = tr.visible(o[live], om[live], dist[live])
-            hit = np.nonzero(live)[0][vis]
-            if textured:
-                acc[hit] += g[live][vis][:, None] * texel[i][None, :]
-            else:
-                acc[hit] += g[live][vis]
-    scale = world_area(light) / (np.pi * samples)
-    # E / pi of a radiance-1 panel is at most 1: a sample next to a surface cannot lift a pixel past it
-    acc = np.minimum(acc * scale, _bound(light, textures))
-    if not textured:
-        acc = acc[:, None]
     out = np.zeros((surf.n_pixels, 3))
-    out[pixels] = acc * emitted_radiance(light)[None, :]
+    if world_area(light) <= 0:  # a zero-size panel emits nothing (UsdLux allows the size 0)
+        return out
+    textures = {} if textures is None else textures  # read once here, for the lookups and the bound
+    local = None
+    if light.kind == "rect" and light.texture is not None:
+        inv = np.linalg.pinv(light.to_world[:3, :3])
+
+        def local(p):  # world points -> the light's own frame, for the texel lookups
+            return (p - light.to_world[:3, 3]) @ inv.T
+    shape = _AreaPoints(light, tr.origins[pixels])
+    out[pixels] = _solid_angle_estimate(tr, light, pixels, shape, stratified(1, samples, rng), textures, local)
     return out
 
 
