@@ -235,11 +235,12 @@ def disk_light(tr: LightTransport, light: LightRecord, samples: int, rng, textur
     stretched disk is the ellipse its frame makes of it; a degenerate frame falls back to area sampling
     (:func:`planar_light`)."""
     ax, ay = light.to_world[:3, 0] * light.radius, light.to_world[:3, 1] * light.radius
-    if np.linalg.norm(np.cross(ax, ay)) <= 1e-12 * max(float(ax @ ax), float(ay @ ay), 1e-300):
+    cross = float(np.linalg.norm(np.cross(ax, ay)))  # the ellipse's area / pi
+    if cross <= 1e-12 * max(float(ax @ ax), float(ay @ ay), 1e-300):
         return planar_light(tr, light, samples, rng, textures)
     centre = light.to_world[:3, 3]
     gap = (tr.origins - centre) @ light_direction(light)
-    radius = math.sqrt(float(np.linalg.norm(np.cross(ax, ay))))  # of the disk of the (ellipse's) area
+    radius = math.sqrt(cross)  # of the disk of the (ellipse's) area
     near = np.clip((FAN_FAR - np.linalg.norm(tr.origins - centre, axis=1) / radius) / (FAN_FAR - FAN_NEAR), 0, 1)
     idx = np.nonzero((gap > 1e-9 * radius) & (near > 0))[0]  # the side it lights, near enough for the fan
     u = lattice(1, samples, rng)  # drawn once, shared by every chunk of pixels; u1 picks the fan's triangle: each
