@@ -1,7 +1,7 @@
 """What a glTF binary holds beyond the meshes trimesh reads: read from the file's own JSON chunk, so the reader
 can apply what changes a material (``KHR_materials_emissive_strength``: trimesh drops it, and a Blender export of
-a 10x emitter came out 10x too dark) and name in a warning what USD does not get from it (lights, cameras,
-animations, other extensions), instead of dropping them in silence.
+a 10x emitter came out 10x too dark) and name in a warning what USD does not get from it (animations, skins,
+other extensions), instead of dropping them in silence; lights and cameras: :mod:`.gltf_lights`.
 
 A ``.gltf`` (the JSON as its own file) names its buffers and images by URI: :func:`gltf_files` reads each that is
 not a ``data:`` URI from beside the file, percent-decoded (glTF URIs are RFC 3986), only inside the file's folder
@@ -25,8 +25,8 @@ from usdrelight.safe_paths import check_read
 GLB_MAGIC, JSON_CHUNK = 0x46546C67, 0x4E4F534A
 #: The largest JSON document read (a .glb's JSON chunk, a .gltf file).
 MAX_JSON = 64 << 20
-#: Extensions the reader applies (emissive strength) or that only carry what trimesh reads itself.
-APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization"}
+#: Extensions the reader applies (emissive strength, punctual lights) or that only carry what trimesh reads itself.
+APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization", "KHR_lights_punctual"}
 
 
 def glb_json(path: Path) -> dict | None:
@@ -43,6 +43,21 @@ def glb_json(path: Path) -> dict | None:
     except (OSError, ValueError, struct.error, UnicodeDecodeError):
         return None
     return doc if isinstance(doc, dict) else None
+
+
+def glb_with_json(data: bytes, change) -> bytes:
+    """The ``.glb`` bytes ``data`` with ``change(doc)`` applied to its JSON chunk (the binary chunk kept)."""
+    magic, version, _length = struct.unpack_from("<III", data, 0)
+    size, kind = struct.unpack_from("<II", data, 12)
+    if magic != GLB_MAGIC or kind != JSON_CHUNK:
+        raise UsdRelightError("not a glTF binary")
+    doc = json.loads(data[20:20 + size].decode("utf-8"))
+    change(doc)
+    js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    js += b" " * (-len(js) % 4)  # chunks are 4-byte aligned; JSON pads with spaces
+    rest = data[20 + size:]
+    return struct.pack("<III", GLB_MAGIC, version, 20 + len(js) + len(rest)) + struct.pack("<II", len(js), JSON_CHUNK) \
+        + js + rest
 
 
 def gltf_json(path: Path) -> dict:
@@ -103,20 +118,14 @@ def emissive_strengths(doc: dict) -> dict[str, float]:
 
 
 def unconverted(doc: dict) -> Counter:
-    """One warning per kind of what the file holds and the USD stage does not get."""
+    """One warning per kind of what the file holds and the USD stage does not get (its punctual lights and
+    cameras are converted: :mod:`.gltf_lights`)."""
     warnings: Counter = Counter()
-    nodes = [n for n in doc.get("nodes", []) or [] if isinstance(n, dict)]
-    lights = ((doc.get("extensions") or {}).get("KHR_lights_punctual") or {}).get("lights") or []
-    if lights:
-        warnings["glTF lights (KHR_lights_punctual: not converted)"] += len(lights)
-    cameras = sum("camera" in n for n in nodes)
-    if cameras:
-        warnings["glTF cameras (not converted)"] += cameras
     if doc.get("animations"):
         warnings["glTF animations (not converted: the meshes at rest)"] += len(doc["animations"])
     if doc.get("skins"):
         warnings["glTF skins (not converted: the meshes at rest)"] += len(doc["skins"])
-    for name in sorted(set(doc.get("extensionsUsed", []) or []) - APPLIED - {"KHR_lights_punctual"}):
+    for name in sorted(set(doc.get("extensionsUsed", []) or []) - APPLIED):
         if isinstance(name, str):
             warnings[f"glTF extension {name} (not converted)"] += 1
     return warnings

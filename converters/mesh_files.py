@@ -10,8 +10,9 @@ shapes in metres, Y up.
 UVs and material as glTF PBR (:mod:`.mesh_materials`): metallic, roughness, emissive and the base colour, a
 factor or the albedo texture embedded as an sRGB 8-bit PNG times baseColorFactor (UsdUVTexture scale; a bias
 is baked into the texels), a Lambertian UsdPreviewSurface as metallic 0, roughness 1. ``.ply`` / ``.obj``
-carry geometry, the authored normals and UVs only (:mod:`.obj_ply`; the material is named in a warning). Cameras and lights have no place
-in these formats and are named in a warning.
+carry geometry, the authored normals and UVs only (:mod:`.obj_ply`; the material is named in a warning). glTF also
+takes the point, spot and distant lights and the render camera (:mod:`.gltf_lights`); OBJ and PLY have no place for
+cameras and lights, which are named in a warning.
 
 ``read_from_file("X.glb", usd_path=None) -> ReadReport``: a ``.gltf``'s buffers and images are read from beside it
 (:func:`.gltf_extras.gltf_files`: inside its folder or ``--allow-path``); each mesh of the file -> a ``UsdGeom.Mesh`` under /World with
@@ -27,6 +28,7 @@ UVs: USD's st, trimesh's uv and OBJ's vt all have t = 0 at the bottom of the ima
 from __future__ import annotations
 
 import io
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -41,7 +43,8 @@ from usdrelight.stage.mesh_math import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
-from .gltf_extras import emissive_strengths, glb_json, gltf_files, gltf_json, unconverted
+from .gltf_extras import emissive_strengths, glb_json, glb_with_json, gltf_files, gltf_json, unconverted
+from .gltf_lights import add_lights_and_camera, author_lights_and_cameras
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
 from .report import ReadReport, WriteReport, check_options
@@ -117,10 +120,10 @@ def write_to_file(stage, path, **options) -> WriteReport:
     warnings = Counter(rec.warnings)
     if not rec.meshes:
         raise UsdRelightError("the stage has no mesh to export")
-    for what, n in (("camera", rec.camera is not None), ("lights", len(rec.lights)), ("gprims", len(rec.shapes))):
-        if n:
-            warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     fmt = path.suffix.lower().lstrip(".")
+    for what, n in (("camera", rec.camera is not None), ("lights", len(rec.lights)), ("gprims", len(rec.shapes))):
+        if n and (what == "gprims" or fmt not in ("glb", "gltf")):  # glTF takes lights and the camera
+            warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     if fmt in ("glb", "gltf"):
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)
@@ -142,8 +145,15 @@ def write_to_file(stage, path, **options) -> WriteReport:
                                    process=False, validate=False)
             scene.add_geometry(mesh, node_name=m.path.strip("/").replace("/", "_"),
                                geom_name=m.path.strip("/").replace("/", "_"))
-        data = trimesh.exchange.gltf.export_glb(scene, include_normals=True) if fmt == "glb" else \
-            trimesh.exchange.gltf.export_gltf(scene, include_normals=True, embed_buffers=True)["model.gltf"]
+        def lights_and_camera(doc):
+            add_lights_and_camera(doc, rec, axes, warnings)
+        if fmt == "glb":
+            data = glb_with_json(trimesh.exchange.gltf.export_glb(scene, include_normals=True), lights_and_camera)
+        else:
+            doc = json.loads(trimesh.exchange.gltf.export_gltf(scene, include_normals=True,
+                                                               embed_buffers=True)["model.gltf"])
+            lights_and_camera(doc)
+            data = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     write_bytes_atomic(path, data)
     return WriteReport([str(path)], dict(warnings))  # logged by the CLI, a line per kind
 
@@ -233,5 +243,7 @@ def read_from_file(path, **options) -> ReadReport:
                         warnings)
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
         raise UsdRelightError(f"{path.name}: no mesh in the file (nothing was written)")
+    if doc:  # a glTF file's punctual lights and perspective cameras (trimesh reads neither)
+        author_lights_and_cameras(stage, doc, ROOT, warnings, used)
     check_finite(stage, path.name)
     return ReadReport(stage, dict(warnings))

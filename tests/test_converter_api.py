@@ -34,7 +34,7 @@ CONTRACT = {"read_from_file": ([("path", P), ("options", K)], ReadReport),
 #: the string twins each converter has (text formats only)
 TWINS = {"mitsuba_xml": {"read_from_string", "write_to_string"}, "blender": {"write_to_string"}, "mesh_files": set()}
 CYLINDERS = "shape type 'cylinder' (not converted)"
-# a diffuse rectangle, two cylinders (not converted: a read warning, 2) and a point light (a .glb has no place)
+# a diffuse rectangle, two cylinders (not converted: a read warning, 2) and a point light (a .ply has no place)
 XML = """<scene version="3.0.0">
     <shape type="rectangle"><bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>
     <shape type="cylinder"/>
@@ -100,19 +100,21 @@ def test_read_warnings_are_listed_under_the_read_direction_with_their_counts(cli
     assert rep["read_warnings"] == {CYLINDERS: 2}
     assert rep["write_warnings"] == {} and rep["files"] == [str(tmp_path / "y.usda")]
     assert open_stage(tmp_path / "y.usda").GetPrimAtPath("/World").IsValid()
-    # X -> Y: both directions, kept apart (a .glb has no place for the point light)
-    rep = cli.json("convert", tmp_path / "x.xml", tmp_path / "y.glb")
+    # X -> Y: both directions, kept apart (a .ply has no place for the point light)
+    rep = cli.json("convert", tmp_path / "x.xml", tmp_path / "y.ply")
     assert rep["read_warnings"] == {CYLINDERS: 2}
-    assert rep["write_warnings"] == {"lights in a .glb file (not exported)": 1}
+    assert rep["write_warnings"] == {"lights in a .ply file (not exported)": 1,
+                                     "materials in a .ply file (not exported)": 1}
     # the human output: one line per kind, the read direction's too
     rc, out, err = cli("convert", tmp_path / "x.xml", tmp_path / "z.usda")
     assert rc == 0 and out.strip() == f"wrote {tmp_path / 'z.usda'}"
     assert sum(f"{CYLINDERS}: 2" in line for line in err.splitlines()) == 1, err
     # the Python API returns the same record
-    res = convert(tmp_path / "x.xml", tmp_path / "w.glb")
+    res = convert(tmp_path / "x.xml", tmp_path / "w.ply")
     assert isinstance(res, ConvertReport) and res.read_warnings == {CYLINDERS: 2}
-    assert res.to_dict() == {"files": [str(tmp_path / "w.glb")], "read_warnings": {CYLINDERS: 2},
-                             "write_warnings": {"lights in a .glb file (not exported)": 1}}
+    assert res.to_dict() == {"files": [str(tmp_path / "w.ply")], "read_warnings": {CYLINDERS: 2},
+                             "write_warnings": {"lights in a .ply file (not exported)": 1,
+                                                "materials in a .ply file (not exported)": 1}}
 
 
 def test_spp_and_max_depth_reach_the_mitsuba_and_the_blender_writer(cli, usd_scene, tmp_path):

@@ -1,7 +1,7 @@
 """A glTF binary's content beyond trimesh's meshes, read from its own JSON (files written by hand here, as glTF
 2.0 lays them out): KHR_materials_emissive_strength applied (a Blender export of a 10x emitter came out 10x too
-dark), doubleSided carried, a mirroring node's winding kept, and lights, cameras, animations and other
-extensions named in warnings instead of dropped in silence."""
+dark), doubleSided carried, a mirroring node's winding kept, and animations and other extensions named in
+warnings instead of dropped in silence (lights and cameras: tests/test_gltf_lights.py)."""
 from __future__ import annotations
 
 import json
@@ -76,11 +76,12 @@ def test_what_usd_does_not_get_is_named(tmp_path, cli):
     _glb(tmp_path / "t.glb", doc, binary)
     rc, _, err = cli("convert", tmp_path / "t.glb", tmp_path / "t.usda")
     assert rc == 0, err
-    for line in ("glTF lights (KHR_lights_punctual: not converted): 1", "glTF cameras (not converted): 1",
-                 "glTF animations (not converted: the meshes at rest): 1",
+    for line in ("glTF animations (not converted: the meshes at rest): 1",
                  "glTF extension KHR_texture_transform (not converted): 1"):
         assert line in err, err
-    assert "emissive_strength" not in err  # applied, not warned
+    assert "emissive_strength" not in err and "KHR_lights_punctual" not in err  # applied, not warned
+    stage = Usd.Stage.Open(str(tmp_path / "t.usda"))
+    assert stage.GetPrimAtPath("/World/cam").IsA(UsdGeom.Camera)  # converted (tests/test_gltf_lights.py)
 
 
 @pytest.mark.parametrize("strength", [-2.0, float("nan")])
