@@ -123,7 +123,8 @@ def _read_products(stage, settings, warnings) -> tuple[ProductRecord, ...]:
             continue
         own = [n for n in PRODUCT_OVERRIDES if prod.GetPrim().GetAttribute(n).HasAuthoredValue()
                and prod.GetPrim().GetAttribute(n).Get() != settings.GetPrim().GetAttribute(n).Get()]
-        if prod.GetCameraRel().GetTargets() and prod.GetCameraRel().GetTargets() != settings.GetCameraRel().GetTargets():
+        cameras = prod.GetCameraRel().GetTargets()
+        if cameras and cameras != settings.GetCameraRel().GetTargets():
             own.append("camera")
         for name in own:
             warnings[f"RenderProduct's own {name} (the RenderSettings' used)"] += 1
