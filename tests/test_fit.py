@@ -126,6 +126,21 @@ def test_pruning_on_a_scene_lit_by_one_light(tmp_path):
     assert np.linalg.norm(pos - [0.3, 0.2, -3.0]) < 0.3  # the fit finds the real light
 
 
+def test_a_flat_scene_leaves_room_for_a_light_in_front_of_it(tmp_path):
+    """A wall seen face on has no depth extent: the candidate grid and the position steps were confined to its
+    plane, and the fit kept no light at all (13.6 dB for a point light 1 m in front of it)."""
+    stage = _synthetic_stage(tmp_path, np.full((36, 48), 2.0, np.float32))
+    true = np.array([0.2, 0.1, -1.0])
+    img, _ = _render_target(stage, [PointLightValue(true, np.array([6.0, 5.0, 4.0]))])
+    write_image(stage.parent / "estimates" / "diffuse.exr", img, "float")
+    rep = fit(stage, FitSettings(lights=9, iterations=25, verify_spp=256))
+    assert rep.psnr_db > 28 and rep.render_psnr_db > 27, rep
+    s = open_stage(stage)
+    pts = [p for p in s.Traverse() if p.GetTypeName() == "SphereLight"]
+    strongest = max(pts, key=lambda p: p.GetAttribute("inputs:intensity").Get())
+    assert np.linalg.norm(np.array(strongest.GetAttribute("xformOp:translate").Get()) - true) < 0.2
+
+
 def _assert_finite_stage(stage):
     s = open_stage(stage)
     for prim in s.Traverse():

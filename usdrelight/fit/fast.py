@@ -34,6 +34,19 @@ def initial_positions(prob: FitProblem, k: int) -> np.ndarray:
     return pts[:k]
 
 
+def scene_box(prob: FitProblem, with_camera: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The box of the visible surface points (and the camera's centre, ``with_camera``), each side at least a
+    quarter of the longest: a flat scene - a wall seen face on, a plane from above - still has a box with
+    room in front of it. World frame, metres."""
+    lo, hi = prob.p.min(0), prob.p.max(0)
+    if with_camera:
+        cam = prob.scene.camera.to_world[:3, 3]
+        lo, hi = np.minimum(lo, cam), np.maximum(hi, cam)
+    centre, side = 0.5 * (lo + hi), hi - lo
+    half = 0.5 * np.maximum(side, 0.25 * float(side.max()))
+    return centre - half, centre + half
+
+
 def keep_off_surfaces(pos: np.ndarray, tree, pts: np.ndarray, d_min: float, camera: np.ndarray) -> np.ndarray:
     """Push lights closer than ``d_min`` to a visible surface point out to ``d_min``, on the camera's side.
 
@@ -79,7 +92,7 @@ def fit_fast(tr: FitTransport, positions, iterations: int = 40, *, lr_rel: float
     t0 = time.perf_counter()
     prob = tr.problem
     pos = initial_positions(prob, positions) if np.ndim(positions) == 0 else np.array(positions, np.float64)
-    lo, hi = prob.p.min(0), prob.p.max(0)
+    lo, hi = scene_box(prob, with_camera=True)  # lights may move out to the camera and behind it
     box_lo, box_hi = lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo)
     tree = cKDTree(prob.p)
     d_min = min_distance_rel * prob.extent
@@ -165,9 +178,10 @@ def prune(state: FitState, tr: FitTransport, prob: FitProblem, tol: float = 0.01
 
 
 def candidate_positions(prob: FitProblem, per_axis: int = 5, min_distance_rel: float = 0.03) -> np.ndarray:
-    """A regular 3D grid of candidate light positions over the scene's box (grown by a quarter on each
-    side), without the points closer than ``min_distance_rel`` of the extent to a visible surface."""
-    lo, hi = prob.p.min(0), prob.p.max(0)
+    """A regular 3D grid of candidate light positions over the scene's box (:func:`scene_box`, grown by a
+    quarter on each side), without the points closer than ``min_distance_rel`` of the extent to a visible
+    surface."""
+    lo, hi = scene_box(prob)
     pad = 0.25 * (hi - lo)
     axes = [np.linspace(lo[i] - pad[i], hi[i] + pad[i], per_axis) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
