@@ -249,3 +249,56 @@ def test_a_lost_scheduler_is_one_error_not_photos_blamed_on_workers(tmp_path):
     assert f"usdrelight: error: lost the Dask scheduler {address}" in err and "1 photo(s) not processed" in err, err
     assert "worker died" not in err and "Traceback" not in err, err
     assert "hold" not in read_manifest(out)  # not recorded as a failure: the next run takes it up
+
+
+def test_workers_that_join_a_running_batch_get_photos_at_once(tmp_path):
+    """With --scheduler, the free slots were asked for only when a photo finished (and, with no worker at the
+    start, the batch warned that the workers declare no 'photo' resource and ran unrestricted): a worker that
+    joined while the first photo ran stood idle until it finished. Photo 'a' is held on the first worker; 'b' must
+    be done on the second before 'a' is let go."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    _good(photos, "a", 31)
+    _good(photos, "b", 32)
+    env = dict(os.environ, **{TEST_HOLD_ENV: "a", "PYTHONUNBUFFERED": "1"})
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
+                              "0", "--no-dashboard", "--scheduler-file", str(tmp_path / "s.json")],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    procs = [sched]
+
+    def worker():
+        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                       "--resources", "photo=1", "--no-dashboard"], env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+    try:
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "s.json").exists():
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        time.sleep(0.5)
+        address = json.loads((tmp_path / "s.json").read_text())["address"]
+        batch = subprocess.Popen([sys.executable, "-m", "usdrelight", "batch", str(photos), "-o", str(out), "--json",
+                                  "--scheduler", address, "--max-side", "64", "--lights", "2", "--iterations", "6"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        procs.append(batch)
+        time.sleep(2.0)  # the batch starts with no worker
+        worker()
+        while not (out / ".test-hold-a").exists():
+            assert batch.poll() is None and time.monotonic() < deadline + 60, batch.stderr.read()
+            time.sleep(0.2)
+        worker()
+        while not (out / "b" / "batch.json").exists():
+            assert batch.poll() is None and time.monotonic() < deadline + 120, "b waited for a"
+            time.sleep(0.2)
+        (out / ".test-go-a").write_text("")
+        stdout, err = batch.communicate(timeout=120)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert batch.returncode == 0, err
+    summary = json.loads(stdout)
+    assert summary["done"] == 2 and summary["failed"] == 0, summary
+    assert "declare no 'photo' resource" not in err, err
+    rows = read_manifest(out)
+    assert rows["a"].worker != rows["b"].worker, (rows["a"].worker, rows["b"].worker)

@@ -75,6 +75,26 @@ def _slots(client, limit) -> int:
     return max(1, sum(int(w.get("resources", {}).get(PHOTO_RESOURCE, 0)) for w in workers))
 
 
+SLOT_POLL_S = 2.0
+"""Seconds between asks for free slots while photos wait and none finishes: workers that join a running batch
+(``dask worker`` started later, an adaptive cluster) get photos without waiting for one to finish."""
+
+
+def _finished(completed, submit_more, waiting, poll_s: float = SLOT_POLL_S):
+    """The futures of ``completed`` (distributed.as_completed) one at a time as they finish; while
+    ``waiting()`` and none finishes, ``submit_more()`` every ``poll_s`` seconds."""
+    asked = time.monotonic()
+    while not completed.is_empty():
+        batch = completed.next_batch(block=not waiting())
+        if batch:
+            yield from batch
+        elif time.monotonic() - asked >= poll_s:
+            submit_more()
+            asked = time.monotonic()
+        else:
+            time.sleep(0.05)
+
+
 def _crash_record(job: PhotoJob, exc: BaseException) -> PhotoRecord:
     text = one_line(exc)
     return PhotoRecord(job.name, "failed", job.input_hash, str(job.photo),
@@ -202,6 +222,10 @@ def _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluste
         summary.workers = len(client.scheduler_info(n_workers=-1)["workers"])
         if on_cluster is not None:
             on_cluster(summary.scheduler, summary.dashboard)
+        if not summary.workers:  # an external scheduler with no worker yet: what they declare decides below
+            log.info("batch: waiting for a worker to join %s (Ctrl-C stops)", summary.scheduler)
+            client.wait_for_workers(1)
+            summary.workers = len(client.scheduler_info(n_workers=-1)["workers"])
         log.info("batch: %d photo(s) to process on %d worker(s) (%s)", len(todo), summary.workers,
                  summary.scheduler)
         workers = client.scheduler_info(n_workers=-1)["workers"].values()
@@ -225,7 +249,7 @@ def _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluste
 
         submit_more()
         n = done0
-        for fut in completed:
+        for fut in _finished(completed, submit_more, lambda: bool(pending)):
             job = in_flight.pop(fut)
             try:
                 rec = fut.result()
