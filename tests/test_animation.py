@@ -244,3 +244,29 @@ def test_area_lights_of_a_sequence_survive_the_saved_layer(tmp_path):
     with pytest.raises(UsdRelightError, match="changes kind"):
         write_sequence_layer(tmp_path / "bad.usda", [frames[0][:1], parse_lights([specs[0][1]])])
     assert not (tmp_path / "bad.usda").exists()
+
+
+def test_contact_sheet_of_a_clip_shows_its_first_frame(animated_stage, tmp_path, cli):
+    """Before: the used mode's panel was the first frame and every other panel the last frame's lights."""
+    cli.json("relight", animated_stage, "--frames", "1:3", "--contact-sheet", "--mode", "add", "-o", tmp_path / "c")
+    cli.json("relight", animated_stage, "--time", "1", "--contact-sheet", "--mode", "add", "-o", tmp_path / "s")
+    clip, single = read_raw(tmp_path / "c" / "contact_sheet.png")[0], read_raw(tmp_path / "s" / "contact_sheet.png")[0]
+    assert clip.shape == single.shape
+    np.testing.assert_array_equal(clip, single)
+
+
+def test_a_reversed_authored_range_is_one_line(animated_stage, tmp_path, cli):
+    """Before: 'no light to relight with at any frame', 'no frame to encode' or an UnboundLocalError."""
+    import shutil
+
+    from pxr import Sdf
+
+    stage = tmp_path / "st" / animated_stage.name
+    shutil.copytree(animated_stage.parent, stage.parent)
+    layer = Sdf.Layer.FindOrOpen(str(stage))
+    layer.startTimeCode, layer.endTimeCode = 5, 1
+    layer.Save()
+    for extra in ([], ["--with-fitted"], ["--video", str(tmp_path / "v.mp4")]):
+        rc, _, err = cli("relight", stage, "--frames", "-o", tmp_path / "o", *extra)
+        assert rc == 2 and "endTimeCode (1) is before its startTimeCode (5)" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "v.mp4").exists()

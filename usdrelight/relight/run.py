@@ -234,7 +234,7 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
             raise UsdRelightError("no light to relight with at any frame: add --light, put lights in "
                                   "lights_user.usda, or pass --with-fitted")
         if contact_sheet:
-            sheet = out_dir / _contact_sheet(folder, common + plan[0][0], session, first).name
+            sheet = out_dir / _contact_sheet(folder, common + plan[0][0], plan[0][1], session, first).name
     written = [replace(f, exr=out_dir / f.exr.name, png=out_dir / f.png.name, diffuse=out_dir / f.diffuse.name)
                for f in written]
     h, w = frame.image.shape[:2]
@@ -243,13 +243,14 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
                          session.area_samples)
 
 
-def _contact_sheet(out_dir: Path, lights, session: RelightSession, used: RelitFrame) -> Path:
-    """contact_sheet.png: photo | D~ | each mode under ``lights`` (modes that cannot run are left out); ``used``:
-    the frame already rendered under ``lights`` in the session's own mode."""
+def _contact_sheet(out_dir: Path, lights, time_code, session: RelightSession, used: RelitFrame) -> Path:
+    """contact_sheet.png: photo | D~ | each mode under ``lights`` at ``time_code`` (modes that cannot run are left
+    out); ``used``: the frame already rendered there in the session's own mode."""
     panels = []
     for mode in MODES:
         try:
-            frame = used if mode == session.mode else session.render(lights, mode=mode)
+            frame = used if mode == session.mode else session.render(lights, mode=mode, time_code=time_code,
+                                                                      allow_dark=True)
         except UsdRelightError as exc:
             log.warning("contact sheet: mode %s left out (%s)", mode, exc)
             continue

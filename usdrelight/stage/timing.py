@@ -83,6 +83,9 @@ def parse_frames(text: str | None, stage=None) -> list[float]:
             raise UsdRelightError("the stage authors no time range (startTimeCode/endTimeCode): give "
                                   "--frames START:END[:STEP]")
         start, end, step = rng.start, rng.end, 1.0
+        if end < start:
+            raise UsdRelightError(f"the stage's endTimeCode ({end:g}) is before its startTimeCode ({start:g}): "
+                                  "give --frames START:END[:STEP]")
     else:
         parts = str(text).split(":")
         if len(parts) not in (2, 3):
