@@ -270,3 +270,20 @@ def test_a_reversed_authored_range_is_one_line(animated_stage, tmp_path, cli):
         rc, _, err = cli("relight", stage, "--frames", "-o", tmp_path / "o", *extra)
         assert rc == 2 and "endTimeCode (1) is before its startTimeCode (5)" in err and err.count("\n") == 1, err
     assert not (tmp_path / "o").exists() and not (tmp_path / "v.mp4").exists()
+
+
+def test_visibility_keyed_on_a_scope_is_a_light_time_code():
+    """A Scope's visibility hides the lights below it (USD and relight read no light there), but only Xformable
+    ancestors were searched for samples: the Blender converter keyed nothing and kept the light on."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    from usdrelight.stage.read import read_lights
+    from usdrelight.stage.timing import light_time_codes
+
+    stage = Usd.Stage.CreateInMemory()
+    scope = UsdGeom.Scope.Define(stage, "/Group")
+    for t, v in ((1, "inherited"), (3, "invisible"), (5, "inherited")):
+        scope.CreateVisibilityAttr().Set(v, Usd.TimeCode(t))
+    UsdLux.SphereLight.Define(stage, "/Group/Lamp").CreateIntensityAttr(3.0)
+    assert light_time_codes(stage) == [1.0, 3.0, 5.0]
+    assert [len(read_lights(stage, Usd.TimeCode(t))) for t in (1, 3, 5)] == [1, 0, 1]

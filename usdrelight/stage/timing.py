@@ -131,7 +131,7 @@ def xformable_ancestors(prim) -> list:
 def light_time_codes(stage) -> list[float]:
     """Every time code at which any light attribute or transform of ``stage`` has a sample, sorted (for
     tools that key what a stage authors, e.g. the Blender converter)."""
-    from pxr import UsdLux
+    from pxr import UsdGeom, UsdLux
 
     codes: set[float] = set()
     for prim in stage.Traverse():
@@ -141,4 +141,9 @@ def light_time_codes(stage) -> list[float]:
         for p in [prim] + xformable_ancestors(prim):
             for attr in p.GetAttributes():
                 codes.update(attr.GetTimeSamples())
+        parent = prim.GetParent()  # a Scope above transforms nothing, but its visibility hides what is below
+        while parent and not parent.IsPseudoRoot():
+            if not parent.IsA(UsdGeom.Xformable) and parent.IsA(UsdGeom.Imageable):
+                codes.update(UsdGeom.Imageable(parent).GetVisibilityAttr().GetTimeSamples())
+            parent = parent.GetParent()
     return sorted(codes)
