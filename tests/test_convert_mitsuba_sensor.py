@@ -133,3 +133,48 @@ def test_sensors_mitsuba_refuses_are_one_line_errors(cli, tmp_path, sensor, film
     rc, _, err = cli("convert", tmp_path / "bad.xml", tmp_path / "o.usda")
     assert rc == 2 and needle in err and "Traceback" not in err
     assert not (tmp_path / "o.usda").exists()
+
+
+SHEARED = """#usda 1.0
+(
+    metersPerUnit = 1
+    upAxis = "Y"
+)
+def Xform "World"
+{
+    def Sphere "Ball"
+    {
+        double radius = 0.2
+    }
+    def Xform "Rig"
+    {
+        float3 xformOp:scale = (1, 2, 1)
+        uniform token[] xformOpOrder = ["xformOp:scale"]
+        def Camera "Cam"
+        {
+            float focalLength = 35
+            float horizontalAperture = 36
+            float verticalAperture = 27
+            double3 xformOp:translate = (0, 0, 5)
+            float3 xformOp:rotateXYZ = (0, 0, 45)
+            uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateXYZ"]
+        }
+    }
+}
+"""
+
+
+def test_a_camera_under_a_stretched_parent_is_warned_and_rigid(cli, tmp_path):
+    """A rotated camera under a non-uniform scale: its axes were normalised one by one, leaving a shear (dot
+    product -0.6) that Mitsuba refuses ('Scale factors ... not allowed': the XML did not load, render failed with
+    exit 1, Blender aimed elsewhere), with no warning. Now: its position, view direction and up, unstretched."""
+    (tmp_path / "shear.usda").write_text(SHEARED)
+    rc, _, err = cli("convert", tmp_path / "shear.usda", tmp_path / "shear.xml")
+    assert rc == 0 and "camera under a non-uniform scale or shear" in err, err
+    mi = load_mitsuba()
+    m = np.array(mi.load_file(str(tmp_path / "shear.xml")).sensors()[0].world_transform().matrix, np.float64)
+    m = m.reshape(4, 4)
+    np.testing.assert_allclose(m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-6)
+    np.testing.assert_allclose(m[:3, 3], [0, 0, 5], atol=1e-6)
+    np.testing.assert_allclose(m[:3, 2], [0, 0, -1], atol=1e-6)  # still looking at the origin
+    np.testing.assert_allclose(m[:3, 1], np.array([-1, 2, 0]) / math.sqrt(5), atol=1e-6)  # USD's up: Rig x Rz(45) Y

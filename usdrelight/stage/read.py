@@ -165,9 +165,31 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
         raise UsdRelightError(f"camera {cam_prim.GetPath()}: focal length and apertures must give a finite, "
                               f"positive focal length in pixels")
     xf = _finite_xform(xcache.GetLocalToWorldTransform(cam_prim), cam_prim, mpu)
+    if not uniform_scale(xf):
+        xf = _camera_frame(xf, str(cam_prim.GetPath()))
+        warnings["camera under a non-uniform scale or shear (rendered from its position, view direction and up, "
+                 "unstretched: Mitsuba, Blender and glTF cameras cannot stretch)"] += 1
     if mpu != 1.0:  # clipping distances in metres too (intrinsics are in pixels: no unit)
         near, far = float(near) * mpu, float(far) * mpu
     return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far)), resolution
+
+
+def _camera_frame(xf: np.ndarray, path: str) -> np.ndarray:
+    """The camera transform ``xf`` without stretch or shear: the same position, view direction (-Z) and up
+    (+Y, made perpendicular to it), a mirror kept, the axes scaled by the cube root of |det| (what a uniform scale
+    would have; every consumer divides it out)."""
+    a = xf[:3, :3]
+    det = float(np.linalg.det(a))
+    z, up = a[:, 2], a[:, 1]
+    x = np.cross(up, z)
+    if abs(det) < 1e-300 or np.linalg.norm(z) < 1e-300 or np.linalg.norm(x) < 1e-12 * np.linalg.norm(up) * np.linalg.norm(z):
+        raise UsdRelightError(f"camera {path}: its transform is degenerate (a zero scale, or up along the view)")
+    z = z / np.linalg.norm(z)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    out = xf.copy()
+    out[:3, :3] = np.stack([x if det > 0 else -x, y, z], 1) * abs(det) ** (1.0 / 3.0)
+    return out
 
 
 def _shape(prim, xf, mat, t) -> ShapeRecord | None:
