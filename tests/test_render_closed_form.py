@@ -76,3 +76,18 @@ def test_off_centre_principal_point_lands_geometry_on_the_right_pixels(tmp_path)
     expected = np.zeros_like(valid)
     expected[21:26, 14:24] = True
     assert np.array_equal(valid, expected)
+
+
+def test_camera_exposure_scales_the_colour(tmp_path, cli):
+    """UsdGeom.Camera exposure (2 stops; exposure:iso 200 doubles again) scales the radiance a USD renderer
+    writes: 0.4 x 8 under the 0.8 dome. Before, it was ignored (0.4) and the XML export said nothing."""
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateIntensityAttr(0.8)
+    cam = UsdGeom.Camera(next(p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)))
+    cam.CreateExposureAttr(2.0)
+    cam.CreateExposureIsoAttr(200.0)
+    stage.GetRootLayer().Save()
+    res = render_stage(tmp_path / "s.usda", spp=64)
+    np.testing.assert_allclose(_centre(res.files["color"]), 0.4 * 8, rtol=0.03)
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.xml")
+    assert rc == 0 and "camera exposure (x8 on radiance) not carried" in err, err

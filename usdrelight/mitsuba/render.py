@@ -215,7 +215,7 @@ def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int =
     scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=spp, max_depth=max_depth, integrator=integrator), mi))
     out = {}
     if "beauty" in wanted:
-        img = render_passes(mi, scene, spp, seed, W * H)[..., :3]
+        img = render_passes(mi, scene, spp, seed, W * H)[..., :3] * np.float32(rec.camera.exposure_scale)
         out["beauty"] = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     geo = wanted - {"beauty"}
     if geo:

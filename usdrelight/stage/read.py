@@ -171,7 +171,11 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
                  "unstretched: Mitsuba, Blender and glTF cameras cannot stretch)"] += 1
     if mpu != 1.0:  # clipping distances in metres too (intrinsics are in pixels: no unit)
         near, far = float(near) * mpu, float(far) * mpu
-    return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far)), resolution
+    exposure = float(cam.ComputeLinearExposureScale(t))
+    if not (math.isfinite(exposure) and exposure > 0):
+        raise UsdRelightError(f"camera {cam_prim.GetPath()}: its exposure attributes must give a finite, positive "
+                              f"scale (got {exposure:g})")
+    return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far), exposure), resolution
 
 
 def _camera_frame(xf: np.ndarray, path: str) -> np.ndarray:

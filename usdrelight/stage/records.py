@@ -202,6 +202,10 @@ class CameraRecord:
     """Near clipping distance, metres."""
     far: float
     """Far clipping distance, metres."""
+    exposure_scale: float = 1.0
+    """The camera's exposure as a linear factor on radiance (``UsdGeom.Camera.ComputeLinearExposureScale``:
+    2^exposure x exposure:time x exposure:iso / 100 / exposure:fStop^2 x exposure:responsivity; 1 by default), as
+    a USD renderer applies it to the colour it writes."""
 
     def limited(self, max_side: int | None) -> "CameraRecord":
         """The same camera rendering at most ``max_side`` pixels on the longer side (see Intrinsics.limited)."""
