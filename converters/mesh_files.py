@@ -37,6 +37,7 @@ import numpy as np
 from usdrelight import schemas
 from usdrelight.atomic import write_bytes_atomic
 from usdrelight.errors import UsdRelightError
+from usdrelight.stage.camera import cameras_left_out
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.mesh_math import normal_inverse
@@ -124,6 +125,8 @@ def write_to_file(stage, path, **options) -> WriteReport:
     for what, n in (("camera", rec.camera is not None), ("lights", len(rec.lights)), ("gprims", len(rec.shapes))):
         if n and (what == "gprims" or fmt not in ("glb", "gltf")):  # glTF takes lights and the camera
             warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
+    if fmt in ("glb", "gltf") and rec.camera is not None:
+        warnings.update(cameras_left_out(stage, rec.camera.path, still=opts["time"] is None))
     if fmt in ("glb", "gltf"):
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)

@@ -225,3 +225,23 @@ def test_a_later_frame_that_fails_leaves_no_frame_naming_removed_meshes(tmp_path
     assert rc == 2 and "negative" in err, err
     left = sorted(p.name for p in (tmp_path / "out").rglob("*")) if (tmp_path / "out").exists() else []
     assert left == [], left
+
+
+@pytest.mark.parametrize("suffix", [".xml", ".glb"])
+def test_cameras_a_target_leaves_out_are_named(cli, tmp_path, suffix):
+    """A witness camera beside the render camera, the render camera's animation and its clippingPlanes were
+    dropped from the XML and the glb in silence."""
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    cam = next(p for p in stage.Traverse() if p.IsA(UsdGeom.Camera))
+    UsdGeom.Camera(cam).CreateClippingPlanesAttr([Gf.Vec4f(0, 0, 1, 3)])
+    UsdGeom.Camera(cam).CreateFocalLengthAttr().Set(20.0, 1)
+    UsdGeom.Camera(cam).GetFocalLengthAttr().Set(30.0, 10)
+    UsdGeom.Camera.Define(stage, "/World/Witness").AddTranslateOp().Set(Gf.Vec3d(3, 0, 5))
+    stage.GetRootLayer().Save()
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / f"a{suffix}")
+    assert rc == 0, err
+    for needle in (f"cameras other than the render camera {cam.GetPath()} (not converted: the target holds one): 1",
+                   "an animated camera (written at its first frame", "camera clippingPlanes (not applied"):
+        assert needle in err, err
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / f"b{suffix}", "--time", "5")
+    assert rc == 0 and "an animated camera" not in err and "cameras other than" in err, err

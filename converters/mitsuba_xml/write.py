@@ -29,6 +29,7 @@ from usdrelight.mitsuba.cutout import presence_map
 from usdrelight.mitsuba.scene_dict import FLIP_Z, Matrix, rgb_value, safe_name, scene_dict, texture_value
 from usdrelight.mitsuba.textures import baked_texels, merged_dome_texels, mirrored_texels, scaled_bitmap
 from usdrelight.stage.backplate import hides_emitters
+from usdrelight.stage.camera import cameras_left_out
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
@@ -188,7 +189,10 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
                "color; point lights: intensity = L [W/sr]; directional: irradiance = L. -->\n")
     if rec.up_axis == "Z":  # coordinates are the stage's (in metres): the label comes back with them
         comment += f"{UP_AXIS_Z_COMMENT}\n"
-    return WriteReport(files, dict(rec.warnings), comment + ET.tostring(root, encoding="unicode") + "\n")
+    warnings = dict(rec.warnings)
+    if rec.camera is not None:
+        warnings.update(cameras_left_out(stage, rec.camera.path, still=opts["time"] is None))
+    return WriteReport(files, warnings, comment + ET.tostring(root, encoding="unicode") + "\n")
 
 
 def write_to_file(stage, path, **options) -> WriteReport:

@@ -116,3 +116,22 @@ def intrinsics_from_usd_camera(camera, width: int, height: int, time=None, pixel
     fx = f * width / ha
     fy = f * height / va
     return Intrinsics(fx, fy, width / 2.0 - ho * fx / f, height / 2.0 + vo * fy / f, width, height)
+
+
+def cameras_left_out(stage, camera_path: str | None, still: bool) -> dict[str, int]:
+    """What a one-camera target makes of ``stage``'s cameras, as converter warnings ``{kind: count}``: the
+    cameras other than the render camera ``camera_path`` and, for a ``still`` (one frame of a stage whose time
+    the user did not choose), a render camera whose attributes or transform are time-sampled."""
+    from pxr import UsdGeom
+
+    from .timing import xformable_ancestors
+
+    out: dict[str, int] = {}
+    others = [p for p in stage.Traverse() if p.IsA(UsdGeom.Camera) and str(p.GetPath()) != camera_path]
+    if others:
+        out[f"cameras other than the render camera {camera_path} (not converted: the target holds one)"] = len(others)
+    cam = stage.GetPrimAtPath(camera_path) if camera_path else None
+    if still and cam and any(a.GetNumTimeSamples() > 1 for p in [cam] + xformable_ancestors(cam)
+                             for a in p.GetAttributes()):
+        out["an animated camera (written at its first frame: give --time T or --frames A:B for others)"] = 1
+    return out

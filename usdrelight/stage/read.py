@@ -149,6 +149,8 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
         warnings["orthographic camera (rendered as perspective)"] += 1
     if float(cam.GetFStopAttr().Get(t) or 0.0) > 0.0:
         warnings["camera fStop > 0: depth of field (rendered as a pinhole, all in focus)"] += 1
+    if len(cam.GetClippingPlanesAttr().Get(t) or ()):
+        warnings["camera clippingPlanes (not applied: only the near/far clipping range is)"] += 1
     ha, va = float(cam.GetHorizontalApertureAttr().Get(t)), float(cam.GetVerticalApertureAttr().Get(t))
     f = float(cam.GetFocalLengthAttr().Get(t))
     if not all(math.isfinite(v) and v > 0 for v in (ha, va, f)):
