@@ -287,3 +287,25 @@ def test_visibility_keyed_on_a_scope_is_a_light_time_code():
     UsdLux.SphereLight.Define(stage, "/Group/Lamp").CreateIntensityAttr(3.0)
     assert light_time_codes(stage) == [1.0, 3.0, 5.0]
     assert [len(read_lights(stage, Usd.TimeCode(t))) for t in (1, 3, 5)] == [1, 0, 1]
+
+
+@pytest.mark.parametrize("frames, rate", [("1:5", 48.0), ("1:5:2", 24.0)])
+def test_video_plays_in_the_stages_seconds(animated_stage, tmp_path, cli, frames, rate):
+    """A video of frames STEP time codes apart plays at timeCodesPerSecond / STEP, whatever framesPerSecond says
+    (before: framesPerSecond, one time code per video frame: a 48-codes-per-second stage at 24 fps played at half
+    speed, and --frames 1:48:2 twice as fast)."""
+    import shutil
+
+    from pxr import Sdf
+
+    stage = tmp_path / "st" / animated_stage.name
+    shutil.copytree(animated_stage.parent, stage.parent)
+    layer = Sdf.Layer.FindOrOpen(str(stage))
+    layer.timeCodesPerSecond, layer.framesPerSecond = 48, 24
+    layer.Save()
+    video = tmp_path / "v.mp4"
+    res = cli.json("relight", stage, "--frames", frames, "--video", video, "--max-side", "64", "--mode", "add",
+                   "-o", tmp_path / "o")
+    with av.open(str(video)) as c:
+        assert float(c.streams.video[0].average_rate) == pytest.approx(rate)
+        assert c.streams.video[0].frames == len(res["frames"])

@@ -26,7 +26,7 @@ from ..safe_paths import confined_path, writable_parent
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.light_syntax import MAX_AREA_SAMPLES
-from ..stage.timing import check_time, parse_frames, stage_fps
+from ..stage.timing import check_time, parse_frames, stage_fps, video_fps
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
 from .session import DEFAULT_MODE, RelightSession, RelitFrame
@@ -189,8 +189,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
             times = parse_frames(None, session.usd_stage)
         plan = [(extra, None) for extra in per_frame] if per_frame is not None else \
             [([], t) for t in times] if times is not None else [([], None)]
-        fps = stage_fps(session.usd_stage)
-        layer = write_sequence_layer(save_lights, per_frame, fps=fps,  # the stage's time codes: none rescaled
+        fps = video_fps(session.usd_stage, times[1] - times[0] if times is not None and len(times) > 1 else 1.0)
+        layer = write_sequence_layer(save_lights, per_frame, fps=stage_fps(session.usd_stage),  # none rescaled
                                      time_codes_per_second=session.usd_stage.GetTimeCodesPerSecond()) \
             if save_lights is not None else None
         try:

@@ -176,7 +176,7 @@ def render_video(app, progress=None) -> Path:
     tl = app.timeline
     frames, ls = tl.frames(), app.light_set()
     path = video_path(app.stage_dir)
-    with Mp4Writer(path, tl.fps) as video:
+    with Mp4Writer(path, tl.tcps) as video:  # one frame per time code, played in the stage's seconds
         for i, t in enumerate(frames, 1):
             video.add(app.live.export(replace(ls, states=tl.states_at(ls.states, t), time=t)))
             if progress is not None:

@@ -50,6 +50,20 @@ def stage_fps(stage) -> float:
     return fps
 
 
+def video_fps(stage, step: float = 1.0) -> float:
+    """Frames per second of a video whose frames lie ``step`` time codes apart, played in the stage's own time:
+    timeCodesPerSecond / step (USD's seconds; ``framesPerSecond`` is only a playback hint, and a clip at 30 of a
+    24-codes-per-second stage would play 1.25x fast). At most 1000."""
+    tcps = float(stage.GetTimeCodesPerSecond())
+    if not (math.isfinite(tcps) and tcps > 0):
+        raise UsdRelightError(f"the stage's timeCodesPerSecond must be finite and positive (got {tcps:g})")
+    fps = tcps / step
+    if not fps <= 1000:
+        raise UsdRelightError(f"frames {step:g} time codes apart at {tcps:g} time codes per second make a "
+                              f"{fps:g} fps video: at most 1000 (use a larger STEP)")
+    return fps
+
+
 def frame_time(stage, time: float | None = None):
     """The ``Usd.TimeCode`` a single frame reads: ``time`` when given, else the stage's startTimeCode when it
     authors a range, else EarliestTime (see the module docstring)."""
