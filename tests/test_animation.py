@@ -309,3 +309,28 @@ def test_video_plays_in_the_stages_seconds(animated_stage, tmp_path, cli, frames
     with av.open(str(video)) as c:
         assert float(c.streams.video[0].average_rate) == pytest.approx(rate)
         assert c.streams.video[0].frames == len(res["frames"])
+
+
+@pytest.mark.parametrize("h, w", [(48, 64), (47, 63)])
+def test_video_is_tagged_bt709_and_decodes_to_its_pngs(tmp_path, h, w):
+    """The MP4 carried no colour tags (players guess BT.709 for HD, BT.601 for SD) and was encoded with BT.601:
+    decoded as BT.709, red (231, 63, 63) came back (246, 79, 60); truncating conversion made it 1 level darker."""
+    from usdrelight.relight.video import Mp4Writer, video_frame
+
+    img = np.zeros((h, w, 3), np.float32)
+    for i, c in enumerate([(0.8, 0.05, 0.05), (0.05, 0.6, 0.05), (0.2, 0.2, 0.2), (0.05, 0.05, 0.7)]):
+        img[:, i * w // 4:(i + 1) * w // 4] = c
+    with Mp4Writer(tmp_path / "v.mp4", 24) as mp4:
+        mp4.add(img)
+    want = video_frame(img, mp4.exposure).astype(np.float64)
+    with av.open(str(tmp_path / "v.mp4")) as c:
+        cc = c.streams.video[0].codec_context
+        assert (cc.colorspace, cc.color_primaries, cc.color_trc, cc.color_range) == (1, 1, 1, 1)  # BT.709, MPEG range
+        frame = next(c.decode(video=0))
+        got = frame.reformat(format="rgb24", src_colorspace="ITU709", src_color_range="MPEG").to_ndarray()
+    inner = (slice(2, -2), slice(None))  # away from the colour edges (4:2:0 blends two pixels of chroma)
+    err = got.astype(np.float64) - want
+    assert np.abs(err).mean() < 1.5 and abs(err.mean()) < 0.8, (np.abs(err).mean(), err.mean())
+    for i in range(4):  # each stripe's centre column within 2 levels in every channel, median over its rows (BT.601: 5-23)
+        x = i * w // 4 + w // 8
+        assert np.abs(np.median(err[inner][:, x], axis=0)).max() <= 2, (i, np.median(err[inner][:, x], axis=0))

@@ -3,7 +3,8 @@
 Conventions: frames are linear RGB; each is shown as the PNGs are (sRGB), divided by one exposure for the whole
 clip, ``max(1, 99.5th percentile of the first frame)``, so brightness changes between frames stay visible and
 nothing flickers. Pixel format yuv420p (what every player decodes) when width and height are even, yuv444p
-otherwise (4:2:0 needs even sizes; the video keeps the stage's exact size either way). Quality: x264 CRF 16,
+otherwise (4:2:0 needs even sizes; the video keeps the stage's exact size either way), BT.709 matrix, limited range,
+tagged BT.709 (matrix, primaries, transfer) so that players do not guess. Quality: x264 CRF 16,
 one key frame per second. The file appears complete or not at all (:func:`usdrelight.atomic.atomic_path`).
 """
 from __future__ import annotations
@@ -20,6 +21,10 @@ from ..safe_paths import writable_parent
 
 CRF = 16
 """x264 constant rate factor (0 lossless .. 51; 16: visually lossless for relit photos)."""
+BT709 = 1
+"""FFmpeg's code of ITU-R BT.709 for the matrix, primaries (sRGB's) and transfer tags of the stream."""
+LIMITED_RANGE = 1
+"""FFmpeg's code of the MPEG (16-235) range the YUV samples use."""
 
 
 def check_video_path(path) -> Path:
@@ -59,6 +64,8 @@ class Mp4Writer:
         self._av = _av()
         self._stack = ExitStack()
         self._container = self._stream = None
+        interp = self._av.video.reformatter.Interpolation
+        self._scaler = interp.BILINEAR | interp.ACCURATE_RND  # rounded, not truncated: no 1-level darkening
 
     def __enter__(self) -> Mp4Writer:
         tmp = self._stack.enter_context(atomic_path(self.path))
@@ -78,9 +85,13 @@ class Mp4Writer:
             self._stream.width, self._stream.height = w, h
             self._stream.pix_fmt = "yuv420p" if w % 2 == 0 and h % 2 == 0 else "yuv444p"
             self._stream.options = {"crf": str(CRF), "g": str(max(1, round(self.fps)))}
+            cc = self._stream.codec_context  # tagged as encoded: players assume BT.709 for untagged HD, 601 for SD
+            cc.colorspace, cc.color_primaries, cc.color_trc, cc.color_range = BT709, BT709, BT709, LIMITED_RANGE
         elif (h, w) != (self._stream.height, self._stream.width):
             raise UsdRelightError(f"video frames change size ({self._stream.width}x{self._stream.height} -> {w}x{h})")
-        frame = self._av.VideoFrame.from_ndarray(video_frame(image, self.exposure), format="rgb24")
+        frame = self._av.VideoFrame.from_ndarray(video_frame(image, self.exposure), format="rgb24").reformat(
+            format=self._stream.pix_fmt, dst_colorspace="ITU709", dst_color_range="MPEG",
+            interpolation=self._scaler, dst_color_trc=BT709, dst_color_primaries=BT709)
         for packet in self._stream.encode(frame):
             self._container.mux(packet)
         self.frames += 1
