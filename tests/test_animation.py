@@ -334,3 +334,22 @@ def test_video_is_tagged_bt709_and_decodes_to_its_pngs(tmp_path, h, w):
     for i in range(4):  # each stripe's centre column within 2 levels in every channel, median over its rows (BT.601: 5-23)
         x = i * w // 4 + w // 8
         assert np.abs(np.median(err[inner][:, x], axis=0)).max() <= 2, (i, np.median(err[inner][:, x], axis=0))
+
+
+def test_a_range_saved_in_the_lights_layer_is_the_stages(animated_stage, tmp_path, cli):
+    """The web app saves its range into lights_user.usda; USD reads a range from the root layer only, so a bare
+    --frames said 'the stage authors no time range'. Now the strongest sublayer's range counts, in stage time
+    codes (a 48-codes-per-second layer's 2..10 is 1..5 of this 24-codes stage)."""
+    import shutil
+
+    from pxr import Sdf
+
+    from usdrelight.stage.layout import USER_LIGHTS
+
+    stage = tmp_path / "st" / animated_stage.name
+    shutil.copytree(animated_stage.parent, stage.parent)
+    layer = Sdf.Layer.FindOrOpen(str(stage.parent / USER_LIGHTS))
+    layer.startTimeCode, layer.endTimeCode, layer.timeCodesPerSecond = 2, 10, 48
+    layer.Save()
+    res = cli.json("relight", stage, "--frames", "--max-side", "32", "--mode", "add", "-o", tmp_path / "o")
+    assert [f["time"] for f in res["frames"]] == [1, 2, 3, 4, 5]

@@ -36,10 +36,23 @@ class TimeRange:
 
 
 def stage_time_range(stage) -> TimeRange | None:
-    """The stage's authored start/end time codes and framesPerSecond, or None when it authors no range."""
-    if not stage.HasAuthoredTimeCodeRange():
-        return None
-    return TimeRange(float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()), stage_fps(stage))
+    """The stage's authored start/end time codes and framesPerSecond, or None when it authors no range. The
+    root layer's range; where it authors none, that of the strongest sublayer of the root that does (the user's
+    lights layer, where the web app and the Blender route save a range), mapped to the stage's time codes by the
+    sublayer's offset and timeCodesPerSecond as USD maps its samples."""
+    if stage.HasAuthoredTimeCodeRange():
+        return TimeRange(float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()), stage_fps(stage))
+    from pxr import Sdf
+
+    root = stage.GetRootLayer()
+    for path, offset in zip(root.subLayerPaths, root.subLayerOffsets):
+        layer = Sdf.Layer.FindOrOpenRelativeToLayer(root, path)
+        if layer is None or not (layer.HasStartTimeCode() and layer.HasEndTimeCode()):
+            continue
+        scale = offset.scale * float(stage.GetTimeCodesPerSecond()) / float(layer.timeCodesPerSecond)
+        return TimeRange(offset.offset + scale * float(layer.startTimeCode),
+                         offset.offset + scale * float(layer.endTimeCode), stage_fps(stage))
+    return None
 
 
 def stage_fps(stage) -> float:
