@@ -353,3 +353,10 @@ def test_a_range_saved_in_the_lights_layer_is_the_stages(animated_stage, tmp_pat
     layer.Save()
     res = cli.json("relight", stage, "--frames", "--max-side", "32", "--mode", "add", "-o", tmp_path / "o")
     assert [f["time"] for f in res["frames"]] == [1, 2, 3, 4, 5]
+
+
+def test_a_pre_roll_range_is_read(animated_stage, tmp_path, cli):
+    """'--frames -2:0' was 'unrecognized arguments: -2:0' (argparse takes '-2:0' for an option)."""
+    res = cli.json("relight", animated_stage, "--frames", "-2:0", "--max-side", "32", "--mode", "add",
+                   "-o", tmp_path / "o")
+    assert [f["time"] for f in res["frames"]] == [-2, -1, 0]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import signal
 import sys
 import threading
@@ -194,9 +195,21 @@ def _quiet_after_interrupt() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def _joined_negative_values(argv: list[str]) -> list[str]:
+    """``--frames -3:-1`` as ``--frames=-3:-1``: argparse takes a value that starts with '-' and is not a plain
+    negative number for an option (a pre-roll range was 'unrecognized arguments')."""
+    out = []
+    for arg in argv:
+        if out and out[-1] in ("--frames", "--time") and re.fullmatch(r"-[\d.][\w.:+-]*", arg):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_joined_negative_values(sys.argv[1:] if argv is None else [str(a) for a in argv]))
     _setup_logging(args.verbose)
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if threading.current_thread() is threading.main_thread() \
         else None
