@@ -175,6 +175,8 @@ def _camera(stage, path: str, spec: dict, warnings: Counter):
         return None
     p = spec["perspective"]
     yfov, aspect = p.get("yfov"), p.get("aspectRatio", 1.5)
+    if "aspectRatio" not in p:  # glTF: the viewport's, which a file does not say
+        warnings["glTF camera without aspectRatio (the viewport's: read as 3:2, 36 x 24 mm, yfov kept)"] += 1
     near, far = p.get("znear"), p.get("zfar", FAR_DEFAULT)
     values = (yfov, aspect, near, far)
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0

@@ -166,3 +166,15 @@ def test_lights_and_camera_round_trip_through_gltf(suffix, z_up_cm, tmp_path, cl
     rigid = a.camera.to_world.copy()
     rigid[:3, :3] /= np.linalg.norm(rigid[:3, :3], axis=0)
     np.testing.assert_allclose(c.camera.to_world, turn @ rigid, atol=1e-6)
+
+
+def test_a_camera_without_aspect_ratio_is_warned(tmp_path, cli):
+    """glTF leaves a missing aspectRatio to the viewport; it was read as 3:2 in silence."""
+    cam = {"type": "perspective", "perspective": {"yfov": 0.6, "znear": 0.01}}
+    doc, binary = _floor_doc([], [], cam)
+    _glb(tmp_path / "a.glb", doc, binary)
+    rc, _, err = cli("convert", tmp_path / "a.glb", tmp_path / "a.usda")
+    assert rc == 0 and "glTF camera without aspectRatio (the viewport's: read as 3:2" in err, err
+    k = read_scene(tmp_path / "a.usda").camera.intrinsics
+    assert k.width / k.height == pytest.approx(1.5, rel=1e-3)
+    assert 2 * math.atan(k.height / (2 * k.fy)) == pytest.approx(0.6, rel=1e-3)  # yfov kept
