@@ -360,3 +360,25 @@ def test_a_pre_roll_range_is_read(animated_stage, tmp_path, cli):
     res = cli.json("relight", animated_stage, "--frames", "-2:0", "--max-side", "32", "--mode", "add",
                    "-o", tmp_path / "o")
     assert [f["time"] for f in res["frames"]] == [-2, -1, 0]
+
+
+def test_a_lights_layer_at_another_rate_is_warned(animated_stage, tmp_path, cli):
+    """A Houdini-style lights layer at 30 time codes per second in a 24 stage: USD reads its sample at 30 at 24,
+    and relight said nothing (the light stopped at frame 24 of a 1:30 clip)."""
+    import shutil
+
+    from pxr import Sdf
+
+    from usdrelight.stage.layout import USER_LIGHTS
+
+    stage = tmp_path / "st" / animated_stage.name
+    shutil.copytree(animated_stage.parent, stage.parent)
+    layer = Sdf.Layer.FindOrOpen(str(stage.parent / USER_LIGHTS))
+    layer.timeCodesPerSecond = 30
+    layer.Save()
+    rc, _, err = cli("relight", stage, "--time", "3", "--max-side", "32", "--mode", "add", "-o", tmp_path / "o")
+    assert rc == 0 and f"layer {USER_LIGHTS} has 30 time codes per second, the stage 24 (USD reads its time " \
+        "samples scaled by 0.8)" in err, err
+    rc, _, err = cli("relight", animated_stage, "--time", "3", "--max-side", "32", "--mode", "add", "-o",
+                     tmp_path / "p")
+    assert rc == 0 and "time codes per second" not in err, err

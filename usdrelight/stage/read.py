@@ -33,6 +33,7 @@ from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
 from .lux import uniform_scale
 from .read_lux import read_light
+from .timing import rescaled_layers
 from .validate import open_stage
 from .records import CameraRecord, LightRecord, MeshRecord, ProductRecord, RenderVarRecord, SceneRecord, \
     ShapeRecord
@@ -283,7 +284,7 @@ def read_scene(stage, time=None) -> SceneRecord:
         stage = open_stage(stage)
     t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
     mpu = stage_meters_per_unit(stage)
-    warnings: Counter = Counter()
+    warnings: Counter = Counter(rescaled_layers(stage))
     meshes, shapes, lights = [], [], []
     xcache = UsdGeom.XformCache(t)
     prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))

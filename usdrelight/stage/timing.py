@@ -174,3 +174,19 @@ def light_time_codes(stage) -> list[float]:
                 codes.update(UsdGeom.Imageable(parent).GetVisibilityAttr().GetTimeSamples())
             parent = parent.GetParent()
     return sorted(codes)
+
+
+def rescaled_layers(stage) -> list[str]:
+    """One line per layer of ``stage``'s root layer stack whose time samples USD reads rescaled: a sublayer that
+    authors another timeCodesPerSecond than the stage (a 30-codes lights layer in a 24-codes stage: its sample at
+    30 is read at 24). Correct USD, and easy to miss."""
+    out = []
+    tcps = float(stage.GetTimeCodesPerSecond())
+    for layer in stage.GetLayerStack(includeSessionLayers=False)[1:]:
+        # USD's effective rate of a layer: timeCodesPerSecond, else framesPerSecond, else 24
+        own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else \
+            layer.framesPerSecond if layer.HasFramesPerSecond() else 24.0
+        if float(own) != tcps and layer.ListAllTimeSamples():
+            out.append(f"layer {layer.GetDisplayName()} has {own:g} time codes per second, the stage {tcps:g} "
+                       f"(USD reads its time samples scaled by {tcps / own:g})")
+    return out
