@@ -206,6 +206,21 @@ def test_renders_are_deterministic_and_finite(proc_renderer):
     assert np.array_equal(a, b) and np.all(np.isfinite(a)) and a.min() >= 0
 
 
+@pytest.mark.parametrize("kind", sorted(AREA_RECORDS))
+def test_a_light_that_moves_a_little_keeps_its_sample_pattern(proc_renderer, kind):
+    """Area lights drew their samples from a stream seeded by the light's content: moving one by 0.1 mm changed
+    its noise everywhere (a sphere light: 0.46% mean change, 35% at a pixel); seeded by its path, the change is
+    the light's own (0.005%)."""
+    from dataclasses import replace as _replace
+
+    _, fr = proc_renderer
+    light = AREA_RECORDS[kind]
+    moved = light.to_world.copy()
+    moved[0, 3] += 1e-4
+    a, b = fr.render([light]).beauty, fr.render([_replace(light, to_world=moved)]).beauty
+    assert np.abs(a - b).mean() < 5e-4 * a.mean(), np.abs(a - b).mean() / a.mean()
+
+
 def test_cache_is_reused_and_invalidated(procedural, tmp_path):
     import shutil
 

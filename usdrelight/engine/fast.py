@@ -14,8 +14,9 @@ is taken in the order of the lights, and the partial sum of the lights a frame s
 before (the kept ones: the fitted lights ahead of a moving one) is kept too, keyed by those lights' content, so
 such a frame adds only the lights after them; a frame's sum is bit for bit the one a fresh renderer makes. The
 light-independent AOVs (albedo, valid, coverage) are made once and copied into each frame. Lights that sample
-(area lights, a sun with an angular diameter) draw from a random stream seeded by their key, so a frame never
-depends on what was rendered before it. Stages with mesh lights (MeshLightAPI) or non-Lambertian materials are
+(area lights, a sun with an angular diameter) draw from a random stream seeded by their path and kind, so a frame
+never depends on what was rendered before it, and a light that moves keeps its sample pattern (no noise from frame
+to frame). Stages with mesh lights (MeshLightAPI) or non-Lambertian materials are
 refused (:func:`usdrelight.engine.open_renderer` falls back to Mitsuba with one warning).
 """
 from __future__ import annotations
@@ -88,9 +89,10 @@ def check_area_samples(n) -> int:
 
 
 def light_key(light: LightRecord) -> bytes:
-    """Everything but the radiance that decides a light's direct term, as bytes (a cache key)."""
+    """Everything but the radiance that decides a light's direct term, as bytes (a cache key): its path too, which
+    seeds a sampling light's pattern."""
     tex = light.texture
-    values = (light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
+    values = (light.path, light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
               light.treat_as_point, light.cone_angle_deg, light.cone_softness,
               None if tex is None else (tex.path, tex.color_space, tex.scale, tex.bias, tex.channel))
     return repr(values).encode() + np.asarray(light.to_world, np.float64).tobytes()
@@ -206,8 +208,11 @@ class FastRenderer:
                       else (self._terms, self.settings.direct_terms))
         term = kept.pop(key, None)
         if term is None:
-            # seeded by the light alone: a preview at n rays is the frame of a renderer whose count is n
-            seed = int.from_bytes(hashlib.sha256(base).digest()[:8], "little") ^ self.settings.seed
+            # seeded by the light's path and kind, not its content: a light that moves a little keeps its sample
+            # pattern (no frame-to-frame noise on a moving area light), and a preview at n rays is the frame of a
+            # renderer whose count is n
+            ident = f"{light.kind}|{light.path}".encode()
+            seed = int.from_bytes(hashlib.sha256(ident).digest()[:8], "little") ^ self.settings.seed
             term = self._direct_unit(replace(light, radiance=np.ones(3)), np.random.default_rng(seed), samples)
         kept[key] = term  # most recently used last
         while len(kept) > max(most, 0):

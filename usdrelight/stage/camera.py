@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..intrinsics import Intrinsics
+from .timing import xformable_ancestors
 
 SENSOR_WIDTH_MM = 36.0
 OPENCV_TO_USD = np.diag([1.0, -1.0, -1.0])
@@ -123,8 +124,6 @@ def cameras_left_out(stage, camera_path: str | None, still: bool) -> dict[str, i
     cameras other than the render camera ``camera_path`` and, for a ``still`` (one frame of a stage whose time
     the user did not choose), a render camera whose attributes or transform are time-sampled."""
     from pxr import UsdGeom
-
-    from .timing import xformable_ancestors
 
     out: dict[str, int] = {}
     others = [p for p in stage.Traverse() if p.IsA(UsdGeom.Camera) and str(p.GetPath()) != camera_path]
