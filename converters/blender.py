@@ -40,7 +40,9 @@ from .blender_photo import photo_stage_payload, script_text, with_snapshot
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
 from .blender_animation import author_keys, light_keys, object_keys, scene_animation
 from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
-                            foreign_unit_scale, light_to_blender, spot_blend, stage_units)
+                            focal_length, foreign_unit_scale, light_to_blender, not_read_warning, spot_blend,
+                            stage_units)
+from .blender_units import camera_lens as _lens
 from .report import ReadReport, WriteReport, check_options
 
 NAME = "Blender"
@@ -59,18 +61,6 @@ CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "h
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
-def _lens(camera) -> dict:
-    """A Blender camera's lens of a USD camera record: a 36 mm-wide sensor (sensor_fit HORIZONTAL), the focal
-    length giving the record's fx, shifts from the principal point, clipping in metres."""
-    k = camera.intrinsics
-    f = 36.0 * k.fx / k.width
-    sw = k.width * f / k.fx
-    return {"lens": f, "sensor_width": sw, "shift_x": (k.width / 2 - k.cx) * f / k.fx / sw,
-            "shift_y": (k.cy - k.height / 2) * f / k.fy / sw, "clip_start": max(camera.near, 1e-6),
-            "clip_end": camera.far}
-
-
-
 def _shape_mesh(shape) -> MeshRecord:
     """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
     :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
@@ -117,7 +107,8 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     """JSON-able description of the stage for the Blender script; mesh arrays go to ``data_dir``. ``time``: a
     still at that USD time code; None: the stage's default frame with its lights' time samples as keyframes
     (:mod:`.blender_animation`)."""
-    rec = read_scene(stage, frame_time(stage, time))
+    t0 = frame_time(stage, time)
+    rec = read_scene(stage, t0)
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
     mats, meshes = {}, []
@@ -154,7 +145,8 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     cam = None
     if rec.camera is not None:
         cam = {"name": rec.camera.path.strip("/").replace("/", "_") or "Camera", "usd_path": rec.camera.path,
-               **_lens(rec.camera), "matrix": (conv @ rec.camera.to_world).tolist()}
+               **_lens(rec.camera, focal_length(stage, rec.camera.path, t0), rec.warnings),
+               "matrix": (conv @ rec.camera.to_world).tolist()}
         k = rec.camera.intrinsics
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
@@ -162,9 +154,12 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         codes = sorted({c for n in CAMERA_LENS_ATTRS for c in lens.GetAttribute(n).GetTimeSamples()}) \
             if time is None and lens else []
         if len(codes) > 1:  # a zoom: the lens keyed at the samples' time codes (linear, as USD interpolates)
-            cam["lens_keys"] = [{"frame": float(c), **_lens(read_camera(stage, c))} for c in codes]
+            cam["lens_keys"] = [{"frame": float(c), **_lens(read_camera(stage, c),
+                                                             focal_length(stage, rec.camera.path, c), rec.warnings)}
+                                for c in codes]
     lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
-    animation = light_keys(stage, lights, rec.up_axis, rec.warnings) if time is None else None
+    late = []  # lights invisible at the default frame, shown later (keyed hidden until then)
+    animation = light_keys(stage, lights, rec.up_axis, rec.warnings, late) if time is None else None
     if time is None:  # the camera and rigid meshes follow their transforms' samples
         for m in meshes:
             m["baked"] = True
@@ -174,7 +169,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
             animation = scene_animation(stage, sorted(set(codes) | set(light_time_codes(stage))))
     if set(mesh_lights) - emitting:
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
-    for l in rec.lights:
+    for l in list(rec.lights) + late:
         _lux_warnings(l, rec.warnings)
     for kind in (OPACITY_WARNING, EMISSIVE_WARNING):  # Cycles renders both (blender_materials)
         rec.warnings.pop(kind, None)
@@ -245,6 +240,7 @@ def blender_lights(path) -> BlenderLights:
     lights.stage = dump["stage"]
     lights.animation = dump.get("animation")
     lights.unit_scale = dump.get("unit_scale", 1.0)
+    lights.not_read = dump.get("not_read") or {}
     return lights
 
 
@@ -291,7 +287,8 @@ def read_from_file(path, **options) -> ReadReport:
     Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
     folded into the colour, diffuse / specular factors become UsdLux ``diffuse`` / ``specular``. What UsdLux has
-    no place for is in the report's warnings, one per kind (``UNREAD``). Options: :data:`READ_OPTIONS` (the
+    no place for is in the report's warnings, one per kind (``UNREAD``); the scene's other objects (meshes,
+    cameras, ...; empties aside) are not read, counted in one warning line. Options: :data:`READ_OPTIONS` (the
     layer at ``usd_path``, or in memory)."""
     from pxr import Gf, UsdGeom, UsdLux
 
@@ -299,6 +296,9 @@ def read_from_file(path, **options) -> ReadReport:
     lights = blender_lights(path)
     up, mpu = stage_units(getattr(lights, "stage", None))
     warnings = Counter()
+    skipped = not_read_warning(getattr(lights, "not_read", None) or {}, Path(path).name)
+    if skipped:
+        warnings[skipped] += 1
     unit = foreign_unit_scale(lights)
     if unit != 1.0:  # a .blend made otherwise, modelled in its own unit: the layer is in that unit
         mpu = unit

@@ -3,13 +3,18 @@
 USD -> Blender (:func:`light_keys`): every time code at which a light attribute or a light's transform has a
 sample becomes a keyframe of the Blender light at the same frame number (Blender frame = USD time code, as
 Blender's own USD exporter maps them; fractional time codes are sub-frame keys): its object's location and
-rotation (quaternion), and its data's energy, colour, spot size / blend, size and angle, all with linear
-interpolation (USD's default), and at every whole frame between samples too when a light turns (so that Blender's
-interpolation of the quaternion follows USD's of the xform ops); a light invisible at a time code is
-``hide_render`` there. An animated DomeLight keys the World: its colour x intensity (0 where invisible) and its
-texture's rotation (the mapping node's Euler angles, kept continuous); a texture file that changes over time keeps
-the first frame's (one warning). The scene gets the stage's start/end time codes (else the keys' span) and
-framesPerSecond. The camera's lens (focal length, apertures, clipping) is keyed at its samples' time codes.
+rotation (quaternion), and its data's energy (W), colour, spot size / blend, size (m) and angle (rad), all with
+linear interpolation (USD's default); and at every whole frame between samples too when Blender's linear
+interpolation of those values is not USD's: a light that turns or scales (the quaternion vs USD's xform ops), or
+whose exposure (2^x), colorTemperature (a blackbody colour), colour, radius (power ~ r^2), cone or held values
+(enableColorTemperature, normalize, treatAsPoint, visibility) change. Where a held value that sets the emission
+changes, the key before keeps the light's values (CONSTANT). A light invisible at a time code is ``hide_render``
+and ``hide_viewport`` there (held); the lights are read at every keyed time, so one invisible at the first frame
+is in the .blend too, hidden until it shows. An animated DomeLight keys the World: its colour x intensity (0 where
+invisible, held) and its texture's rotation (the mapping node's Euler angles, kept continuous); a texture file
+that changes over time keeps the first frame's (one warning). The scene gets the stage's start/end time codes
+(else the keys' span) and framesPerSecond. The camera's lens (focal length, apertures, clipping) is keyed at its
+samples' time codes.
 
 The camera and the meshes follow their transforms the same way (:func:`object_keys`): a keyframe of the object's
 world matrix at every time code where its transform or an ancestor's has a sample (location, rotation as a
@@ -17,10 +22,11 @@ quaternion, scale; linear). A mesh's points are written once, at the first frame
 themselves are time-sampled (a deforming cache) keeps that shape (one warning).
 
 Blender -> USD (:func:`author_keys`): a light whose object or data has keyframes is read at each keyframe's
-frame (Blender evaluates its fcurves) and written as time samples at that time code: the transform, intensity
-and colour, cone, radius / size / angle; the layer gets the scene's frame range and frames per second, and the
-source stage's timeCodesPerSecond when the .blend was made from one (a sublayer whose timeCodesPerSecond differs
-from its stage's would have its samples rescaled).
+frame (Blender evaluates its fcurves), and at every whole frame of its keyed span when a curve is not LINEAR
+(Blender's default Bezier easing, CONSTANT: the light dump, ``blender_dump.py.txt``), and written as time samples
+at that time code: the transform, intensity and colour, cone, radius / size / angle; the layer gets the scene's
+frame range and frames per second, and the source stage's timeCodesPerSecond when the .blend was made from one
+(a sublayer whose timeCodesPerSecond differs from its stage's would have its samples rescaled).
 """
 from __future__ import annotations
 
@@ -40,35 +46,104 @@ KEYED = ("matrix", "color", "power", "strength", "spot_size", "spot_blend", "rad
 DOME_WARNING = "DomeLight texture file changing over time in Blender (the first frame's file is used)"
 
 
-def light_keys(stage, lights: list[dict], up_axis: str, warnings) -> dict | None:
-    """Add ``keys`` (a list of {frame, hidden, KEYED values}) to each light record of ``lights`` (the
+def light_keys(stage, lights: list[dict], up_axis: str, warnings, found: list | None = None) -> dict | None:
+    """Add ``keys`` (a list of {frame, hidden, hold, KEYED values}) to each light record of ``lights`` (the
     light_to_blender records of the default frame, by ``usd_path``) whose values change over the stage's time
-    samples; returns the scene's animation settings {frame_start, frame_end, fps}, or None without samples."""
-    codes = light_time_codes(stage)
+    samples; returns the scene's animation settings {frame_start, frame_end, fps}, or None without samples.
+
+    The lights are read at every keyed time and taken together by prim path: a light invisible at the default
+    frame is appended to ``lights`` (its record from its first visible time, ``hidden_at_start``; its LightRecord
+    to ``found``), keyed hidden where it is absent. A light is keyed at every time code with a sample, and at every whole frame between them
+    when Blender's linear interpolation of its keys would not be USD's (:func:`_light_motion`); ``hold`` on a key:
+    a held (step) value changes at the next key, so Blender keeps this key's emission until then (CONSTANT)."""
+    motion = {str(p.GetPath()): _light_motion(p) for p in _light_prims(stage)}
+    codes = sorted(set(light_time_codes(stage)).union(*(m[2] for m in motion.values())))
     if len(codes) < 2:
         return None
     by_path = {d["usd_path"]: d for d in lights}
-    keys: dict[str, list] = {p: [] for p in by_path}
-    prims = [stage.GetPrimAtPath(p) for p in by_path]
-    curved = any(_xform_codes(p)[1] for p in prims if p)  # a turning light: keyed at every whole frame too
-    for t in _key_frames(codes, curved):
-        now = {l.path: l for l in read_lights(stage, t) if l.kind != "mesh"}
-        for path in by_path:
-            rec = now.get(path)
-            key = {"frame": float(t), "hidden": rec is None}
+    frames = {p: _key_frames(codes, motion.get(p, (False,))[0]) for p in list(by_path) + list(motion)}
+    reads = {t: {l.path: l for l in read_lights(stage, t) if l.kind != "mesh"}
+             for t in sorted(set().union(*frames.values()))}
+    for path in motion:  # lights not seen at the default frame: from their first visible time
+        first = next((reads[t][path] for t in frames[path] if path in reads[t]), None)
+        if path not in by_path and first is not None:
+            d = light_to_blender(first, up_axis)
+            d["hidden_at_start"] = True
+            if d["type"] == "WORLD":
+                d["rgb"] = [0.0, 0.0, 0.0]
+            lights.append(d)
+            by_path[path] = d
+            if found is not None:
+                found.append(first)
+    for path, rec_d in by_path.items():
+        dense, steps, _ = motion.get(path, (False, set(), set()))
+        seq = []
+        fr = frames[path]
+        for i, t in enumerate(fr):
+            rec = reads[t].get(path)
+            key = {"frame": float(t), "hidden": rec is None,
+                   "hold": i + 1 < len(fr) and any(t < s <= fr[i + 1] for s in steps)}
             if rec is not None:
                 d = light_to_blender(rec, up_axis)
                 key.update({k: d[k] for k in KEYED if k in d})
                 if d["type"] == "WORLD":
                     key.update({k: d[k] for k in ("rgb", "rotation", "texture") if k in d})
-            keys[path].append(key)
-    for path, seq in keys.items():
+            seq.append(key)
+        if rec_d["type"] == "WORLD":  # the World's colour is 0 where the dome is invisible: held until the next key
+            for a, b in zip(seq, seq[1:]):
+                a["hold"] |= a["hidden"] != b["hidden"]
         values = [{k: v for k, v in key.items() if k != "frame"} for key in seq]
-        if any(v != values[0] for v in values[1:]):
+        if any(v != values[0] for v in values[1:]) or rec_d.get("hidden_at_start"):
             if len({key.get("texture") for key in seq if not key["hidden"]}) > 1:
                 warnings[DOME_WARNING] += 1
-            by_path[path]["keys"] = seq
+            rec_d["keys"] = seq
     return scene_animation(stage, codes)
+
+
+#: Light attributes of which Blender's value is linear (when only one of them changes): keyed at the samples.
+LINEAR_ALONE = ("inputs:intensity", "inputs:width", "inputs:height", "inputs:angle")
+
+
+def _light_prims(stage) -> list:
+    """The stage's UsdLux lights that are not meshes (instance proxies included), as read_lights finds them."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    return [p for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+            if (p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
+            and not p.IsA(UsdGeom.Mesh)]
+
+
+def _light_motion(prim) -> tuple[bool, set[float], set[float]]:
+    """(dense, steps, codes) of a light prim: ``dense``, whether its keys need every whole frame between samples:
+    it turns or scales (:func:`_xform_codes`), or an attribute changes that USD holds (bool, token, asset: e.g.
+    enableColorTemperature, normalize, treatAsPoint, visibility, its own or an ancestor's) or that Blender's value
+    is not linear in (exposure as 2^x, colorTemperature as a blackbody colour, colour, radius as r^2, cone,
+    shaping, or two of :data:`LINEAR_ALONE` at once); ``steps``, the time codes where a held value that sets its
+    emission changes (visibility not included: hide_render is a held key in Blender); ``codes``, the sample times
+    of its ancestors' visibility (read_lights hides a light under an invisible Scope)."""
+    from pxr import Sdf, Usd
+
+    _, dense = _xform_codes(prim)
+    held_stage = prim.GetStage().GetInterpolationType() == Usd.InterpolationTypeHeld
+    steps: set[float] = set()
+    codes: set[float] = set()
+    alone = 0
+    p = prim
+    while p and not p.IsPseudoRoot():
+        for attr in p.GetAttributes():
+            name, samples = attr.GetName(), attr.GetTimeSamples()
+            if len(samples) < 2 or name.startswith("xformOp:") or (p != prim and name != "visibility"):
+                continue
+            if p != prim:
+                codes.update(samples)
+            values = [attr.Get(t) for t in samples]
+            held = held_stage or isinstance(values[0], (bool, int, str, Sdf.AssetPath))
+            if held and name != "visibility":
+                steps.update(t for a, b, t in zip(values, values[1:], samples[1:]) if a != b)
+            alone += name in LINEAR_ALONE
+            dense |= held or name not in LINEAR_ALONE
+        p = p.GetParent()
+    return dense or alone > 1, steps, codes
 
 
 def scene_animation(stage, codes: list[float]) -> dict:

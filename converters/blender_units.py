@@ -140,6 +140,37 @@ def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
     return d
 
 
+def camera_lens(camera, focal_length: float, warnings=None) -> dict:
+    """A Blender camera's lens of a USD camera record: lens = the camera's ``focal_length`` (USD focalLength,
+    taken as mm), sensor_fit HORIZONTAL, sensor_width = the horizontal aperture (mm) the record's fx gives at its
+    image width (horizontalAperture, or the aperture conformed to the RenderSettings' aspect), so that the
+    projection is the record's exactly for a landscape or a portrait image; shifts from the principal point
+    (fractions of the image width), clipping in metres. Blender takes no lens or sensor below 1 mm: both are then
+    scaled up together (the same projection; one warning in ``warnings``)."""
+    k = camera.intrinsics
+    f = float(focal_length)
+    sw = k.width * f / k.fx
+    if min(f, sw) < 1.0:
+        if warnings is not None:
+            warnings[LENS_SCALED] = 1
+        f, sw = f / min(f, sw), sw / min(f, sw)
+    return {"lens": f, "sensor_width": sw, "shift_x": (k.width / 2 - k.cx) / k.width,
+            "shift_y": (k.cy - k.height / 2) * k.fx / k.fy / k.width, "clip_start": max(camera.near, 1e-6),
+            "clip_end": camera.far}
+
+
+#: Warned when a camera's focal length or aperture is below Blender's 1 mm (both scaled, same projection).
+LENS_SCALED = ("camera focalLength or horizontalAperture below Blender's 1 mm (lens and sensor width scaled up "
+               "together: the same projection)")
+
+
+def focal_length(stage, path: str, time) -> float:
+    """The USD camera's focalLength at ``time`` (a time code or ``Usd.TimeCode``)."""
+    from pxr import Usd, UsdGeom
+
+    return float(UsdGeom.Camera(stage.GetPrimAtPath(path)).GetFocalLengthAttr().Get(Usd.TimeCode(time)))
+
+
 def blender_emission(b: dict, area: float) -> float:
     """What a Blender light record emits, in the UsdLux unit of the light it becomes (Cycles, bpy 5.0.1, measured).
 
@@ -173,6 +204,21 @@ class BlenderLights(list):
     (``scene["usdrelight_stage"]``), None for a .blend made otherwise; ``unit_scale``: the scene's unit scale."""
     stage: dict | None = None
     unit_scale: float = 1.0
+    not_read: dict = {}
+    """Objects of the scene that are not lights (nor empties), by Blender type: {"MESH": 2, "CAMERA": 1}."""
+
+
+def not_read_warning(counts: dict, name: str) -> str | None:
+    """The one warning line for the objects of a .blend that the reader does not carry (``counts``: Blender
+    object type -> number, :attr:`BlenderLights.not_read`); None when there are none."""
+    words = {"MESH": "mesh object", "CAMERA": "camera"}
+    order = [t for t in words if t in counts] + sorted(t for t in counts if t not in words)
+    parts = [f"{int(counts[t])} {words.get(t, str(t).lower().replace('_', ' ') + ' object')}"
+             f"{'' if int(counts[t]) == 1 else 's'}" for t in order if int(counts[t]) > 0]
+    if not parts:
+        return None
+    listed = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    return f"{listed} in {name} are not read: .blend -> USD carries lights only"
 
 
 def stage_units(meta) -> tuple[str, float]:

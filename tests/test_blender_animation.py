@@ -98,7 +98,9 @@ def test_cycles_at_frames_agrees_with_mitsuba_at_time_codes(animated):
 
 
 def test_a_keyframed_blend_gives_time_samples_equal_to_its_keys(tmp_path):
-    """A .blend keyed in Blender itself (no usdrelight stage behind it): location and power at frames 1, 5, 9."""
+    """A .blend keyed in Blender itself (no usdrelight stage behind it): location and power at frames 1, 5, 9
+    (Blender's default Bezier keys: read at every frame from 1 to 9, so USD's linear interpolation follows the
+    easing; tests/test_blender_probe_fixes.py checks the frames between)."""
     script = tmp_path / "make.py"
     script.write_text(r'''
 import bpy, sys
@@ -120,7 +122,7 @@ bpy.ops.wm.save_as_mainfile(filepath=args[0])
     run_blender(script, str(tmp_path / "keyed.blend"))
     stage = read_from_file(tmp_path / "keyed.blend").stage
     prim = stage.GetPrimAtPath("/Scene/Lights/User/Key")
-    assert prim.GetAttribute("xformOp:transform").GetTimeSamples() == [1.0, 5.0, 9.0]
+    assert prim.GetAttribute("xformOp:transform").GetTimeSamples() == [float(f) for f in range(1, 10)]
     for f, x, p in ((1, 0.0, 100.0), (5, 1.0, 200.0), (9, 3.0, 50.0)):
         rec = read_lights(stage, f)[0]
         # Blender Z-up (x, 2, 1.5) -> USD Y-up (x, 1.5, -2); a point light of P watts: I = P / (4 pi) W/sr
@@ -257,7 +259,7 @@ def test_a_zoom_a_turning_textured_dome_and_a_turning_spot_are_keyed_in_blender(
     irradiance)."""
     from usd_scenes import asymmetric_latlong
 
-    from usdrelight.converters.blender import _lens
+    from usdrelight.converters.blender_units import camera_lens, focal_length
     from usdrelight.converters.blender_units import Y_UP_TO_Z_UP, light_to_blender
     from usdrelight.imageio import write_image
     from usdrelight.stage.lux import light_direction
@@ -308,7 +310,7 @@ def SphereLight "Spot" (prepend apiSchemas = ["ShapingAPI"]) {
     got = {int(k): v for k, v in json.loads((tmp_path / "p.json").read_text()).items()}
     stage = open_stage(tmp_path / "s.usda")
     for f, g in got.items():
-        want = _lens(read_camera(stage, f))
+        want = camera_lens(read_camera(stage, f), focal_length(stage, "/Cam", f))
         assert g["lens"] == pytest.approx(want["lens"], rel=1e-5) and g["lens"] == pytest.approx(20 + 20 * (f - 1) / 9)
         assert g["shift_x"] == pytest.approx(want["shift_x"], abs=1e-5), f
         lights = {l.kind: l for l in read_lights(stage, f)}
