@@ -29,6 +29,7 @@ from usdrelight.errors import UsdRelightError
 from usdrelight.stage.create import create_stage
 from usdrelight.stage.layout import FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, USER_LIGHTS_SCOPE
 from usdrelight.stage.lux import emitted_radiance, set_light_rgb
+from usdrelight.stage.camera import cameras_left_out
 from usdrelight.stage.read import ellipsoid_mesh, read_camera, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
@@ -174,7 +175,10 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     for kind in (OPACITY_WARNING, EMISSIVE_WARNING):  # Cycles renders both (blender_materials)
         rec.warnings.pop(kind, None)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
-    payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth},
+    if rec.camera is not None:  # Blender keys the camera's animation: only the other cameras are left out
+        rec.warnings.update(cameras_left_out(stage, rec.camera.path, still=False))
+    exposure = rec.camera.exposure_scale if rec.camera is not None else 1.0  # Cycles' film exposure: linear
+    payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth, "film_exposure": exposure},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
                "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis,
                          "timeCodesPerSecond": float(stage.GetTimeCodesPerSecond())},

@@ -273,3 +273,43 @@ def test_camera_lens_is_the_focal_length_and_projects_as_usd(cli, tmp_path, name
     read = read_from_file(tmp_path / f"{name}.blend")
     assert read.warnings == {f"1 mesh object and 1 camera in {name}.blend are not read: .blend -> USD carries "
                              "lights only": 1}
+
+
+EXPOSED = '''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+def Camera "Cam" {
+    float exposure = 2
+    float exposure:iso = 200
+    double3 xformOp:translate = (0, 1, 4)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+def Camera "Witness" {
+    double3 xformOp:translate = (3, 1, 4)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+def Sphere "Ball" {
+}
+'''
+
+FILM_PROBE = '''import bpy, json, sys
+argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=argv[0])
+s = bpy.context.scene
+json.dump({"film_exposure": s.cycles.film_exposure, "cameras": sorted(o.name for o in s.objects
+                                                                      if o.type == "CAMERA")}, open(argv[1], "w"))
+'''
+
+
+def test_camera_exposure_is_cycles_film_exposure_and_other_cameras_are_named(tmp_path):
+    """The USD camera's exposure (2 stops, iso 200: x8 on radiance) was dropped in the .blend (film exposure 1) and
+    a second camera left out, both in silence."""
+    (tmp_path / "s.usda").write_text(EXPOSED)
+    res = convert(tmp_path / "s.usda", tmp_path / "s.blend")
+    assert res.write_warnings.get("cameras other than the render camera /Cam (not converted: the target holds one)") == 1
+    (tmp_path / "probe.py").write_text(FILM_PROBE)
+    run_blender(tmp_path / "probe.py", str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
+    got = json.loads((tmp_path / "p.json").read_text())
+    assert got["film_exposure"] == pytest.approx(8.0, rel=1e-6) and got["cameras"] == ["Cam"]
