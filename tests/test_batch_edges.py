@@ -302,3 +302,19 @@ def test_workers_that_join_a_running_batch_get_photos_at_once(tmp_path):
     assert "declare no 'photo' resource" not in err, err
     rows = read_manifest(out)
     assert rows["a"].worker != rows["b"].worker, (rows["a"].worker, rows["b"].worker)
+
+
+def test_folders_of_photos_no_longer_there_are_named(tmp_path, caplog):
+    """A photo removed from the photo folder: its output folder stayed and the manifest dropped its row, with no
+    word. Now the summary and one warning name it (the folder is kept: it is the user's to delete)."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    _good(photos, "a", 41)
+    _good(photos, "b", 42)
+    first = run_batch(photos, out, BatchOptions(workers=1, **FAST))
+    assert first.done == 2 and first.orphaned == []
+    for f in photos.glob("b*"):
+        f.unlink()
+    second = run_batch(photos, out, BatchOptions(workers=1, **FAST))
+    assert second.skipped == 1 and second.orphaned == ["b"]
+    assert (out / "b").is_dir() and sorted(read_manifest(out)) == ["a"]
+    assert "1 folder(s) in" in caplog.text and "no longer in" in caplog.text

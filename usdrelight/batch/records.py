@@ -176,6 +176,9 @@ class BatchSummary:
     """Workers the cluster had when the run started."""
     refused: int = 0
     """Files of the photo folder not processed (listed in ``per_photo`` and the manifest with their reason)."""
+    orphaned: list = field(default_factory=list)
+    """Names of output folders an earlier run made for photos no longer in the photo folder: kept as they are,
+    no longer in the manifest (delete them yourself)."""
     per_photo: list = field(default_factory=list)
     """[{name, outcome (done | failed | skipped | refused), seconds, build_seconds, fit_seconds, fit_psnr_db,
     error}]; a refused file's error says why."""

@@ -170,6 +170,12 @@ def _locked(photos, refused, out, options, workers, progress, on_cluster, on_ref
                            done=0, failed=0, skipped=len(jobs) - len(todo), manifest_done=0, manifest_failed=0,
                            seconds=0.0, cluster_seconds=0.0, scheduler=None, dashboard=None, workers=0,
                            refused=len(refused), per_photo=per_photo)
+    here = {p.stem for p in photos} | {p.stem for p, _ in refused}
+    summary.orphaned = sorted(n for n in previous if n not in here and (out / n).is_dir())
+    if summary.orphaned:
+        log.warning("batch: %d folder(s) in %s were made for photos no longer in %s (kept, left out of the manifest): "
+                    "%s", len(summary.orphaned), out, photos[0].parent if photos else "the photo folder",
+                    ", ".join(summary.orphaned[:10]) + (" ..." if len(summary.orphaned) > 10 else ""))
     if todo:
         _run(todo, options, workers, rows, summary, out, progress, on_cluster, len(jobs) - len(todo), len(jobs))
     write_manifest(out, rows)
