@@ -126,7 +126,7 @@ def write_to_file(stage, path, **options) -> WriteReport:
         if n and (what == "gprims" or fmt not in ("glb", "gltf")):  # glTF takes lights and the camera
             warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     if fmt in ("glb", "gltf") and rec.camera is not None:
-        warnings.update(cameras_left_out(stage, rec.camera.path, still=opts["time"] is None))
+        warnings.update(cameras_left_out(stage, rec.camera, still=opts["time"] is None))
     if fmt in ("glb", "gltf"):
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)

@@ -236,12 +236,14 @@ def test_cameras_a_target_leaves_out_are_named(cli, tmp_path, suffix):
     UsdGeom.Camera(cam).CreateClippingPlanesAttr([Gf.Vec4f(0, 0, 1, 3)])
     UsdGeom.Camera(cam).CreateFocalLengthAttr().Set(20.0, 1)
     UsdGeom.Camera(cam).GetFocalLengthAttr().Set(30.0, 10)
+    UsdGeom.Camera(cam).CreateExposureAttr(1.0)
     UsdGeom.Camera.Define(stage, "/World/Witness").AddTranslateOp().Set(Gf.Vec3d(3, 0, 5))
     stage.GetRootLayer().Save()
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / f"a{suffix}")
     assert rc == 0, err
     for needle in (f"cameras other than the render camera {cam.GetPath()} (not converted: the target holds one): 1",
-                   "an animated camera (written at its first frame", "camera clippingPlanes (not applied"):
+                   "an animated camera (written at its first frame", "camera clippingPlanes (not applied",
+                   "camera exposure (x2 on radiance; not carried: the target has none): 1"):
         assert needle in err, err
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / f"b{suffix}", "--time", "5")
     assert rc == 0 and "an animated camera" not in err and "cameras other than" in err, err

@@ -89,5 +89,6 @@ def test_camera_exposure_scales_the_colour(tmp_path, cli):
     stage.GetRootLayer().Save()
     res = render_stage(tmp_path / "s.usda", spp=64)
     np.testing.assert_allclose(_centre(res.files["color"]), 0.4 * 8, rtol=0.03)
+    assert not any("exposure" in w for w in res.warnings), res.warnings  # render applies it
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.xml")
-    assert rc == 0 and "camera exposure (x8 on radiance) not carried" in err, err
+    assert rc == 0 and "camera exposure (x8 on radiance; not carried: the target has none)" in err, err

@@ -191,7 +191,7 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
         comment += f"{UP_AXIS_Z_COMMENT}\n"
     warnings = dict(rec.warnings)
     if rec.camera is not None:
-        warnings.update(cameras_left_out(stage, rec.camera.path, still=opts["time"] is None))
+        warnings.update(cameras_left_out(stage, rec.camera, still=opts["time"] is None))
     return WriteReport(files, warnings, comment + ET.tostring(root, encoding="unicode") + "\n")
 
 

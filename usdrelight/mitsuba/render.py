@@ -215,7 +215,7 @@ def render_record(rec: SceneRecord, wanted: set, spp: int = 64, max_depth: int =
     scene = mi.load_dict(to_mitsuba(scene_dict(rec, spp=spp, max_depth=max_depth, integrator=integrator), mi))
     out = {}
     if "beauty" in wanted:
-        img = render_passes(mi, scene, spp, seed, W * H)[..., :3] * np.float32(rec.camera.exposure_scale)
+        img = render_passes(mi, scene, spp, seed, W * H)[..., :3]
         out["beauty"] = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     geo = wanted - {"beauty"}
     if geo:
@@ -290,6 +290,8 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     stamp = stage_stamp(stage, rec.resolution)
     t1 = time_module.perf_counter()
     images = render_record(rec, wanted, spp, max_depth, seed, hide_emitters=hides_emitters(stage))
+    if "beauty" in images:  # the camera's exposure, as a USD renderer applies it to the colour it writes
+        images["beauty"] = images["beauty"] * np.float32(rec.camera.exposure_scale)
     if "depth" in images:  # the record is in metres; the stage's depth AOV is in its own units (0 stays 0)
         images["depth"] = (images["depth"] / rec.meters_per_unit).astype(np.float32)
     t2 = time_module.perf_counter()

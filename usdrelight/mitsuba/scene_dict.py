@@ -200,8 +200,6 @@ def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warning
     k = cam.intrinsics
     if abs(k.fx - k.fy) > 1e-6 * k.fx and warnings is not None:
         warnings["non-square pixels (Mitsuba renders square pixels; fx used)"] += 1
-    if cam.exposure_scale != 1.0 and warnings is not None:
-        warnings[f"camera exposure (x{cam.exposure_scale:g} on radiance) not carried: a Mitsuba sensor has none"] += 1
     return {
         "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
         "principal_point_offset_x": 0.5 - k.cx / k.width, "principal_point_offset_y": 0.5 - k.cy / k.height,

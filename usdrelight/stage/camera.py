@@ -119,18 +119,28 @@ def intrinsics_from_usd_camera(camera, width: int, height: int, time=None, pixel
     return Intrinsics(fx, fy, width / 2.0 - ho * fx / f, height / 2.0 + vo * fy / f, width, height)
 
 
-def cameras_left_out(stage, camera_path: str | None, still: bool) -> dict[str, int]:
+EXPOSURE_ATTRS = ("exposure", "exposure:iso", "exposure:time", "exposure:fStop", "exposure:responsivity")
+"""UsdGeom.Camera's exposure attributes (together a linear scale: ``ComputeLinearExposureScale``)."""
+
+
+def cameras_left_out(stage, camera, still: bool, exposure_kept: bool = False) -> dict[str, int]:
     """What a one-camera target makes of ``stage``'s cameras, as converter warnings ``{kind: count}``: the
-    cameras other than the render camera ``camera_path`` and, for a ``still`` (one frame of a stage whose time
-    the user did not choose), a render camera whose attributes or transform are time-sampled."""
+    cameras other than the render camera (``camera``, a CameraRecord); for a ``still`` (one frame of a stage
+    whose time the user did not choose), a render camera whose attributes or transform are time-sampled; its
+    exposure, unless the target keeps one value of it (``exposure_kept``: then only an animated exposure)."""
     from pxr import UsdGeom
 
     out: dict[str, int] = {}
-    others = [p for p in stage.Traverse() if p.IsA(UsdGeom.Camera) and str(p.GetPath()) != camera_path]
+    others = [p for p in stage.Traverse() if p.IsA(UsdGeom.Camera) and str(p.GetPath()) != camera.path]
     if others:
-        out[f"cameras other than the render camera {camera_path} (not converted: the target holds one)"] = len(others)
-    cam = stage.GetPrimAtPath(camera_path) if camera_path else None
-    if still and cam and any(a.GetNumTimeSamples() > 1 for p in [cam] + xformable_ancestors(cam)
-                             for a in p.GetAttributes()):
+        out[f"cameras other than the render camera {camera.path} (not converted: the target holds one)"] = len(others)
+    cam = stage.GetPrimAtPath(camera.path)
+    if not cam:
+        return out
+    if still and any(a.GetNumTimeSamples() > 1 for p in [cam] + xformable_ancestors(cam) for a in p.GetAttributes()):
         out["an animated camera (written at its first frame: give --time T or --frames A:B for others)"] = 1
+    if not exposure_kept and camera.exposure_scale != 1.0:
+        out[f"camera exposure (x{camera.exposure_scale:g} on radiance; not carried: the target has none)"] = 1
+    elif exposure_kept and any(cam.GetAttribute(n).GetNumTimeSamples() > 1 for n in EXPOSURE_ATTRS):
+        out["an animated camera exposure (the first frame's is kept)"] = 1
     return out
