@@ -176,7 +176,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         rec.warnings.pop(kind, None)
     W, H = (rec.camera.intrinsics.width, rec.camera.intrinsics.height) if rec.camera else (640, 480)
     if rec.camera is not None:  # Blender keys the camera's animation: only the other cameras are left out
-        rec.warnings.update(cameras_left_out(stage, rec.camera.path, still=False))
+        rec.warnings.update(cameras_left_out(stage, rec.camera, still=False, exposure_kept=True))
     exposure = rec.camera.exposure_scale if rec.camera is not None else 1.0  # Cycles' film exposure: linear
     payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth, "film_exposure": exposure},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
@@ -292,7 +292,8 @@ def read_from_file(path, **options) -> ReadReport:
     and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
     folded into the colour, diffuse / specular factors become UsdLux ``diffuse`` / ``specular``. What UsdLux has
     no place for is in the report's warnings, one per kind (``UNREAD``); the scene's other objects (meshes,
-    cameras, ...; empties aside) are not read, counted in one warning line. Options: :data:`READ_OPTIONS` (the
+    cameras, ...; empties aside) are not read, counted in one warning line (not for a .blend usdrelight made from a
+    stage, whose meshes and camera are that stage's own). Options: :data:`READ_OPTIONS` (the
     layer at ``usd_path``, or in memory)."""
     from pxr import Gf, UsdGeom, UsdLux
 
@@ -300,7 +301,9 @@ def read_from_file(path, **options) -> ReadReport:
     lights = blender_lights(path)
     up, mpu = stage_units(getattr(lights, "stage", None))
     warnings = Counter()
-    skipped = not_read_warning(getattr(lights, "not_read", None) or {}, Path(path).name)
+    # a .blend usdrelight made from a stage: its meshes and camera are that stage's own, nothing is lost
+    skipped = None if getattr(lights, "stage", None) else \
+        not_read_warning(getattr(lights, "not_read", None) or {}, Path(path).name)
     if skipped:
         warnings[skipped] += 1
     unit = foreign_unit_scale(lights)

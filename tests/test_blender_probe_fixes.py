@@ -254,7 +254,7 @@ def test_camera_lens_is_the_focal_length_and_projects_as_usd(cli, tmp_path, name
     """lens = focalLength (mm), sensor_width = horizontalAperture, sensor fit HORIZONTAL: the portrait's lens
     was 53.33 mm on a 36 mm sensor (the view right, the lens 1.78x focalLength), the landscape's 45 mm. Five
     points projected by Blender (world_to_camera_view, shifts included) land where the USD camera puts them.
-    The .blend's mesh and camera are not read back (lights only): one warning line says so."""
+    The .blend's mesh and camera, the stage's own, are not read back and not warned (lights only)."""
     (tmp_path / "s.usda").write_text(_camera_stage(*size, focal, h_ap, v_ap))
     rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / f"{name}.blend")
     assert rc == 0, err
@@ -270,9 +270,31 @@ def test_camera_lens_is_the_focal_length_and_projects_as_usd(cli, tmp_path, name
     q = POINTS @ np.linalg.inv(cam.to_world)[:3, :3].T + np.linalg.inv(cam.to_world)[:3, 3]  # looks down -Z
     want = np.stack([k.cx + k.fx * q[:, 0] / -q[:, 2], k.cy - k.fy * q[:, 1] / -q[:, 2]], -1)
     np.testing.assert_allclose(got["pixels"], want, atol=1e-3)
-    read = read_from_file(tmp_path / f"{name}.blend")
-    assert read.warnings == {f"1 mesh object and 1 camera in {name}.blend are not read: .blend -> USD carries "
-                             "lights only": 1}
+    # made from a stage: its mesh and camera are the stage's own, not warned on the way back
+    assert read_from_file(tmp_path / f"{name}.blend").warnings == {}
+
+
+FOREIGN = r'''
+import bpy, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+sc = bpy.context.scene
+for name, data in (("Lamp", bpy.data.lights.new("Lamp", "POINT")), ("Cam", bpy.data.cameras.new("Cam")),
+                   ("Box", bpy.data.meshes.new("Box")), ("Box2", bpy.data.meshes.new("Box2"))):
+    sc.collection.objects.link(bpy.data.objects.new(name, data))
+bpy.ops.wm.save_as_mainfile(filepath=args[0])
+'''
+
+
+def test_a_foreign_blends_meshes_and_camera_are_named_as_not_read(tmp_path):
+    """.blend -> USD carries lights only; a .blend made in Blender with meshes and a camera came back as its light
+    alone with no warning at all."""
+    (tmp_path / "make.py").write_text(FOREIGN)
+    run_blender(tmp_path / "make.py", str(tmp_path / "f.blend"))
+    read = read_from_file(tmp_path / "f.blend")
+    assert read.warnings == {"2 mesh objects and 1 camera in f.blend are not read: .blend -> USD carries lights "
+                             "only": 1}, read.warnings
+    assert [p.GetName() for p in read.stage.Traverse() if p.GetTypeName() == "SphereLight"] == ["Lamp"]
 
 
 EXPOSED = '''#usda 1.0
