@@ -382,3 +382,11 @@ def test_a_lights_layer_at_another_rate_is_warned(animated_stage, tmp_path, cli)
     rc, _, err = cli("relight", animated_stage, "--time", "3", "--max-side", "32", "--mode", "add", "-o",
                      tmp_path / "p")
     assert rc == 0 and "time codes per second" not in err, err
+
+
+def test_a_fine_step_without_video_is_no_error(animated_stage, tmp_path, cli):
+    """The video's frame rate (at most 1000) was checked for every --frames run: 0.01 time codes apart at 24 codes a
+    second failed with '2400 fps video' though no video was asked for."""
+    res = cli.json("relight", animated_stage, "--frames", "1:1.02:0.01", "--max-side", "32", "--mode", "add",
+                   "-o", tmp_path / "o")
+    assert [f["time"] for f in res["frames"]] == [1, 1.01, 1.02]

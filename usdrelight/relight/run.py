@@ -189,7 +189,9 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
             times = parse_frames(None, session.usd_stage)
         plan = [(extra, None) for extra in per_frame] if per_frame is not None else \
             [([], t) for t in times] if times is not None else [([], None)]
-        fps = video_fps(session.usd_stage, times[1] - times[0] if times is not None and len(times) > 1 else 1.0)
+        # --frames: played in the stage's seconds; a --sequence's entries are frames, at framesPerSecond
+        fps = None if video is None else stage_fps(session.usd_stage) if per_frame is not None else \
+            video_fps(session.usd_stage, times[1] - times[0] if times is not None and len(times) > 1 else 1.0)
         layer = write_sequence_layer(save_lights, per_frame, fps=stage_fps(session.usd_stage),  # none rescaled
                                      time_codes_per_second=session.usd_stage.GetTimeCodesPerSecond()) \
             if save_lights is not None else None
@@ -203,7 +205,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
 
 
 def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool, contact_sheet: bool, video,
-         fps: float, layer, t0: float) -> RelightResult:
+         fps: float | None, layer, t0: float) -> RelightResult:
     out_dir = Path(out) if out else confined_path(Path(stage_path).resolve().parent, "relit", "the relit folder")
     written = []
     sheet = None

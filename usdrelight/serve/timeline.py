@@ -317,7 +317,7 @@ class TimelineGui:
             status.content = f"video: {done}/{total} frames ..."
         try:
             path = self.app.export_video(progress)
-            status.content = f"Exported {path.parent.name}/{path.name} ({n} frames at {self.tl.fps:g} frames/s)"
+            status.content = f"Exported {path.parent.name}/{path.name} ({n} frames at {self.tl.tcps:g} frames/s)"
         except (UsdRelightError, OSError, ValueError, MemoryError) as exc:
             status.content = f"**video failed:** {exc}"
             log.warning("video export failed: %s", exc)

@@ -35,13 +35,16 @@ class TimeRange:
     """framesPerSecond: the playback rate, one rendered time code per video frame."""
 
 
-def stage_time_range(stage) -> TimeRange | None:
-    """The stage's authored start/end time codes and framesPerSecond, or None when it authors no range. The
-    root layer's range; where it authors none, that of the strongest sublayer of the root that does (the user's
-    lights layer, where the web app and the Blender route save a range), mapped to the stage's time codes by the
-    sublayer's offset and timeCodesPerSecond as USD maps its samples."""
+def stage_time_range(stage, sublayers: bool = False) -> TimeRange | None:
+    """The stage's authored start/end time codes and framesPerSecond (the root layer's, as usdview reads them), or
+    None when it authors no range. ``sublayers``: where the root authors none, that of the strongest sublayer of
+    the root that does (the user's lights layer, where the web app and the Blender route save a range), mapped to
+    the stage's time codes by the sublayer's offset and timeCodesPerSecond as USD maps its samples (``--frames``
+    alone takes it; a single frame's default time does not)."""
     if stage.HasAuthoredTimeCodeRange():
         return TimeRange(float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()), stage_fps(stage))
+    if not sublayers:
+        return None
     from pxr import Sdf
 
     root = stage.GetRootLayer()
@@ -105,7 +108,7 @@ def parse_frames(text: str | None, stage=None) -> list[float]:
     """The time codes of ``--frames START:END[:STEP]`` (inclusive, STEP > 0, default 1); ``text`` None or
     empty: the stage's own range (an error when it authors none). At most :data:`MAX_FRAMES`."""
     if not text:
-        rng = stage_time_range(stage) if stage is not None else None
+        rng = stage_time_range(stage, sublayers=True) if stage is not None else None
         if rng is None:
             raise UsdRelightError("the stage authors no time range (startTimeCode/endTimeCode): give "
                                   "--frames START:END[:STEP]")
