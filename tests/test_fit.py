@@ -128,7 +128,7 @@ def test_pruning_on_a_scene_lit_by_one_light(tmp_path):
 
 def test_a_flat_scene_leaves_room_for_a_light_in_front_of_it(tmp_path):
     """A wall seen face on has no depth extent: the candidate grid and the position steps were confined to its
-    plane, and the fit kept no light at all (13.6 dB for a point light 1 m in front of it)."""
+    plane, and the fit kept no light at all (14.7 dB for a point light 1 m in front of it)."""
     stage = _synthetic_stage(tmp_path, np.full((36, 48), 2.0, np.float32))
     true = np.array([0.2, 0.1, -1.0])
     img, _ = _render_target(stage, [PointLightValue(true, np.array([6.0, 5.0, 4.0]))])

@@ -88,3 +88,18 @@ def test_one_stderr_line_from_the_real_process(built, tmp_path):
                        text=True, timeout=120)
     assert p.returncode == 2 and p.stdout == ""
     assert p.stderr.count("\n") == 1 and "lights_user.usda:4" in p.stderr and "Warning" not in p.stderr
+
+
+def test_a_layer_at_zero_time_codes_per_second_is_one_error_not_a_hang(tmp_path):
+    """USD itself spins forever reading the time samples of a sublayer whose timeCodesPerSecond is 0 (every command
+    hung at 100% CPU); the layer is refused when the stage opens."""
+    (tmp_path / "sub.usda").write_text('#usda 1.0\n(\n    timeCodesPerSecond = 0\n)\ndef Xform "A" {\n'
+                                       '    double3 xformOp:translate.timeSamples = { 1: (0, 0, 0), 2: (1, 0, 0) }\n'
+                                       '    uniform token[] xformOpOrder = ["xformOp:translate"]\n}\n')
+    (tmp_path / "root.usda").write_text('#usda 1.0\n(\n    subLayers = [@./sub.usda@]\n)\n')
+    for cmd in (["validate", "root.usda"], ["convert", "root.usda", "out.xml"]):
+        p = subprocess.run([sys.executable, "-m", "usdrelight", *cmd], cwd=tmp_path, capture_output=True, text=True,
+                           timeout=120)
+        assert p.returncode == 2 and p.stderr == ("usdrelight: error: layer sub.usda of root.usda authors "
+                                                  "timeCodesPerSecond 0.0: it must be finite and positive\n"), p.stderr
+    assert not (tmp_path / "out.xml").exists()

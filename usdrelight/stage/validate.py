@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +56,12 @@ def open_stage(path: str | Path):
     if errors:
         more = f" (and {len(errors) - 1} more composition error(s))" if len(errors) > 1 else ""
         raise UsdRelightError(f"stage {path} does not compose: {_layer_error(str(errors[0]))}{more}")
+    for used in stage.GetUsedLayers():  # USD hangs reading the time samples of a layer at 0 codes per second
+        for key in ("timeCodesPerSecond", "framesPerSecond"):
+            value = used.pseudoRoot.GetInfo(key) if used.pseudoRoot.HasInfo(key) else 1.0
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise UsdRelightError(f"layer {used.GetDisplayName()} of {path.name} authors {key} {value}: it must be "
+                                      f"finite and positive")
     for line in native.text.splitlines():  # USD's own warnings while opening: through logging, like ours
         if line.strip():
             log.warning("USD: %s", line.strip())
