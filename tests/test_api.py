@@ -3,12 +3,14 @@ same name."""
 from __future__ import annotations
 
 import inspect
+import re
 import json
 import pydoc
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 import usdrelight
 
@@ -60,3 +62,65 @@ def test_the_readme_python_example_runs_through_the_api(tmp_path):
     assert session.mode == "add"  # auto: the photo's light kept as it is
     np.testing.assert_allclose(same.image, session.photo, rtol=1e-5, atol=1e-6)  # the photo's own light: itself
     assert brighter.image.mean() > same.image.mean() and np.all(brighter.image >= same.image - 1e-6)
+
+
+@pytest.fixture(scope="module")
+def api_stage(tmp_path_factory):
+    from conftest import EXAMPLES
+
+    ex = EXAMPLES / "procedural"
+    out = tmp_path_factory.mktemp("api") / "st"
+    res = usdrelight.build(ex / "photo.exr", out, usdrelight.BuildOptions(
+        depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json", albedo=ex / "albedo.exr"))
+    usdrelight.fit(res.stage, usdrelight.FitSettings(lights=1, max_side=32, verify_spp=0))
+    return res.stage
+
+
+BAD_CALLS = {  # found by probing the API: each was accepted (a 1 x 1 fit written over the good one, a render that
+    # never ended) or raised a bare TypeError / AttributeError / MemoryError / a Mitsuba binding error
+    "fit max_side -4": (lambda s: usdrelight.fit(s, usdrelight.FitSettings(max_side=-4, verify_spp=0)),
+                        "max_side (--max-side) must be an integer >= 1, got -4"),
+    "fit lights nan": (lambda s: usdrelight.fit(s, usdrelight.FitSettings(lights=float("nan"), verify_spp=0)),
+                       "lights (--lights) must be an integer in [0, 256]"),
+    "fit env_res tuple": (lambda s: usdrelight.fit(s, usdrelight.FitSettings(verify_spp=0, env_res=(1000, 1000))),
+                          "1000000 cells, over this method's limit"),
+    "fit seed -1": (lambda s: usdrelight.fit(s, usdrelight.FitSettings(seed=-1, verify_spp=0)),
+                    "seed (--seed) must be an integer"),
+    "fit a dict": (lambda s: usdrelight.fit(s, {"lights": 1}), "settings must be a FitSettings, got dict"),
+    "session max_depth 1e9": (lambda s: usdrelight.RelightSession(s, max_side=32, max_depth=10 ** 9),
+                              "max_depth (--max-depth) must be an integer in [2, 64]"),
+    "session max_side -5": (lambda s: usdrelight.RelightSession(s, max_side=-5), "max_side (--max-side) must be"),
+    "session cache str": (lambda s: usdrelight.RelightSession(s, cache="/tmp/c"), "cache must be a TransportCache"),
+    "render seed -1": (lambda s: usdrelight.render(s, s.parent / "x", aovs=["diffuse"], spp=1, seed=-1),
+                       "seed (--seed) must be an integer in [0, 4294967295], got -1"),
+    "read_scene nan": (lambda s: usdrelight.read_scene(s, float("nan")), "a time code must be a finite number"),
+    "read_scene None": (lambda s: usdrelight.read_scene(None), "a stage is a path (str or Path), got None"),
+    "relight fitted_scale str": (lambda s: usdrelight.relight(s, ["point:0.5,1,-2:3,3,3"], out=s.parent / "r",
+                                                              fitted_scale="0.5"),
+                                 "fitted_scale (--fitted-scale) must be a finite number >= 0, got '0.5'"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD_CALLS))
+def test_bad_api_arguments_are_one_usdrelight_error(api_stage, name):
+    call, needle = BAD_CALLS[name]
+    before = (api_stage.parent / "lights_fitted.usda").read_bytes()
+    with pytest.raises(usdrelight.UsdRelightError, match=re.escape(needle)):
+        call(api_stage)
+    assert (api_stage.parent / "lights_fitted.usda").read_bytes() == before  # the good fit is still there
+    assert not (api_stage.parent / "x").exists() and not (api_stage.parent / "r").exists()
+
+
+def test_one_light_string_is_one_light_and_a_light_record_is_checked(api_stage):
+    """A str was read letter by letter ('bad --light 'p''); a LightRecord of negative radiance rendered black."""
+    from dataclasses import replace
+
+    from usdrelight.stage.light_specs import parse_light
+
+    spec = "point:0.5,1,-2:3,3,3"
+    with usdrelight.RelightSession(api_stage, max_side=32, mode="render") as s:
+        np.testing.assert_array_equal(s.render(spec).image, s.render([spec]).image)
+        with pytest.raises(usdrelight.UsdRelightError, match="radiance must be 3 finite numbers >= 0"):
+            s.render([replace(parse_light(spec), radiance=np.full(3, -5.0))])
+    files = usdrelight.render(api_stage, api_stage.parent / "aov", aovs="diffuse", spp=1).files
+    assert sorted(files) == ["diffuse"]  # one AOV name, not its letters

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from dataclasses import replace
 
+from ..checks import MAX_DEPTH, whole
 from ..errors import UsdRelightError
 from ..mitsuba.render import check_spp
 from ..stage.records import SceneRecord
@@ -25,12 +26,12 @@ __all__ = ["Aovs", "EngineSettings", "FastRenderer", "MitsubaRenderer", "RENDERE
 
 
 def check_renderer_options(renderer: str, spp: int, max_depth: int) -> None:
-    """One line (UsdRelightError) for an unknown renderer, ``spp`` outside [1, MAX_SPP] or ``max_depth`` < 2."""
+    """One line (UsdRelightError) for an unknown renderer, ``spp`` outside [1, MAX_SPP] or ``max_depth`` not an
+    integer in [2, MAX_DEPTH]."""
     if renderer not in RENDERERS:
         raise UsdRelightError(f"unknown renderer {renderer!r} (fast or mitsuba)")
     check_spp(spp)
-    if max_depth < 2:
-        raise UsdRelightError("max_depth must be >= 2")
+    whole(max_depth, "max_depth", 2, MAX_DEPTH)
 
 
 def open_renderer(rec: SceneRecord, renderer: str = "fast", *, max_side: int | None = 512, spp: int = 32,

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import stage_lock
+from ..checks import MAX_SEED, whole, whole_or_none
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import MAX_SPP, check_spp, render_record
@@ -57,7 +58,8 @@ def fast_result(prob: FitProblem, k: int, env_shape, iterations: int, prune: boo
 def prune_by_contribution(prob: FitProblem, res: FitResult, tol: float = PRUNE_TOL) -> FitResult:
     """Drop lights (and the environment) whose own contribution to the render, predicted by the
     transport model, has an RMS below ``tol`` (1%) of the RMS of D. Used after ``adam``."""
-    env_shape = (8, 16)
+    # the environment judged in cells of at most 8 x 16 (a smaller map: its own texels)
+    env_shape = (8, 16) if res.env is None else (min(8, res.env.shape[0]), min(16, res.env.shape[1]))
     tr = fit_transport(prob, env_shape, env_samples=64, indirect_samples=8)
     rms_d = float(np.sqrt(np.mean(prob.target ** 2)))
     keep = []
@@ -106,12 +108,14 @@ MAX_ENV_TEXELS = 512 * 1024
 
 
 def _parse_env_res(text, max_cells: int = MAX_ENV_TEXELS) -> tuple:
-    if isinstance(text, (tuple, list)):
-        return tuple(int(x) for x in text)
-    try:
-        h, w = (int(x) for x in str(text).lower().split("x"))
-    except ValueError:
-        raise UsdRelightError(f"--env-res must look like HxW (e.g. 8x16), got {text!r}") from None
+    if isinstance(text, (tuple, list)) and len(text) == 2:
+        h, w = (whole(x, "env_res", 0) for x in text)
+    else:
+        try:
+            h, w = (int(x) for x in str(text).lower().split("x"))
+        except ValueError:
+            raise UsdRelightError(f"env_res (--env-res) must look like HxW (e.g. 8x16) or (H, W), got {text!r}") \
+                from None
     if h < 0 or w < 0 or (h == 0) != (w == 0):
         raise UsdRelightError(f"--env-res must be positive (or 0x0 for no environment), got {text!r}")
     if h * w > max_cells:
@@ -157,10 +161,24 @@ def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, pro
         raise UsdRelightError(f"{stage_path} is not the scene.usda of a stage `usdrelight build` made: fit writes "
                               f"its fitted lights into such a stage's own layers (nothing was written)")
     with stage_lock(Path(stage_path).absolute().parent):
-        return _fit_unlocked(stage_path, settings or FitSettings(), report_dir, progress)
+        return _fit_unlocked(stage_path, FitSettings() if settings is None else settings, report_dir, progress)
+
+
+def _checked(settings) -> FitSettings:
+    """``settings`` with every number checked (the API takes what the CLI's argparse types would refuse)."""
+    if not isinstance(settings, FitSettings):
+        raise UsdRelightError(f"settings must be a FitSettings, got {type(settings).__name__}")
+    if not isinstance(settings.fast, FastSettings):
+        raise UsdRelightError(f"settings.fast must be a FastSettings, got {type(settings.fast).__name__}")
+    if settings.method not in ("fast", "adam"):
+        raise UsdRelightError(f"unknown --method {settings.method!r} (adam or fast)")
+    return replace(settings, lights=whole(settings.lights, "lights", 0, 256),
+                   iterations=whole_or_none(settings.iterations, "iterations", 1),
+                   max_side=whole(settings.max_side, "max_side", 1), seed=whole(settings.seed, "seed", 0, MAX_SEED - 1))
 
 
 def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> FitReport:
+    settings = _checked(settings)
     method, lights, env_res, iterations = settings.method, settings.lights, settings.env_res, settings.iterations
     max_side, verify_spp, seed, fast_settings = settings.max_side, settings.verify_spp, settings.seed, settings.fast
     if verify_spp:
@@ -169,8 +187,6 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
         except UsdRelightError:  # 0 is valid too: no verification render
             raise UsdRelightError(f"--verify-spp must be 0 (no verification render) or an integer in "
                                   f"[1, {MAX_SPP}], got {verify_spp!r}") from None
-    if lights < 0 or lights > 256:
-        raise UsdRelightError(f"--lights must be in [0, 256], got {lights}")
     if report_dir is not None:  # before the fit publishes anything: a bad folder fails first, not after
         writable_parent(Path(report_dir) / "fit_report.json", "the --report")
     t_all = time.perf_counter()

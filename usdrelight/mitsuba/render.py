@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import result_group
+from ..checks import MAX_DEPTH, MAX_SEED, names, whole
 from ..errors import UsdRelightError, one_line
 from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
@@ -257,6 +258,9 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     (world space) come from one ray per pixel centre. ``time``: the USD time code lights are read at (default:
     :func:`usdrelight.stage.timing.frame_time`)."""
     t0 = time_module.perf_counter()
+    check_spp(spp)
+    max_depth, seed = whole(max_depth, "max_depth", 1, MAX_DEPTH), whole(seed, "seed", 0, MAX_SEED)
+    aovs = names(aovs, "aovs") if aovs is not None else None
     stage = open_stage(stage_path)
     rec = read_scene(stage, frame_time(stage, time))
     if not rec.products:
@@ -264,14 +268,11 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     if rec.camera is None:
         raise UsdRelightError(f"{stage_path} has no camera")
     declared = {p.name: p for p in rec.products}
-    names = list(declared) if not aovs else list(aovs)
-    unknown = [n for n in names if n not in declared]
+    wanted_names = list(declared) if not aovs else aovs
+    unknown = [n for n in wanted_names if n not in declared]
     if unknown:
         raise UsdRelightError(f"AOV(s) {unknown} are not declared by {stage_path} (declared: {list(declared)})")
-    check_spp(spp)
-    if max_depth < 1:
-        raise UsdRelightError("--max-depth must be >= 1")
-    products = [declared[n] for n in names]
+    products = [declared[n] for n in wanted_names]
     if not aovs:  # all of them: what usdrelight cannot compute (a Houdini stage's Pz, crypto ...) is left out, named
         products = _renderable(products, rec.warnings)
     wanted = {aov_kind(v) for p in products for v in p.vars}

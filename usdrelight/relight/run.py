@@ -19,6 +19,7 @@ from rich.progress import track
 
 from ..atomic import result_group
 from ..engine.fast import EngineSettings, check_area_samples
+from ..checks import number
 from ..errors import UsdRelightError
 from ..imageio import display_exposure, write_image
 from ..neural.model import write_relit
@@ -116,7 +117,10 @@ MAX_SEQUENCE_BYTES = 16 << 20
 
 
 def read_sequence(path) -> list[list[str]]:
-    """LIGHTS.json: a JSON list of at most :data:`MAX_FRAMES` frames, each a list of ``--light`` strings."""
+    """LIGHTS.json: a JSON list of at most :data:`MAX_FRAMES` frames, each a list of ``--light`` strings (or that
+    list itself, from Python)."""
+    if isinstance(path, (list, tuple)):
+        return _checked_frames(list(path), "the light sequence")
     path = Path(path)
     try:
         if path.stat().st_size > MAX_SEQUENCE_BYTES:
@@ -124,13 +128,17 @@ def read_sequence(path) -> list[list[str]]:
         frames = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise UsdRelightError(f"cannot read the light sequence {path}: {type(exc).__name__}") from None
+    return _checked_frames(frames, str(path))
+
+
+def _checked_frames(frames, where: str) -> list[list[str]]:
     if not isinstance(frames, list) or not frames or not all(
-            isinstance(f, list) and all(isinstance(s, str) for s in f) for f in frames):
-        raise UsdRelightError(f"{path}: expected a non-empty JSON list of frames, each a list of --light strings")
+            isinstance(f, (list, tuple)) and all(isinstance(s, str) for s in f) for f in frames):
+        raise UsdRelightError(f"{where}: expected a non-empty JSON list of frames, each a list of --light strings")
     if len(frames) > MAX_FRAMES:
-        raise UsdRelightError(f"{path} has {len(frames)} frames: at most {MAX_FRAMES} in one sequence "
+        raise UsdRelightError(f"{where} has {len(frames)} frames: at most {MAX_FRAMES} in one sequence "
                               f"(split it into several runs)")
-    return frames
+    return [list(f) for f in frames]
 
 
 def _area_settings(area_samples: int | None, renderer: str) -> EngineSettings | None:
@@ -179,7 +187,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
     with_fitted = with_fitted or fitted_scale is not None  # any scale given, 1 too, keeps the fitted lights
-    fitted_scale = 1.0 if fitted_scale is None else fitted_scale
+    fitted_scale = 1.0 if fitted_scale is None else number(fitted_scale, "fitted_scale")
     settings = _area_settings(area_samples, renderer)
     session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
                              model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale,

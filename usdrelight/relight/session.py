@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checks import number, whole_or_none
 from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..engine.fast import content_key
 from ..errors import UsdRelightError
@@ -132,8 +133,12 @@ class RelightSession:
                  settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
                  cache: TransportCache | None = None, time: float | None = None):
         check_renderer_options(renderer, spp, max_depth)  # before the stage is read
-        if not (np.isfinite(fitted_scale) and 0.0 <= fitted_scale <= 1e6):
+        max_side = whole_or_none(max_side, "max_side", 1)
+        if number(fitted_scale, "fitted_scale") > 1e6:
             raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
+        for value, kind, name in ((settings, EngineSettings, "settings"), (cache, TransportCache, "cache")):
+            if value is not None and not isinstance(value, kind):
+                raise UsdRelightError(f"{name} must be a {kind.__name__} or None, got {type(value).__name__}")
         t0 = perf_counter()
         self.stage_path = Path(stage_path)
         stage = open_stage(stage_path)
@@ -305,6 +310,9 @@ class RelightSession:
         if mode == "add":
             all_lights = list(self.user_lights if self._stage_lights else ()) + added
         if not all_lights and mode != "add" and not allow_dark:
+            if self._with_fitted and not self.fitted_lights:
+                raise UsdRelightError("no light to relight with: the stage has no fitted lights (run usdrelight fit "
+                                      "first); or add --light, or put lights in lights_user.usda")
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
         if area_samples is not None and self.engine.name != "fast":

@@ -4,11 +4,12 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from ..checks import whole
 from ..errors import UsdRelightError
 from ..estimate.decomposition import estimate_decomposition
 from ..estimate.geometry import estimate_geometry, resolve_intrinsics
@@ -136,7 +137,12 @@ def check_user_layer(outdir) -> None:
 
 def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
     """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
-    opts = opts or BuildOptions()
+    opts = BuildOptions() if opts is None else opts
+    if not isinstance(opts, BuildOptions):
+        raise UsdRelightError(f"opts must be a BuildOptions, got {type(opts).__name__}")
+    opts = replace(opts, stride=whole(opts.stride, "stride", 1, flag="--decimate"),
+                   geometry=None if opts.geometry is None else str(opts.geometry),
+                   albedo_from=None if opts.albedo_from is None else str(opts.albedo_from))
     check_stage_folder(outdir)  # before any work: someone else's USD files are never written over
     check_user_layer(outdir)
     if opts.model_paths and not (is_learned(opts.geometry) or is_learned(opts.albedo_from)):

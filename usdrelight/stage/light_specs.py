@@ -120,5 +120,27 @@ def parse_light(spec: str, index: int = 0) -> LightRecord:
 
 
 def parse_lights(specs, first_index: int = 0) -> list[LightRecord]:
-    """Several ``--light`` strings (LightRecords are passed through)."""
-    return [s if isinstance(s, LightRecord) else parse_light(s, first_index + i) for i, s in enumerate(specs)]
+    """Several ``--light`` strings (LightRecords are passed through, checked: a finite transform, a finite,
+    non-negative radiance); one string or record is one light (not its letters); None is none."""
+    if specs is None:
+        return []
+    if isinstance(specs, (str, LightRecord)):
+        specs = [specs]
+    try:
+        specs = list(specs)
+    except TypeError:
+        raise UsdRelightError(f"lights must be --light strings or LightRecords, got {specs!r}") from None
+    out = []
+    for i, s in enumerate(specs):
+        if isinstance(s, LightRecord):
+            rad, m = np.asarray(s.radiance, np.float64), np.asarray(s.to_world, np.float64)
+            if rad.shape != (3,) or not np.all(np.isfinite(rad)) or rad.min() < 0:
+                raise UsdRelightError(f"light {s.path}: radiance must be 3 finite numbers >= 0, got {s.radiance!r}")
+            if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+                raise UsdRelightError(f"light {s.path}: to_world must be a finite 4 x 4 matrix")
+            out.append(s)
+        elif isinstance(s, str):
+            out.append(parse_light(s, first_index + i))
+        else:
+            raise UsdRelightError(f"lights must be --light strings or LightRecords, got {s!r}")
+    return out

@@ -33,7 +33,7 @@ from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
 from .lux import uniform_scale
 from .read_lux import read_light
-from .timing import rescaled_layers
+from .timing import check_time, rescaled_layers
 from .validate import open_stage
 from .records import CameraRecord, LightRecord, MeshRecord, ProductRecord, RenderVarRecord, SceneRecord, \
     ShapeRecord
@@ -246,7 +246,8 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     once the scene itself is read. Invisible lights (``visibility`` at ``time``) are left out."""
     from pxr import Usd, UsdGeom, UsdLux
 
-    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else \
+        Usd.TimeCode(check_time(time))
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter()
     xcache = UsdGeom.XformCache(t)
@@ -280,9 +281,10 @@ def read_scene(stage, time=None) -> SceneRecord:
     metersPerUnit applied; see the module docstring). ``time``: the USD time code to read (None: default)."""
     from pxr import Usd, UsdGeom, UsdLux
 
-    if isinstance(stage, (str, Path)):
+    if not isinstance(stage, Usd.Stage):
         stage = open_stage(stage)
-    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else \
+        Usd.TimeCode(check_time(time))
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter(rescaled_layers(stage))
     meshes, shapes, lights = [], [], []

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,8 @@ def open_stage(path: str | Path):
     from pxr import Tf, Usd
 
     schemas.register()
+    if not isinstance(path, (str, os.PathLike)):
+        raise UsdRelightError(f"a stage is a path (str or Path), got {path!r}")
     path = Path(path)
     if not path.is_file():
         raise UsdRelightError(f"stage not found: {path}")

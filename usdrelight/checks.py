@@ -1,0 +1,52 @@
+"""Checks of the numbers the Python API takes (the CLI's argparse types check its own flags first): each returns
+the value as the type it should be, or raises :class:`~usdrelight.errors.UsdRelightError` with one line that names
+the parameter as Python spells it and, where it differs, the CLI flag (``max_side (--max-side) must be ...``)."""
+from __future__ import annotations
+
+import math
+from numbers import Integral, Real
+
+from .errors import UsdRelightError
+
+MAX_DEPTH = 64
+"""Longest path (max_depth) a render may ask for: Mitsuba's own tests go to 64; a billion looped for ever."""
+MAX_SEED = 2 ** 32 - 1
+"""Largest seed: Mitsuba's samplers take an unsigned 32-bit seed."""
+
+
+def _name(name: str, flag: str | None = None) -> str:
+    return f"{name} ({flag or '--' + name.replace('_', '-')})"
+
+
+def whole(value, name: str, lo: int, hi: int | None = None, flag: str | None = None) -> int:
+    """``value`` as an int in [lo, hi] (hi None: no upper bound); bools, floats and strings are refused. ``flag``:
+    the CLI's name of it when not ``--`` + ``name`` with dashes."""
+    if isinstance(value, Integral) and not isinstance(value, bool) and lo <= value and (hi is None or value <= hi):
+        return int(value)
+    span = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+    raise UsdRelightError(f"{_name(name, flag)} must be an integer {span}, got {value!r}")
+
+
+def whole_or_none(value, name: str, lo: int, hi: int | None = None) -> int | None:
+    """:func:`whole`, or None."""
+    return None if value is None else whole(value, name, lo, hi)
+
+
+def number(value, name: str, lo: float = 0.0) -> float:
+    """``value`` as a finite float >= ``lo``; bools and strings are refused."""
+    if isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and value >= lo:
+        return float(value)
+    raise UsdRelightError(f"{_name(name)} must be a finite number >= {lo:g}, got {value!r}")
+
+
+def names(value, name: str) -> list[str]:
+    """A list of strings from one string (one name, not its letters) or an iterable of strings."""
+    if isinstance(value, str):
+        return [value]
+    try:
+        out = list(value)
+    except TypeError:
+        raise UsdRelightError(f"{_name(name)} must be a string or a list of strings, got {value!r}") from None
+    if not all(isinstance(v, str) for v in out):
+        raise UsdRelightError(f"{_name(name)} must be a string or a list of strings, got {value!r}")
+    return out
