@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import usdrelight
+from usdrelight.imageio import read_raw
 
 
 def test_import_and_help_load_no_renderer():
@@ -124,3 +125,25 @@ def test_one_light_string_is_one_light_and_a_light_record_is_checked(api_stage):
             s.render([replace(parse_light(spec), radiance=np.full(3, -5.0))])
     files = usdrelight.render(api_stage, api_stage.parent / "aov", aovs="diffuse", spp=1).files
     assert sorted(files) == ["diffuse"]  # one AOV name, not its letters
+
+
+def test_a_sequence_list_and_a_small_adam_environment(api_stage, tmp_path):
+    """relight(sequence=[[...], [...]]) was a pathlib TypeError; the adam fit's environment pruning took the mean
+    of empty 8 x 16 cells for a 4 x 8 map (NaN: 'Mean of empty slice', the environment always kept)."""
+    import warnings
+
+    spec = "point:0.5,1,-2:3,3,3"
+    res = usdrelight.relight(api_stage, sequence=[[spec], ["point:-0.5,1,-2:3,3,3"]], out=tmp_path / "seq",
+                             max_side=32, mode="render")
+    assert len(res.frames) == 2
+    a, b = (np.asarray(read_raw(f.exr)[0]) for f in res.frames)
+    assert np.abs(a - b).mean() > 1e-4  # the light moved
+    from usdrelight.fit.problem import load_problem
+    from usdrelight.fit.result import FitResult
+    from usdrelight.fit.run import prune_by_contribution
+
+    prob = load_problem(api_stage, 16)
+    dark = FitResult("adam", 0.0, 0.0, 0.0, 1, (), np.zeros((4, 8, 3)), [], prob.width, prob.height)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's empty-slice warnings fail the test
+        assert prune_by_contribution(prob, dark).env is None  # a black environment contributes nothing: dropped
