@@ -276,6 +276,8 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     if not aovs:  # all of them: what usdrelight cannot compute (a Houdini stage's Pz, crypto ...) is left out, named
         products = _renderable(products, rec.warnings)
     wanted = {aov_kind(v) for p in products for v in p.vars}
+    if "beauty" in wanted and not rec.lights:
+        rec.warnings["no light in the stage (its colour AOVs are black; fit it, or add lights)"] += 1
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
     seen: dict = {}
