@@ -96,7 +96,8 @@ def test_camera_exposure_scales_the_colour(tmp_path, cli):
 
 def test_a_stage_without_light_renders_black_and_says_so(tmp_path):
     """An unfitted stage rendered an all-zero colour AOV with no word."""
-    looking_down_at_floor(tmp_path / "s.usda").GetRootLayer().Save()
+    stage = looking_down_at_floor(tmp_path / "s.usda")
+    stage.GetRootLayer().Save()
     res = render_stage(tmp_path / "s.usda", spp=1)
     assert read_map(res.files["color"], 3).max() == 0.0
     assert res.warnings == {"no light in the stage (its colour AOVs are black; fit it, or add lights)": 1}
