@@ -495,3 +495,42 @@ def test_oversized_deeply_nested_and_overbright_client_data_is_refused(tmp_path)
     with pytest.raises(UsdRelightError, match="beyond 1e"):
         store_upload(tmp_path, "sun.exr", write_image(tmp_path / "src.exr", img, "float").read_bytes())
     assert not list((tmp_path / "serve" / "uploads").glob("hdri-*"))  # not kept
+
+
+def test_probed_messages_a_quaternion_and_a_broken_layer(stage, tmp_path):
+    """Found by probing the running app over its WebSocket: an upload whose part named another widget ('Selected')
+    made viser set that widget's value to the file (every later selection failed) and held the upload slot for
+    60 s; text frames, non-msgpack bytes and unknown message types each printed a traceback; a (1e300, 1e300, 0, 0)
+    gizmo quaternion was saved as (0, 0, 0, 0); Save over a lights_user.usda broken meanwhile raised
+    Tf.ErrorException (the status stuck at 'save ...')."""
+    import shutil
+
+    from usdrelight.serve.guard import screen
+
+    sky = _hdri(tmp_path / "sky.exr").read_bytes()
+    gate = uploads.UploadGate()
+    gate.buttons = {"button"}
+    a = object()
+    assert gate.start(a, "1", "sky.exr", len(sky), 1, "selected") == uploads.DROP  # not an upload button
+    assert gate.start(a, "2", "sky.exr", len(sky), 1, "button") == uploads.PASS
+    assert gate.part(a, "2", 0, sky, "selected") == uploads.DROP and not gate.busy  # refused, the slot free
+    assert gate.start(a, "3", "sky.exr", len(sky), 1, "button") == uploads.PASS
+    assert gate.part(a, "3", 0, sky, "button") == uploads.PASS
+    for data in ("hello", b"\xc1", msgspec.msgpack.encode(5), msgspec.msgpack.encode({"type": "NoSuchMessage"})):
+        assert screen(gate, a, data) in (uploads.CLOSE, uploads.DROP), data
+    assert screen(gate, a, msgspec.msgpack.encode({"type": "GuiUpdateMessage", "uuid": "x", "updates":
+                                                   {"value": 1}})) == uploads.PASS
+    with pytest.raises(UsdRelightError, match="quaternion must be finite and not zero"):
+        LightState("L", "spot", rotation=(0.0, 0.0, 0.0, 0.0))
+    big = LightState("L", "spot", rotation=(1e300, 1e300, 0.0, 0.0))
+    np.testing.assert_allclose(big.rotation, (0.5 ** 0.5, 0.5 ** 0.5, 0.0, 0.0))
+    copy = tmp_path / "st"
+    shutil.copytree(stage.parent, copy)
+    broken = '#usda 1.0\nover "Scene" {\n def Scope "Lights" {\n'
+    (copy / USER_LIGHTS).write_text(broken)
+    with pytest.raises(UsdRelightError, match="cannot read lights_user.usda"):
+        write_user_layer(copy, [big])
+    assert (copy / USER_LIGHTS).read_text() == broken  # left as it was
+    with pytest.raises(UsdRelightError, match="cannot read image hdri-[0-9a-f]+.exr") as err:  # no server folders
+        store_upload(copy, "sky.exr", sky[:300])
+    assert str(tmp_path) not in str(err.value)

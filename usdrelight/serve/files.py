@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import LOCK_NAME, stage_lock, write_bytes_atomic, write_text_atomic
-from ..errors import UsdRelightError
+from ..errors import UsdRelightError, one_line
 from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
 from ..safe_paths import confined_path
@@ -80,8 +80,9 @@ def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path
         if float(np.abs(img).max(initial=0.0)) > MAX_RADIANCE:  # x a dome's intensity it would overflow
             raise UsdRelightError(f"pixel values beyond {MAX_RADIANCE:g} (the limit of any light's radiance)")
     except UsdRelightError as exc:
-        path.unlink(missing_ok=True)
-        raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
+        path.unlink(missing_ok=True)  # the page is told the file's name, not the server's folders
+        raise UsdRelightError(f"the uploaded HDRI cannot be used: {str(exc).replace(str(path), path.name)}") \
+            from None
     return hdri_label(client_name), path
 
 
@@ -321,11 +322,14 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
     and ``states`` under /Scene/Lights/User replaced by ``states`` (animated by ``keys``: {name: {time code:
     state}}). ``timing`` ({"start", "end", "fps", "tcps"}) sets the layer's startTimeCode/endTimeCode,
     framesPerSecond and timeCodesPerSecond (the stage's, so USD does not rescale the layer's time samples)."""
-    from pxr import Sdf, Usd, UsdGeom
+    from pxr import Sdf, Tf, Usd, UsdGeom
 
     stage_dir = Path(stage_dir).resolve()
     path = stage_dir / USER_LIGHTS
-    layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.exists() else Sdf.Layer.CreateAnonymous(".usda")
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.exists() else Sdf.Layer.CreateAnonymous(".usda")
+    except Tf.ErrorException as exc:  # a layer the user broke while the app ran: nothing is written
+        raise UsdRelightError(f"cannot read {USER_LIGHTS}: {one_line(exc)[-160:]}") from None
     if layer is None:
         raise UsdRelightError(f"cannot read {path}")
     if not layer.documentation:

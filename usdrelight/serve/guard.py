@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hmac
 import http
 import inspect
@@ -164,6 +165,7 @@ class Guard:
 
 
 class _Start(msgspec.Struct):
+    source_component_uuid: str
     transfer_uuid: str
     filename: str
     part_count: int
@@ -171,6 +173,7 @@ class _Start(msgspec.Struct):
 
 
 class _Part(msgspec.Struct):
+    source_component_uuid: str
     transfer_uuid: str
     part_index: int
     content: bytes
@@ -180,12 +183,20 @@ class _Update(msgspec.Struct):
     updates: dict
 
 
+@functools.cache
+def _message_types() -> frozenset:
+    """The ``type`` names of viser's messages (what its decoder can look up)."""
+    from viser.infra._messages import Message
+
+    return frozenset(Message._subclass_from_type_string())
+
+
 def screen(gate: UploadGate, owner, data) -> str:
     """PASS, DROP or CLOSE for one incoming message. Uploads go through ``gate``; a widget change may change
     only its ``value`` (viser 1.1 would set any other name it carries as an attribute of the widget's server
     state: its callbacks, its id); everything else is viser's to judge."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        return PASS
+        return CLOSE  # a text frame: viser's page speaks binary msgpack only (viser asserted, a traceback each)
     if len(data) > MAX_FRAME_BYTES:
         log.warning("a %d-byte message was refused (at most %d)", len(data), MAX_FRAME_BYTES)
         return CLOSE
@@ -195,15 +206,18 @@ def screen(gate: UploadGate, owner, data) -> str:
         log.warning("a message nested too deeply was refused")
         return CLOSE
     except msgspec.DecodeError:
-        return PASS  # not msgpack; viser judges it
+        return CLOSE  # not msgpack: viser's decoder raised, a traceback each
     kind = message.get("type") if isinstance(message, dict) else None
+    if kind not in _message_types():
+        return DROP  # viser looked the type up and raised KeyError (AttributeError for a non-dict)
     try:
         if kind == UPLOAD_START:
             m = msgspec.convert(message, _Start)
-            return gate.start(owner, m.transfer_uuid, m.filename, m.size_bytes, m.part_count)
+            return gate.start(owner, m.transfer_uuid, m.filename, m.size_bytes, m.part_count,
+                              m.source_component_uuid)
         if kind == UPLOAD_PART:
             m = msgspec.convert(message, _Part)
-            return gate.part(owner, m.transfer_uuid, m.part_index, m.content)
+            return gate.part(owner, m.transfer_uuid, m.part_index, m.content, m.source_component_uuid)
         if kind == GUI_UPDATE:
             keys = set(msgspec.convert(message, _Update).updates)
             if keys - {"value"}:
@@ -230,7 +244,7 @@ def _connection_class(gate: UploadGate):
                 if verdict == PASS:
                     return data
                 if verdict == CLOSE:
-                    await self.close(1008, "upload refused")
+                    await self.close(1008, "message refused")
 
         def connection_lost(self, exc):
             gate.disconnected(self)

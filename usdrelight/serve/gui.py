@@ -121,6 +121,7 @@ class Gui:
         save.on_click(lambda e: self._run("save", self._save))
         export.on_click(lambda e: self._run("export", self._export))
         upload.on_upload(lambda e: self._run("upload", lambda: self._upload(upload.value)))
+        app.uploads.buttons = {upload._impl.uuid}  # the one widget an upload may name
         self._rebuild_editor()
 
     # ---- helpers ---------------------------------------------------------------------------------

@@ -178,8 +178,10 @@ class LightState:
         if not peak <= MAX_RADIANCE:
             raise UsdRelightError(f"light {self.name}: intensity x 2^exposure x colour is over {MAX_RADIANCE:g}")
         q = np.asarray(self.rotation, np.float64)
-        if np.linalg.norm(q) == 0:
-            raise UsdRelightError(f"light {self.name}: the rotation quaternion must not be zero")
+        if not (q.size and np.all(np.isfinite(q)) and np.abs(q).max() > 0):
+            raise UsdRelightError(f"light {self.name}: the rotation quaternion must be finite and not zero")
+        if not np.isfinite(np.linalg.norm(q)):  # (1e300, 1e300, 0, 0): the norm overflows and q / norm was 0
+            q = q / np.abs(q).max()
         set_ = object.__setattr__
         set_(self, "color", color)
         set_(self, "position", tuple(float(v) for v in self.position))

@@ -157,6 +157,7 @@ class _Transfer:
     checked: bool = False
     done: bool = False
     touched: float = 0.0
+    button: str = ""
 
 
 PASS, DROP, CLOSE = "pass", "drop", "close"
@@ -174,6 +175,9 @@ class UploadGate:
         self._lock = threading.Lock()
         self._active: _Transfer | None = None
         self._refused: set[str] = set()
+        self.buttons: set[str] = set()
+        """The upload buttons' widget uuids (set by the app once its page is built): a transfer must name one, and
+        its parts the same (a part naming another widget made viser set that widget's value to the file)."""
         self.refusals = 0
         self.dropped = 0  # parts kept from viser (those of refused or unknown transfers)
 
@@ -188,10 +192,13 @@ class UploadGate:
         except Exception as exc:  # the refusal stands whatever the display does
             log.warning("showing the refusal failed: %s", exc)
 
-    def start(self, owner, uuid: str, filename: str, size: int, parts: int) -> str:
-        """A transfer's start message: PASS (viser may set it up) or DROP."""
+    def start(self, owner, uuid: str, filename: str, size: int, parts: int, button: str = "") -> str:
+        """A transfer's start message for the upload button ``button`` (its widget uuid): PASS (viser may set it
+        up) or DROP."""
         with self._lock:
             try:
+                if self.buttons and button not in self.buttons:
+                    raise UsdRelightError("an upload to a widget that is not an upload button")
                 suffix = check_declared(filename, size)
                 if not isinstance(parts, int) or not 1 <= parts <= size:
                     raise UsdRelightError("an upload with an impossible number of parts")
@@ -202,21 +209,24 @@ class UploadGate:
             except UsdRelightError as exc:
                 self._refuse(str(uuid), str(exc))
                 return DROP
-            self._active = _Transfer(owner, str(uuid), suffix, size, parts, touched=now)
+            self._active = _Transfer(owner, str(uuid), suffix, size, parts, touched=now, button=str(button))
         if stalled is not None and not stalled.done:
             log.warning("an HDRI upload stalled for %g s: dropped", STALL_SECONDS)
             self.on_evict(stalled.owner)
         return PASS
 
-    def part(self, owner, uuid: str, index: int, content: bytes) -> str:
-        """A part: PASS, DROP (a refused or unknown transfer's) or CLOSE (refused now: close the connection
-        so viser drops the parts it holds)."""
+    def part(self, owner, uuid: str, index: int, content: bytes, button: str = "") -> str:
+        """A part (naming the upload button ``button``): PASS, DROP (a refused or unknown transfer's, or one that
+        names another widget than its start) or CLOSE (refused now: close the connection so viser drops the parts
+        it holds)."""
         with self._lock:
             t = self._active
             if t is None or t.uuid != uuid or t.owner is not owner or t.done:
                 self.dropped += 1
                 return DROP
             try:
+                if str(button) != t.button:
+                    raise UsdRelightError("an upload part that names another widget than its start")
                 if index != t.next_part:
                     raise UsdRelightError("upload parts out of order")
                 t.next_part += 1

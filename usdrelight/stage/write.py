@@ -179,8 +179,9 @@ def _write_version(est: PhotoEstimates, mesh: PixelMesh, outdir: Path, aovs) -> 
         _write_light_layer(tmp / FITTED_LIGHTS, "Fitted lights (usdrelight fit); rewritten by build and fit.")
         sizes = {p.relative_to(tmp).as_posix(): p.stat().st_size for p in tmp.rglob("*") if p.is_file()}
         if not (outdir / USER_LIGHTS).exists():
-            user = _light_layer_text("Your own lights: put them under /Scene/Lights/User. "
-                                     "usdrelight never overwrites this layer.")
+            user = _light_layer_text("Your own lights: put them under /Scene/Lights/User. build and fit never "
+                                     "write this layer; the web app's Save and a convert into it rewrite it, "
+                                     "keeping your other lights (not your comments).")
             write_text_atomic(outdir / USER_LIGHTS, user)
         else:
             log.info("keeping the existing user-lights layer %s", outdir / USER_LIGHTS)
