@@ -534,3 +534,34 @@ def test_probed_messages_a_quaternion_and_a_broken_layer(stage, tmp_path):
     with pytest.raises(UsdRelightError, match="cannot read image hdri-[0-9a-f]+.exr") as err:  # no server folders
         store_upload(copy, "sky.exr", sky[:300])
     assert str(tmp_path) not in str(err.value)
+
+
+def test_a_light_the_user_added_to_the_file_meanwhile_is_not_replaced(stage, tmp_path):
+    """Save replaced the user's DistantLight 'Point3', added to lights_user.usda while the app ran, with the app's
+    new SphereLight of that name. A new light now skips the file's names, and a clash at Save writes nothing."""
+    import shutil
+
+    copy = tmp_path / "st"
+    shutil.copytree(stage.parent, copy)
+    user = copy / USER_LIGHTS
+
+    def add_to_file(name: str) -> str:
+        from pxr import Sdf
+
+        layer = Sdf.Layer.FindOrOpen(str(user))
+        scope = Sdf.CreatePrimInLayer(layer, "/Scene/Lights/User")
+        scope.specifier, scope.typeName = Sdf.SpecifierDef, "Scope"
+        Sdf.CreatePrimInLayer(layer, f"/Scene/Lights/User/{name}").specifier = Sdf.SpecifierDef
+        layer.GetPrimAtPath(f"/Scene/Lights/User/{name}").typeName = "DistantLight"
+        layer.Save()
+        return user.read_text()
+
+    with ServeApp(copy / stage.name, port=0, max_side=SIDE) as app:
+        first = app.add_light("point")
+        add_to_file(f"Point{int(first[5:]) + 1}")
+        second = app.add_light("point")
+        assert second == f"Point{int(first[5:]) + 2}"  # the file's new name skipped
+        text = add_to_file(second)  # and now one of the app's new names taken in the file
+        with pytest.raises(UsdRelightError, match=f"lights_user.usda gained {second} while the app ran"):
+            app.save()
+        assert user.read_text() == text  # nothing written

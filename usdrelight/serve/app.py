@@ -32,7 +32,7 @@ from ..errors import UsdRelightError
 from ..stage.light_syntax import MAX_SIZE, MIN_SIZE
 from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
-from .files import export_relit, read_user_states, store_upload, write_user_layer
+from .files import export_relit, read_user_states, store_upload, user_layer_names, write_user_layer
 from .guard import Guard, guarded
 from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
 from .live import APP_MODES, FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
@@ -221,7 +221,8 @@ class ServeApp:
         if kind not in KINDS:
             raise UsdRelightError(f"unknown light kind {kind!r} ({', '.join(KINDS)})")
         with self._lock:
-            name = unique_name(kind, set(self.states) | self.managed | self.reserved)
+            # the file's own names too: a light the user added to lights_user.usda while the app ran
+            name = unique_name(kind, set(self.states) | self.managed | self.reserved | user_layer_names(self.stage_dir))
             s = self.default_light(kind, name)
             self.states[name] = s
         self.view.set_light(s)
@@ -325,6 +326,10 @@ class ServeApp:
         with self._save_lock:
             with self._lock:
                 states, managed = list(self.states.values()), set(self.managed)
+            clash = ({s.name for s in states} - managed) & user_layer_names(self.stage_dir)
+            if clash:  # the app's new light and one the user added to the file meanwhile share a name
+                raise UsdRelightError(f"lights_user.usda gained {', '.join(sorted(clash))} while the app ran: rename "
+                                      f"one of them and save again (nothing was written)")
             path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT,
                                     keys=self.timeline.snapshot(), timing=self.timeline.timing())
             with self._lock:

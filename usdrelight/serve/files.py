@@ -316,6 +316,20 @@ def author_light(stage, s: LightState, stage_dir: Path | None, hdri_paths: dict,
             attr.Set(value, Usd.TimeCode(t))
 
 
+def user_layer_names(stage_dir) -> set[str]:
+    """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now (empty
+    when it is missing or does not parse)."""
+    from pxr import Sdf, Tf
+
+    path = Path(stage_dir) / USER_LIGHTS
+    try:
+        layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.is_file() else None
+    except Tf.ErrorException:
+        return set()
+    spec = layer.GetPrimAtPath(USER_LIGHTS_SCOPE) if layer is not None else None
+    return {child.name for child in spec.nameChildren} if spec else set()
+
+
 def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = None, keys: dict | None = None,
                     timing: dict | None = None) -> str:
     """The new text of ``STAGE_DIR/lights_user.usda``: the current layer with the prims named in ``managed``
