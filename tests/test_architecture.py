@@ -150,9 +150,13 @@ def _private_uses(module: str) -> list[str]:
 
 
 def test_packages_use_only_public_names_of_other_packages(tmp_path):
-    """Serve, the converters and every other package take only public names from each other (os._exit, the
-    standard library's documented exit without clean-up, is the one private name used)."""
-    bad = [line for mod in MODULES for line in _private_uses(mod) if not line.endswith("uses os._exit")]
+    """Serve, the converters and every other package take only public names from each other. Two private names
+    are used, both outside the project: os._exit, the standard library's documented exit without clean-up, and
+    the upload button's widget id in serve/gui.py (viser 1.1 offers no public id of a widget, and the upload gate
+    must know which widget an upload may name; tests/test_serve_security.py checks it against the installed
+    viser)."""
+    bad = [line for mod in MODULES for line in _private_uses(mod) if not line.endswith("uses os._exit")
+           and not re.fullmatch(r"usdrelight/serve/gui\.py:\d+ uses upload\._impl", line)]
     assert not bad, "a package reaches into another:\n" + "\n".join(bad)
     # the check can fail
     MODULES["usdrelight.serve._probe"] = tmp_path / "p.py"

@@ -249,6 +249,8 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     """``usdrelight neural``: read the stage's AOVs (rendering missing ones when asked) and run the network."""
     t0 = time.perf_counter()
     model = RelightModel(model_path)  # a bad model fails before anything is rendered into the stage folder
+    # and so does an output folder that cannot be (a link out of the stage folder): checked before any render
+    out_dir = out_dir or confined_path(Path(stage_path).resolve().parent, "neural", "the neural folder")
     stage = open_stage(stage_path)
     rec = read_scene(stage)
     aovs = find_aovs(stage_path, rec)
@@ -268,6 +270,5 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     if stale and not render_missing and dt.shape[:2] == alb.shape[:2] == valid.shape[:2]:  # else: sizes named below
         raise UsdRelightError(f"AOV file(s) {stale} were not rendered from {stage_path} as it is now (rebuilt, refit, "
                               f"lights edited, or written by another tool): render again or pass --render-missing")
-    res = run_neural(dt, alb, valid, model, out_dir or confined_path(Path(stage_path).resolve().parent, "neural",
-                                                                     "the neural folder"))
+    res = run_neural(dt, alb, valid, model, out_dir)
     return replace(res, seconds={**res.seconds, "total": time.perf_counter() - t0})

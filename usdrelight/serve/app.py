@@ -32,14 +32,14 @@ from ..errors import UsdRelightError
 from ..stage.light_syntax import MAX_SIZE, MIN_SIZE
 from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
-from .files import export_relit, read_user_states, store_upload, user_layer_names, write_user_layer
+from .files import export_relit, read_user_states, user_layer_names, write_user_layer
 from .guard import Guard, guarded
 from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
 from .live import APP_MODES, FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
 from .scene_view import SceneView, scene_size
 from .state import KINDS, LightState, checked_vector, quat_pointing_along, unique_name
 from .timeline import Timeline, TimelineGui, render_video
-from .uploads import MAX_UPLOAD_BYTES, UploadGate
+from .uploads import MAX_UPLOAD_BYTES, UploadGate, store_upload
 
 log = logging.getLogger(__name__)
 DEFAULT_HOST = "127.0.0.1"

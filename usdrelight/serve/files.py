@@ -20,28 +20,23 @@ gives the keys again: one per time code at which any of the light's attributes h
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
-import re
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import LOCK_NAME, stage_lock, write_bytes_atomic, write_text_atomic
+from ..atomic import LOCK_NAME, stage_lock, write_text_atomic
 from ..errors import UsdRelightError, one_line
-from ..imageio import check_image_size, read_photo
 from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
-from ..stage.light_syntax import MAX_RADIANCE
 from ..stage.read import gf_to_np
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
-from .uploads import MAX_HDRI_MEGAPIXELS, check_declared, check_hdri_header
+from .uploads import UPLOADS, hdri_label, store_upload  # noqa: F401 (store_upload: kept here too)
 
 log = logging.getLogger(__name__)
 SERVE_DIR = "serve"
-UPLOADS = "serve/uploads"
 EXPORTS = "serve/export"
 VIDEO = "relit.mp4"
 #: the attributes the app authors on a light: time samples on any other make the light read-only in the app
@@ -50,40 +45,6 @@ KEYABLE = frozenset({"xformOp:translate", "xformOp:orient", "inputs:intensity", 
                      "inputs:texture:file", "inputs:radius", "inputs:width", "inputs:height"})
 SIZES = frozenset({"inputs:radius", "inputs:width", "inputs:height"})
 """An area light's size attributes (keyable on area lights only)."""
-
-
-def hdri_label(text: str) -> str:
-    """A display label (never a path): letters, digits, '-', '_' and '.', at most 40 characters."""
-    label = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(str(text)).stem)[:40].strip("._")
-    return label or "hdri"
-
-
-def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path]:
-    """Keep an uploaded HDRI: (label, path). The path is ``STAGE_DIR/serve/uploads/hdri-<sha256[:16]>.<exr|hdr>``
-    whatever the client called the file; the file must be at most MAX_UPLOAD_BYTES, declare at most
-    MAX_HDRI_MEGAPIXELS in its header (checked before decoding) and decode as a finite RGB image."""
-    suffix = check_declared(client_name, len(content))
-    try:
-        check_hdri_header(content, suffix)
-    except UsdRelightError as exc:
-        raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
-    digest = hashlib.sha256(content).hexdigest()[:16]
-    path = confined_path(Path(stage_dir).resolve(), UPLOADS, "the uploads folder") / f"hdri-{digest}{suffix}"
-    write_bytes_atomic(path, content)
-    try:
-        w, h = check_image_size(path)  # OpenImageIO's reading of the header, before any pixel
-        if w * h / 1e6 > MAX_HDRI_MEGAPIXELS:
-            raise UsdRelightError(f"{w}x{h} is over the limit of {MAX_HDRI_MEGAPIXELS:g} megapixels")
-        img = read_photo(path)
-        if img.ndim != 3 or not np.all(np.isfinite(img)):
-            raise UsdRelightError("not a finite RGB image")
-        if float(np.abs(img).max(initial=0.0)) > MAX_RADIANCE:  # x a dome's intensity it would overflow
-            raise UsdRelightError(f"pixel values beyond {MAX_RADIANCE:g} (the limit of any light's radiance)")
-    except UsdRelightError as exc:
-        path.unlink(missing_ok=True)  # the page is told the file's name, not the server's folders
-        raise UsdRelightError(f"the uploaded HDRI cannot be used: {str(exc).replace(str(path), path.name)}") \
-            from None
-    return hdri_label(client_name), path
 
 
 def export_relit(stage_dir, image: np.ndarray) -> tuple[Path, Path]:
@@ -316,17 +277,25 @@ def author_light(stage, s: LightState, stage_dir: Path | None, hdri_paths: dict,
             attr.Set(value, Usd.TimeCode(t))
 
 
-def user_layer_names(stage_dir) -> set[str]:
-    """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now (empty
-    when it is missing or does not parse)."""
+def _user_layer(stage_dir):
+    """``STAGE_DIR/lights_user.usda`` as it is now, as an anonymous layer (a new one where there is none); one error
+    line when it does not parse (a user may break it while the app runs)."""
     from pxr import Sdf, Tf
 
     path = Path(stage_dir) / USER_LIGHTS
     try:
-        layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.is_file() else None
-    except Tf.ErrorException:
-        return set()
-    spec = layer.GetPrimAtPath(USER_LIGHTS_SCOPE) if layer is not None else None
+        layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.exists() else Sdf.Layer.CreateAnonymous(".usda")
+    except Tf.ErrorException as exc:
+        raise UsdRelightError(f"cannot read {USER_LIGHTS}: {one_line(exc)[-160:]}") from None
+    if layer is None:
+        raise UsdRelightError(f"cannot read {path}")
+    return layer
+
+
+def user_layer_names(stage_dir) -> set[str]:
+    """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now."""
+    layer = _user_layer(stage_dir)  # held: a spec of a layer already freed reads as no spec
+    spec = layer.GetPrimAtPath(USER_LIGHTS_SCOPE)
     return {child.name for child in spec.nameChildren} if spec else set()
 
 
@@ -336,16 +305,11 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
     and ``states`` under /Scene/Lights/User replaced by ``states`` (animated by ``keys``: {name: {time code:
     state}}). ``timing`` ({"start", "end", "fps", "tcps"}) sets the layer's startTimeCode/endTimeCode,
     framesPerSecond and timeCodesPerSecond (the stage's, so USD does not rescale the layer's time samples)."""
-    from pxr import Sdf, Tf, Usd, UsdGeom
+    from pxr import Sdf, Usd, UsdGeom
 
     stage_dir = Path(stage_dir).resolve()
     path = stage_dir / USER_LIGHTS
-    try:
-        layer = Sdf.Layer.OpenAsAnonymous(str(path)) if path.exists() else Sdf.Layer.CreateAnonymous(".usda")
-    except Tf.ErrorException as exc:  # a layer the user broke while the app ran: nothing is written
-        raise UsdRelightError(f"cannot read {USER_LIGHTS}: {one_line(exc)[-160:]}") from None
-    if layer is None:
-        raise UsdRelightError(f"cannot read {path}")
+    layer = _user_layer(stage_dir)
     if not layer.documentation:
         layer.documentation = "Your own lights: put them under /Scene/Lights/User."
     edit = Sdf.BatchNamespaceEdit()

@@ -186,9 +186,9 @@ class _Update(msgspec.Struct):
 @functools.cache
 def _message_types() -> frozenset:
     """The ``type`` names of viser's messages (what its decoder can look up)."""
-    from viser.infra._messages import Message
+    from viser.infra import Message
 
-    return frozenset(Message._subclass_from_type_string())
+    return frozenset(m.__name__ for m in Message.get_subclasses())  # viser's decoder keys them by class name
 
 
 def screen(gate: UploadGate, owner, data) -> str:

@@ -18,6 +18,7 @@ OpenImageIO's header, then the decode).
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import struct
@@ -26,7 +27,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from ..atomic import write_bytes_atomic
 from ..errors import UsdRelightError
+from ..imageio import check_image_size, read_photo
+from ..safe_paths import confined_path
+from ..stage.light_syntax import MAX_RADIANCE
 
 log = logging.getLogger(__name__)
 HDRI_SUFFIXES = (".exr", ".hdr")
@@ -161,6 +168,8 @@ class _Transfer:
 
 
 PASS, DROP, CLOSE = "pass", "drop", "close"
+UPLOADS = "serve/uploads"
+"""Where uploads are kept, relative to the stage folder."""
 
 
 class UploadGate:
@@ -268,3 +277,37 @@ class UploadGate:
     def busy(self) -> bool:
         with self._lock:
             return self._active is not None
+
+
+def hdri_label(text: str) -> str:
+    """A display label (never a path): letters, digits, '-', '_' and '.', at most 40 characters."""
+    label = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(str(text)).stem)[:40].strip("._")
+    return label or "hdri"
+
+
+def store_upload(stage_dir, client_name: str, content: bytes) -> tuple[str, Path]:
+    """Keep an uploaded HDRI: (label, path). The path is ``STAGE_DIR/serve/uploads/hdri-<sha256[:16]>.<exr|hdr>``
+    whatever the client called the file; the file must be at most MAX_UPLOAD_BYTES, declare at most
+    MAX_HDRI_MEGAPIXELS in its header (checked before decoding) and decode as a finite RGB image."""
+    suffix = check_declared(client_name, len(content))
+    try:
+        check_hdri_header(content, suffix)
+    except UsdRelightError as exc:
+        raise UsdRelightError(f"the uploaded HDRI cannot be used: {exc}") from None
+    digest = hashlib.sha256(content).hexdigest()[:16]
+    path = confined_path(Path(stage_dir).resolve(), UPLOADS, "the uploads folder") / f"hdri-{digest}{suffix}"
+    write_bytes_atomic(path, content)
+    try:
+        w, h = check_image_size(path)  # OpenImageIO's reading of the header, before any pixel
+        if w * h / 1e6 > MAX_HDRI_MEGAPIXELS:
+            raise UsdRelightError(f"{w}x{h} is over the limit of {MAX_HDRI_MEGAPIXELS:g} megapixels")
+        img = read_photo(path)
+        if img.ndim != 3 or not np.all(np.isfinite(img)):
+            raise UsdRelightError("not a finite RGB image")
+        if float(np.abs(img).max(initial=0.0)) > MAX_RADIANCE:  # x a dome's intensity it would overflow
+            raise UsdRelightError(f"pixel values beyond {MAX_RADIANCE:g} (the limit of any light's radiance)")
+    except UsdRelightError as exc:
+        path.unlink(missing_ok=True)  # the page is told the file's name, not the server's folders
+        raise UsdRelightError(f"the uploaded HDRI cannot be used: {str(exc).replace(str(path), path.name)}") \
+            from None
+    return hdri_label(client_name), path
