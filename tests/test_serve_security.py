@@ -96,8 +96,10 @@ class Client:
     """A viser client over a real WebSocket: announces a camera (viser then counts it as connected) and
     drains what the server sends in a thread."""
 
-    def __init__(self, app, origin: str | None = None, **kw):
-        self.ws = ws_client.connect(f"ws://127.0.0.1:{app.port}/", origin=origin or f"http://127.0.0.1:{app.port}",
+    def __init__(self, app, origin: str | None = None, token: bool = True, **kw):
+        query = f"?token={app.guard.token}" if token else ""  # what the page's cookie carries for it
+        self.ws = ws_client.connect(f"ws://127.0.0.1:{app.port}/{query}",
+                                    origin=origin or f"http://127.0.0.1:{app.port}",
                                     subprotocols=[f"viser-v{viser.__version__}"], max_size=None, open_timeout=10,
                                     **kw)
         self.received = 0
@@ -136,7 +138,7 @@ class Client:
 def test_foreign_origin_and_host_get_403_and_no_state(stage):
     with ServeApp(stage, port=0, max_side=SIDE) as app:
         port, own = app.port, f"http://127.0.0.1:{app.port}"
-        assert app.guard.installed and not app.guard.token_required and "token" not in app.url
+        assert app.guard.installed and app.guard.token_required and app.url.endswith(f"/?token={app.guard.token}")
         for origin in ("http://evil.example", f"http://evil.example:{port}", f"http://127.0.0.1:{port + 1}",
                        f"https://127.0.0.1:{port}", "null"):
             with pytest.raises(InvalidStatus) as info:
@@ -156,10 +158,17 @@ def test_foreign_origin_and_host_get_403_and_no_state(stage):
         assert _raw(port, _upgrade(f"/?token={app.guard.token}", f"127.0.0.1:{port}")).startswith(b"HTTP/1.1 101")
         assert _raw(port, _upgrade("/?token=wrong", f"127.0.0.1:{port}")).startswith(b"HTTP/1.1 403")
         refused = app.guard.refusals
-        # the app's own page and socket still work, under each loopback name
+        # a local program sends the page's own Origin: without the token it gets nothing (any local user could
+        # drive the app, and write lights_user.usda as its owner, before the token was asked on loopback too)
+        with pytest.raises(InvalidStatus) as info:
+            Client(app, origin=own, token=False)
+        assert info.value.response.status_code == 403 and b"token" in info.value.response.body
+        assert _refused(_raw(port, f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"))
+        # the app's own page (the printed URL) and socket still work, under each loopback name
         for host in (f"127.0.0.1:{port}", f"localhost:{port}"):
-            page = _raw(port, f"GET / HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n")
+            page = _raw(port, f"GET /?token={app.guard.token} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n")
             assert page.startswith(b"HTTP/1.1 200") and b"<html" in page.lower()
+        refused = app.guard.refusals
         client = Client(app, origin=own)
         _wait(lambda: client.received > 10_000, what="the scene")
         client.close()
@@ -176,8 +185,11 @@ def test_guard_rules_and_the_token_beyond_loopback(stage):
         return Request(path, h)
 
     g = Guard("127.0.0.1")
-    assert not g.refusal(req(Host="127.0.0.1:8080"), 8080)
-    assert not g.refusal(req(Host="[::1]:8080", Origin="http://[::1]:8080", Upgrade="websocket"), 8080)
+    t = f"/?token={g.token}"
+    assert not g.refusal(req(t, Host="127.0.0.1:8080"), 8080)
+    assert g.refusal(req(Host="127.0.0.1:8080"), 8080).startswith("the token")  # loopback asks it too
+    assert not g.refusal(req(t, Host="[::1]:8080", Origin="http://[::1]:8080", Upgrade="websocket"), 8080)
+    assert g.refusal(req(Host="[::1]:8080", Origin="http://[::1]:8080", Upgrade="websocket"), 8080)
     assert g.refusal(req(Host="192.168.1.5:8080"), 8080)  # loopback server: loopback names only
     assert g.refusal(req(Host="127.0.0.1:8080", Origin="http://127.0.0.1:8080/x"), 8080)
     assert g.refusal(req(Host="127.0.0.1:8080", Upgrade="WebSocket"), 8080)  # no Origin, no token
@@ -197,7 +209,7 @@ def test_guard_rules_and_the_token_beyond_loopback(stage):
         cookie = re.search(rb"Set-Cookie: (usdrelight-serve-\d+=[^;]+);([^\r]*)", page)
         assert cookie and b"HttpOnly" in cookie.group(2) and b"SameSite=Strict" in cookie.group(2)
         with pytest.raises(InvalidStatus):
-            Client(app)  # the right Origin, no cookie
+            Client(app, token=False)  # the right Origin, no cookie
         Client(app, additional_headers={"Cookie": cookie.group(1).decode()}).close()
 
 

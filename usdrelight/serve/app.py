@@ -7,7 +7,7 @@ split view against the original photo and the time of each frame). Every change 
 the :class:`FrameLoop` for a frame; only the newest request is rendered.
 
 Safety: the server binds 127.0.0.1 unless ``host`` says otherwise and answers only requests whose Host and
-Origin are its own (and, beyond loopback, that carry the run's token: :mod:`.guard`); every value a client
+Origin are its own and that carry the run's token (:mod:`.guard`); every value a client
 sends is checked on the server (:mod:`.gui`); uploads are bounded before they are buffered (:mod:`.uploads`);
 no widget takes a file path: HDRIs are copies of those named on the command line (``--hdri``) or uploads, both
 stored under fixed names in the stage's folder (:mod:`.files`; so the saved layer stays readable under the
@@ -156,7 +156,7 @@ class ServeApp:
     # ---- lifecycle -----------------------------------------------------------------------------
     @property
     def url(self) -> str:
-        """The address to open (with ``?token=...`` when the server listens beyond loopback)."""
+        """The address to open, with the run's ``?token=...``."""
         host = f"[{self.host}]" if ":" in self.host else self.host
         query = f"?token={self.guard.token}" if self.guard.token_required else ""
         return f"http://{host}:{self.port}/{query}"

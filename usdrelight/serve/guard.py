@@ -10,10 +10,11 @@ Rules (a refusal is HTTP 403 with one line of text, before anything of the scene
   ``http://`` + the request's Host. A WebSocket without an Origin (a script, not a browser) must carry the
   token.
 * A widget change may set only the widget's value (see :func:`screen`).
-* The token (a random secret per run, :attr:`Guard.token`) is required on every request when the server
-  listens beyond loopback: the printed URL carries it as ``?token=...``; the page's response sets it as an
-  HttpOnly, SameSite=Strict cookie (``usdrelight-serve-PORT``) that the page's own requests (the WebSocket
-  included) then carry. On loopback it is only needed by Origin-less WebSocket clients.
+* The token (a random secret per run, :attr:`Guard.token`) is required on every request, on loopback too (a
+  browser sends an honest Origin, but any local program, another user's included, can send whatever Origin it
+  likes): the printed URL carries it as ``?token=...``; the page's response sets it as an HttpOnly,
+  SameSite=Strict cookie (``usdrelight-serve-PORT``) that the page's own requests (the WebSocket included) then
+  carry.
 
 viser (1.1) builds its server inside a background thread with ``websockets.asyncio.server.serve`` and passes
 its own ``process_request`` (the static files), offering no hook of its own. :func:`guarded` therefore
@@ -94,7 +95,7 @@ class Guard:
     def __init__(self, host: str, gate: UploadGate | None = None):
         self.loopback = is_loopback(host)
         self.token = secrets.token_urlsafe(24)
-        self.token_required = not self.loopback
+        self.token_required = True  # on loopback too: any local program can send a page's Origin header
         self.names = set(LOOPBACK_NAMES) | {str(host).strip("[]").lower()}
         if not self.loopback:
             self.names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
