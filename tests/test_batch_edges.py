@@ -212,26 +212,38 @@ def test_a_photo_finished_after_its_batch_ended_is_not_published(tmp_path):
     assert rec.status == "failed" and not (out / "late").exists()
 
 
+def _scheduler(tmp_path, procs: list) -> str:
+    """Start a Dask scheduler on loopback (its process appended to ``procs``); its address once it listens."""
+    procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                   "--port", "0", "--no-dashboard", "--scheduler-file", str(tmp_path / "s.json")],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "s.json").exists():
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    time.sleep(0.5)
+    return json.loads((tmp_path / "s.json").read_text())["address"]
+
+
+def _worker(address: str, env: dict, procs: list) -> None:
+    """Start a Dask worker with one 'photo' resource (appended to ``procs``)."""
+    procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                   "--resources", "photo=1", "--no-dashboard"], env=env,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+
 def test_a_lost_scheduler_is_one_error_not_photos_blamed_on_workers(tmp_path):
     """Before: exit 0, the photos left recorded failed as 'worker died while processing the photo
     (FutureCancelledError ... scheduler-connection-lost)' and a raw distributed.client error line."""
     photos, out = tmp_path / "photos", tmp_path / "out"
     _good(photos, "hold", 21)
     env = dict(os.environ, **{TEST_HOLD_ENV: "hold", "PYTHONUNBUFFERED": "1"})
-    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
-    sched = subprocess.Popen(dask + ["--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file",
-                                     str(tmp_path / "s.json")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    procs = [sched]
+    procs = []
     try:
         deadline = time.monotonic() + 60
-        while not (tmp_path / "s.json").exists():
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
-        time.sleep(0.5)
-        address = json.loads((tmp_path / "s.json").read_text())["address"]
-        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads",
-                                       "1", "--resources", "photo=1", "--no-dashboard"], env=env,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        address = _scheduler(tmp_path, procs)
+        sched = procs[0]
+        _worker(address, env, procs)
         batch = subprocess.Popen([sys.executable, "-m", "usdrelight", "batch", str(photos), "-o", str(out),
                                   "--scheduler", address, "--max-side", "64", "--lights", "2", "--iterations", "6"],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
@@ -260,33 +272,20 @@ def test_workers_that_join_a_running_batch_get_photos_at_once(tmp_path):
     _good(photos, "a", 31)
     _good(photos, "b", 32)
     env = dict(os.environ, **{TEST_HOLD_ENV: "a", "PYTHONUNBUFFERED": "1"})
-    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port",
-                              "0", "--no-dashboard", "--scheduler-file", str(tmp_path / "s.json")],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    procs = [sched]
-
-    def worker():
-        procs.append(subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
-                                       "--resources", "photo=1", "--no-dashboard"], env=env,
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-
+    procs = []
     try:
         deadline = time.monotonic() + 60
-        while not (tmp_path / "s.json").exists():
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
-        time.sleep(0.5)
-        address = json.loads((tmp_path / "s.json").read_text())["address"]
+        address = _scheduler(tmp_path, procs)
         batch = subprocess.Popen([sys.executable, "-m", "usdrelight", "batch", str(photos), "-o", str(out), "--json",
                                   "--scheduler", address, "--max-side", "64", "--lights", "2", "--iterations", "6"],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         procs.append(batch)
         time.sleep(2.0)  # the batch starts with no worker
-        worker()
+        _worker(address, env, procs)
         while not (out / ".test-hold-a").exists():
             assert batch.poll() is None and time.monotonic() < deadline + 60, batch.stderr.read()
             time.sleep(0.2)
-        worker()
+        _worker(address, env, procs)
         while not (out / "b" / "batch.json").exists():
             assert batch.poll() is None and time.monotonic() < deadline + 120, "b waited for a"
             time.sleep(0.2)
