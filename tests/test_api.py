@@ -89,7 +89,7 @@ BAD_CALLS = {  # found by probing the API: each was accepted (a 1 x 1 fit writte
                     "seed (--seed) must be an integer"),
     "fit a dict": (lambda s: usdrelight.fit(s, {"lights": 1}), "settings must be a FitSettings, got dict"),
     "session max_depth 1e9": (lambda s: usdrelight.RelightSession(s, max_side=32, max_depth=10 ** 9),
-                              "max_depth (--max-depth) must be an integer in [2, 64]"),
+                              "max_depth (--max-depth) must be an integer in [2, 1024]"),
     "session max_side -5": (lambda s: usdrelight.RelightSession(s, max_side=-5), "max_side (--max-side) must be"),
     "session cache str": (lambda s: usdrelight.RelightSession(s, cache="/tmp/c"), "cache must be a TransportCache"),
     "render seed -1": (lambda s: usdrelight.render(s, s.parent / "x", aovs=["diffuse"], spp=1, seed=-1),
@@ -147,3 +147,14 @@ def test_a_sequence_list_and_a_small_adam_environment(api_stage, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # numpy's empty-slice warnings fail the test
         assert prune_by_contribution(prob, dark).env is None  # a black environment contributes nothing: dropped
+
+
+def test_values_that_worked_before_the_checks_still_do(api_stage):
+    """The checks refuse what the CLI refuses, not what the API took before: max_side 0 (full resolution), a whole
+    float, a 0-d array scale, iterations 0 (the default), an empty aovs (every AOV)."""
+    with usdrelight.RelightSession(api_stage, max_side=0, mode="render", fitted_scale=np.array(0.5)) as s:
+        assert s.engine.resolution == (256, 192)
+    with usdrelight.RelightSession(api_stage, max_side=32.0, mode="render") as s:
+        assert max(s.engine.resolution) == 32
+    rep = usdrelight.fit(api_stage, usdrelight.FitSettings(lights=1, max_side=32.0, iterations=0, verify_spp=0))
+    assert rep.lights_kept <= 1

@@ -536,6 +536,7 @@ def test_probed_messages_a_quaternion_and_a_broken_layer(stage, tmp_path):
         LightState("L", "spot", rotation=(0.0, 0.0, 0.0, 0.0))
     big = LightState("L", "spot", rotation=(1e300, 1e300, 0.0, 0.0))
     np.testing.assert_allclose(big.rotation, (0.5 ** 0.5, 0.5 ** 0.5, 0.0, 0.0))
+    assert LightState("L", "spot", rotation=(1e-170, 0.0, 0.0, 0.0)).rotation == (1.0, 0.0, 0.0, 0.0)  # was NaN
     copy = tmp_path / "st"
     shutil.copytree(stage.parent, copy)
     broken = '#usda 1.0\nover "Scene" {\n def Scope "Lights" {\n'

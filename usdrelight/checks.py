@@ -8,8 +8,8 @@ from numbers import Integral, Real
 
 from .errors import UsdRelightError
 
-MAX_DEPTH = 64
-"""Longest path (max_depth) a render may ask for: Mitsuba's own tests go to 64; a billion looped for ever."""
+MAX_DEPTH = 1024
+"""Longest path (max_depth) a render may ask for (a billion bounces looped for ever)."""
 MAX_SEED = 2 ** 32 - 1
 """Largest seed: Mitsuba's samplers take an unsigned 32-bit seed."""
 
@@ -19,9 +19,11 @@ def _name(name: str, flag: str | None = None) -> str:
 
 
 def whole(value, name: str, lo: int, hi: int | None = None, flag: str | None = None) -> int:
-    """``value`` as an int in [lo, hi] (hi None: no upper bound); bools, floats and strings are refused. ``flag``:
-    the CLI's name of it when not ``--`` + ``name`` with dashes."""
-    if isinstance(value, Integral) and not isinstance(value, bool) and lo <= value and (hi is None or value <= hi):
+    """``value`` as an int in [lo, hi] (hi None: no upper bound); a whole float (512.0) is taken, bools, other
+    floats and strings are refused. ``flag``: the CLI's name of it when not ``--`` + ``name`` with dashes."""
+    whole_number = isinstance(value, Integral) or (isinstance(value, Real) and math.isfinite(value)
+                                                   and float(value).is_integer())
+    if whole_number and not isinstance(value, bool) and lo <= value and (hi is None or value <= hi):
         return int(value)
     span = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
     raise UsdRelightError(f"{_name(name, flag)} must be an integer {span}, got {value!r}")
@@ -33,9 +35,13 @@ def whole_or_none(value, name: str, lo: int, hi: int | None = None) -> int | Non
 
 
 def number(value, name: str, lo: float = 0.0) -> float:
-    """``value`` as a finite float >= ``lo``; bools and strings are refused."""
-    if isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value) and value >= lo:
-        return float(value)
+    """``value`` as a finite float >= ``lo`` (a 0-d array or tensor too); bools and strings are refused."""
+    try:
+        x = None if isinstance(value, (bool, str, bytes)) else float(value)
+    except (TypeError, ValueError):
+        x = None
+    if x is not None and math.isfinite(x) and x >= lo:
+        return x
     raise UsdRelightError(f"{_name(name)} must be a finite number >= {lo:g}, got {value!r}")
 
 

@@ -173,7 +173,7 @@ def _checked(settings) -> FitSettings:
     if settings.method not in ("fast", "adam"):
         raise UsdRelightError(f"unknown --method {settings.method!r} (adam or fast)")
     return replace(settings, lights=whole(settings.lights, "lights", 0, 256),
-                   iterations=whole_or_none(settings.iterations, "iterations", 1),
+                   iterations=whole_or_none(settings.iterations, "iterations", 0),  # 0 (as None): the default
                    max_side=whole(settings.max_side, "max_side", 1), seed=whole(settings.seed, "seed", 0, MAX_SEED - 1))
 
 

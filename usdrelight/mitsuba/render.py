@@ -260,7 +260,7 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     t0 = time_module.perf_counter()
     check_spp(spp)
     max_depth, seed = whole(max_depth, "max_depth", 1, MAX_DEPTH), whole(seed, "seed", 0, MAX_SEED)
-    aovs = names(aovs, "aovs") if aovs is not None else None
+    aovs = names(aovs, "aovs") if aovs else None  # none named: every declared AOV
     stage = open_stage(stage_path)
     rec = read_scene(stage, frame_time(stage, time))
     if not rec.products:

@@ -249,9 +249,9 @@ def neural_stage(stage_path, model_path=None, out_dir=None, render_missing: bool
     """``usdrelight neural``: read the stage's AOVs (rendering missing ones when asked) and run the network."""
     t0 = time.perf_counter()
     model = RelightModel(model_path)  # a bad model fails before anything is rendered into the stage folder
+    stage = open_stage(stage_path)
     # and so does an output folder that cannot be (a link out of the stage folder): checked before any render
     out_dir = out_dir or confined_path(Path(stage_path).resolve().parent, "neural", "the neural folder")
-    stage = open_stage(stage_path)
     rec = read_scene(stage)
     aovs = find_aovs(stage_path, rec)
     missing = [name for k, (name, path) in aovs.items() if k in ("diffuse", "albedo", "valid") and not path.is_file()]

@@ -133,7 +133,7 @@ class RelightSession:
                  settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
                  cache: TransportCache | None = None, time: float | None = None):
         check_renderer_options(renderer, spp, max_depth)  # before the stage is read
-        max_side = whole_or_none(max_side, "max_side", 1)
+        max_side = whole_or_none(max_side, "max_side", 0)  # 0 (as None): the stage's full resolution
         if number(fitted_scale, "fitted_scale") > 1e6:
             raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
         for value, kind, name in ((settings, EngineSettings, "settings"), (cache, TransportCache, "cache")):

@@ -222,7 +222,11 @@ class ServeApp:
             raise UsdRelightError(f"unknown light kind {kind!r} ({', '.join(KINDS)})")
         with self._lock:
             # the file's own names too: a light the user added to lights_user.usda while the app ran
-            name = unique_name(kind, set(self.states) | self.managed | self.reserved | user_layer_names(self.stage_dir))
+            try:
+                in_file = user_layer_names(self.stage_dir)
+            except UsdRelightError:  # the file is being edited and does not parse now: Save will say so
+                in_file = set()
+            name = unique_name(kind, set(self.states) | self.managed | self.reserved | in_file)
             s = self.default_light(kind, name)
             self.states[name] = s
         self.view.set_light(s)

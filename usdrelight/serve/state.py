@@ -180,12 +180,11 @@ class LightState:
         q = np.asarray(self.rotation, np.float64)
         if not (q.size and np.all(np.isfinite(q)) and np.abs(q).max() > 0):
             raise UsdRelightError(f"light {self.name}: the rotation quaternion must be finite and not zero")
-        if not np.isfinite(np.linalg.norm(q)):  # (1e300, 1e300, 0, 0): the norm overflows and q / norm was 0
-            q = q / np.abs(q).max()
+        big = float(np.abs(q).max())  # the norm taken of q / big: (1e300, 1e300, 0, 0) overflowed, (1e-170, 0, 0, 0)
+        norm = big * float(np.linalg.norm(q / big))  # underflowed, and q / norm was 0 or NaN
         set_ = object.__setattr__
         set_(self, "color", color)
         set_(self, "position", tuple(float(v) for v in self.position))
-        norm = float(np.linalg.norm(q))
         set_(self, "rotation", tuple(float(v) for v in (q if abs(norm - 1.0) < 1e-12 else q / norm)))  # idempotent
         for name in ("intensity", "exposure", "cone_angle", "softness", "angle", "radius", "width", "height"):
             set_(self, name, _f32(getattr(self, name)))
