@@ -222,10 +222,7 @@ class ServeApp:
             raise UsdRelightError(f"unknown light kind {kind!r} ({', '.join(KINDS)})")
         with self._lock:
             # the file's own names too: a light the user added to lights_user.usda while the app ran
-            try:
-                in_file = user_layer_names(self.stage_dir)
-            except UsdRelightError:  # the file is being edited and does not parse now: Save will say so
-                in_file = set()
+            in_file = user_layer_names(self.stage_dir, strict=False)  # a file that does not parse: Save says so
             name = unique_name(kind, set(self.states) | self.managed | self.reserved | in_file)
             s = self.default_light(kind, name)
             self.states[name] = s
@@ -330,10 +327,8 @@ class ServeApp:
         with self._save_lock:
             with self._lock:
                 states, managed = list(self.states.values()), set(self.managed)
-            clash = ({s.name for s in states} - managed) & user_layer_names(self.stage_dir)
-            if clash:  # the app's new light and one the user added to the file meanwhile share a name
-                raise UsdRelightError(f"lights_user.usda gained {', '.join(sorted(clash))} while the app ran: rename "
-                                      f"one of them and save again (nothing was written)")
+            if clash := ({s.name for s in states} - managed) & user_layer_names(self.stage_dir):  # a user's, meanwhile
+                raise UsdRelightError(f"lights_user.usda gained {', '.join(sorted(clash))} while the app ran: rename")
             path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT,
                                     keys=self.timeline.snapshot(), timing=self.timeline.timing())
             with self._lock:

@@ -292,9 +292,15 @@ def _user_layer(stage_dir):
     return layer
 
 
-def user_layer_names(stage_dir) -> set[str]:
-    """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now."""
-    layer = _user_layer(stage_dir)  # held: a spec of a layer already freed reads as no spec
+def user_layer_names(stage_dir, strict: bool = True) -> set[str]:
+    """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now (a file
+    that does not parse: UsdRelightError, or none with ``strict`` False)."""
+    try:
+        layer = _user_layer(stage_dir)  # held: a spec of a layer already freed reads as no spec
+    except UsdRelightError:
+        if strict:
+            raise
+        return set()
     spec = layer.GetPrimAtPath(USER_LIGHTS_SCOPE)
     return {child.name for child in spec.nameChildren} if spec else set()
 
