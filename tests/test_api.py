@@ -53,6 +53,9 @@ def test_the_readme_python_example_runs_through_the_api(tmp_path):
     res = usdrelight.build(ex / "photo.exr", tmp_path / "st", usdrelight.BuildOptions(
         depth=ex / "depth.exr", intrinsics=ex / "intrinsics.json", albedo=ex / "albedo.exr"))
     assert usdrelight.validate(res.stage) is not None
+    on_disk = {p.relative_to(res.stage.parent).as_posix(): p.stat().st_size
+               for p in res.stage.parent.rglob("*") if p.is_file() and not p.is_symlink()}
+    assert res.files == on_disk  # every file, relative to the stage folder (lights_user.usda was missing)
     rep = usdrelight.fit(res.stage, usdrelight.FitSettings(lights=4, verify_spp=0))
     assert rep.lights_kept >= 1 and rep.psnr_db > 20
     scene = usdrelight.read_scene(res.stage)
@@ -96,6 +99,10 @@ BAD_CALLS = {  # found by probing the API: each was accepted (a 1 x 1 fit writte
                        "seed (--seed) must be an integer in [0, 4294967295], got -1"),
     "read_scene nan": (lambda s: usdrelight.read_scene(s, float("nan")), "a time code must be a finite number"),
     "read_scene None": (lambda s: usdrelight.read_scene(None), "a stage is a path (str or Path), got None"),
+    "fit verify_spp -1": (lambda s: usdrelight.fit(s, usdrelight.FitSettings(verify_spp=-1)),
+                          "verify_spp (--verify-spp) must be an integer in [0, "),  # named the CLI flag only
+    "session render mode ''": (lambda s: usdrelight.RelightSession(s, max_side=32, mode="render").render(
+        ["point:0.5,1,-2:3,3,3"], mode=""), "unknown mode ''"),  # '' rendered in the session's mode
     "relight fitted_scale str": (lambda s: usdrelight.relight(s, ["point:0.5,1,-2:3,3,3"], out=s.parent / "r",
                                                               fitted_scale="0.5"),
                                  "fitted_scale (--fitted-scale) must be a finite number >= 0, got '0.5'"),
@@ -121,6 +128,7 @@ def test_one_light_string_is_one_light_and_a_light_record_is_checked(api_stage):
     spec = "point:0.5,1,-2:3,3,3"
     with usdrelight.RelightSession(api_stage, max_side=32, mode="render") as s:
         np.testing.assert_array_equal(s.render(spec).image, s.render([spec]).image)
+        np.testing.assert_array_equal(s.render(spec, mode="auto").image, s.render([spec]).image)
         with pytest.raises(usdrelight.UsdRelightError, match="radiance must be 3 finite numbers >= 0"):
             s.render([replace(parse_light(spec), radiance=np.full(3, -5.0))])
     files = usdrelight.render(api_stage, api_stage.parent / "aov", aovs="diffuse", spp=1).files

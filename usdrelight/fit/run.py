@@ -18,7 +18,7 @@ from ..atomic import stage_lock
 from ..checks import MAX_SEED, whole, whole_or_none
 from ..errors import UsdRelightError
 from ..imageio import write_image
-from ..mitsuba.render import MAX_SPP, check_spp, render_record
+from ..mitsuba.render import MAX_SPP, render_record
 from ..safe_paths import writable_parent
 from ..stage.layout import SCENE
 from ..stage.lights_layer import write_fitted_lights
@@ -174,19 +174,14 @@ def _checked(settings) -> FitSettings:
         raise UsdRelightError(f"unknown --method {settings.method!r} (adam or fast)")
     return replace(settings, lights=whole(settings.lights, "lights", 0, 256),
                    iterations=whole_or_none(settings.iterations, "iterations", 0),  # 0 (as None): the default
-                   max_side=whole(settings.max_side, "max_side", 1), seed=whole(settings.seed, "seed", 0, MAX_SEED - 1))
+                   max_side=whole(settings.max_side, "max_side", 1), seed=whole(settings.seed, "seed", 0, MAX_SEED - 1),
+                   verify_spp=whole(settings.verify_spp, "verify_spp", 0, MAX_SPP))  # 0: no verification render
 
 
 def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> FitReport:
     settings = _checked(settings)
     method, lights, env_res, iterations = settings.method, settings.lights, settings.env_res, settings.iterations
     max_side, verify_spp, seed, fast_settings = settings.max_side, settings.verify_spp, settings.seed, settings.fast
-    if verify_spp:
-        try:
-            check_spp(verify_spp, "--verify-spp")
-        except UsdRelightError:  # 0 is valid too: no verification render
-            raise UsdRelightError(f"--verify-spp must be 0 (no verification render) or an integer in "
-                                  f"[1, {MAX_SPP}], got {verify_spp!r}") from None
     if report_dir is not None:  # before the fit publishes anything: a bad folder fails first, not after
         writable_parent(Path(report_dir) / "fit_report.json", "the --report")
     t_all = time.perf_counter()

@@ -95,9 +95,10 @@ class RelitFrame:
     """One relit image, in memory (linear RGB, row 0 at the top)."""
 
     image: np.ndarray
-    """(H, W, 3) the network's relit photo."""
+    """(H, W, 3) the relit photo of the frame's mode (``add``: the photo plus the added light; ``render``: D~
+    divided by coverage; ``neural``: the network's output; ...), in the photo's linear units."""
     diffuse: np.ndarray
-    """(H, W, 3) D~, the diffuse render the network was given."""
+    """(H, W, 3) D~, the diffuse render under the frame's lights (before any composite or network)."""
     albedo: np.ndarray
     """(H, W, 3) albedo AOV."""
     valid: np.ndarray
@@ -105,7 +106,8 @@ class RelitFrame:
     lights: int
     """Lights rendered (user, fitted when asked, and the frame's own)."""
     seconds: dict = field(default_factory=dict)
-    """Wall time: render, then hole_fill + network (neural) or composite (ratio, add), total."""
+    """Wall time, seconds: render, then the mode's steps (composite; composite + network for residual;
+    hole_fill + network for neural), total."""
     time: float | None = None
     """The USD time code the stage's lights were read at (None: the default time)."""
     coverage: np.ndarray | None = None
@@ -293,7 +295,8 @@ class RelightSession:
     def render(self, lights=(), mode: str | None = None, time_code: float | None = None,
                area_samples: int | None = None, allow_dark: bool = False) -> RelitFrame:
         """Relight with the session's base lights plus ``lights`` (``--light`` strings or LightRecords, metres),
-        in the session's mode or in ``mode`` (one of :data:`usdrelight.relight.composite.MODES`; what it needs is
+        in the session's mode (``mode`` None or ``auto``) or in ``mode`` (one of
+        :data:`usdrelight.relight.composite.MODES`; what it needs is
         loaded on first use); ``time_code``: first read the stage's lights at that USD time code (:meth:`set_time`).
         In ``add`` mode the fitted lights are not rendered: the photo already holds their light.
         ``area_samples``: the fast renderer's shadow rays per pixel for the sampling lights of this frame only (a
@@ -303,7 +306,7 @@ class RelightSession:
         t0 = perf_counter()
         if time_code is not None:
             self.set_time(time_code)
-        mode = mode or self.mode
+        mode = self.mode if mode in (None, "auto") else mode  # auto: what the session resolved it to
         self.prepare_mode(mode)
         added = parse_lights(lights)
         all_lights = list(self.base_lights) + added

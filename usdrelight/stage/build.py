@@ -96,7 +96,8 @@ class BuildResult:
     estimators: dict = field(default_factory=dict)
     """``geometry`` / ``albedo`` -> {name, model, revision, device, notes} of the learned estimators that ran."""
     files: dict = field(default_factory=dict)
-    """Relative file name -> bytes, for every file of the stage."""
+    """File name relative to the stage folder (``scene.usda``, ``lights_user.usda``, ``versions/<id>/...``) ->
+    size in bytes, for every file the stage reads."""
 
 
 @contextmanager

@@ -46,7 +46,8 @@ class BuiltStage:
     n_faces: int
     """Mesh triangles."""
     files: dict
-    """Relative file name -> size in bytes, for every file of the new version."""
+    """File name relative to the stage folder (``scene.usda``, ``lights_user.usda``, ``versions/<id>/...``) ->
+    size in bytes, for every file the stage reads (the user's layer as it is, kept or created)."""
 
 
 def _light_layer_text(doc: str) -> str:
@@ -189,5 +190,7 @@ def _write_version(est: PhotoEstimates, mesh: PixelMesh, outdir: Path, aovs) -> 
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    sizes[SCENE] = (outdir / SCENE).stat().st_size
+    sizes = {version_prefix(vid) + name: size for name, size in sizes.items()}  # relative to the stage folder
+    for name in (SCENE, USER_LIGHTS):
+        sizes[name] = (outdir / name).stat().st_size
     return sizes
