@@ -147,12 +147,16 @@ def _light_motion(prim) -> tuple[bool, set[float], set[float]]:
 
 
 def scene_animation(stage, codes: list[float]) -> dict:
-    """The scene's animation settings {frame_start, frame_end, fps, time_codes_per_second}: the stage's
-    start/end time codes, else the span of ``codes`` (sorted time codes)."""
+    """The scene's animation settings {frame_start, frame_end, fps, time_codes_per_second, held}: the stage's
+    start/end time codes, else the span of ``codes`` (sorted time codes); ``held``: the stage's interpolation is
+    Held (every value steps at its samples: CONSTANT keys in Blender)."""
+    from pxr import Usd
+
     rng = stage_time_range(stage)
     start, end = (rng.start, rng.end) if rng is not None else (codes[0], codes[-1])
     return {"frame_start": int(math.floor(start)), "frame_end": int(math.ceil(end)), "fps": stage_fps(stage),
-            "time_codes_per_second": float(stage.GetTimeCodesPerSecond())}
+            "time_codes_per_second": float(stage.GetTimeCodesPerSecond()),
+            "held": stage.GetInterpolationType() == Usd.InterpolationTypeHeld}
 
 
 DEFORMING_WARNING = "time-sampled mesh points in Blender (the first frame's shape is kept, not keyed)"

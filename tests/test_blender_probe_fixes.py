@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from usdrelight.converters.blender import read_from_file, run_blender
+from usdrelight.converters.blender import read_from_file, run_blender, write_to_file
 from usdrelight.converters.blender_units import light_to_blender
 from usdrelight.converters.convert import convert
 from usdrelight.stage.read import read_camera, read_lights
@@ -335,3 +335,62 @@ def test_camera_exposure_is_cycles_film_exposure_and_other_cameras_are_named(tmp
     run_blender(tmp_path / "probe.py", str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
     got = json.loads((tmp_path / "p.json").read_text())
     assert got["film_exposure"] == pytest.approx(8.0, rel=1e-6) and got["cameras"] == ["Cam"]
+
+
+HELD = '''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+    startTimeCode = 1
+    endTimeCode = 5
+)
+def Camera "Cam" {
+    double3 xformOp:translate.timeSamples = { 1: (0, 1, 4), 5: (2, 1, 4) }
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+def SphereLight "Key" {
+    float inputs:intensity.timeSamples = { 1: 1, 5: 5 }
+    bool treatAsPoint = 1
+    double3 xformOp:translate.timeSamples = { 1: (0, 2, 0), 5: (4, 2, 0) }
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+'''
+
+HELD_PROBE = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+sc = bpy.context.scene
+out = {}
+for f in (1, 3, 5):
+    sc.frame_set(f)
+    light = next(o for o in sc.objects if o.type == "LIGHT")
+    out[f] = {"light_x": light.matrix_world.translation.x, "energy": light.data.energy,
+              "camera_x": sc.camera.matrix_world.translation.x}
+json.dump(out, open(args[1], "w"))
+'''
+
+
+@pytest.mark.parametrize("interpolation", ["held", "linear"])
+def test_a_held_stage_holds_every_key_in_blender(tmp_path, interpolation):
+    """A stage set to Held interpolation (Usd.Stage.SetInterpolationType: a setting of the open stage, which a
+    tool passes to the writer; a file cannot author it): USD keeps frame 1's light (x 0, 4 pi W) and camera (x 0)
+    until frame 5; Blender interpolated its linear keys to x 2 / x 1 at frame 3. Now CONSTANT keys, as USD reads
+    it; a linear stage keeps linear keys."""
+    from pxr import Usd
+
+    (tmp_path / "s.usda").write_text(HELD)
+    stage = open_stage(tmp_path / "s.usda")
+    if interpolation == "held":
+        stage.SetInterpolationType(Usd.InterpolationTypeHeld)
+    write_to_file(stage, tmp_path / "s.blend")
+    (tmp_path / "probe.py").write_text(HELD_PROBE)
+    run_blender(tmp_path / "probe.py", str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
+    got = json.loads((tmp_path / "p.json").read_text())["3"]
+    light = next(l for l in read_lights(stage, 3.0) if l.path == "/Key")
+    cam = read_camera(stage, 3.0)
+    light_x, cam_x = float(light.to_world[0, 3]), float(cam.to_world[0, 3])
+    assert (light_x, cam_x) == ((0.0, 0.0) if interpolation == "held" else (2.0, 1.0))
+    assert got["light_x"] == pytest.approx(light_x, abs=1e-5)
+    assert got["camera_x"] == pytest.approx(cam_x, abs=1e-5)
+    assert got["energy"] == pytest.approx(light_to_blender(light)["power"], rel=1e-5)
