@@ -16,33 +16,27 @@ lights hidden from the camera, the photo as backplate and the relit photo on F12
 from __future__ import annotations
 
 import io
-import json
 import math
 import tempfile
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from usdrelight.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
-from usdrelight.stage.create import create_stage
-from usdrelight.stage.layout import FITTED_LIGHTS_SCOPE, LIGHTS, ROOT, USER_LIGHTS_SCOPE
-from usdrelight.stage.lux import emitted_radiance, set_light_rgb
+from usdrelight.stage.lux import emitted_radiance
 from usdrelight.stage.camera import cameras_left_out
 from usdrelight.stage.read import ellipsoid_mesh, read_camera, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
 from usdrelight.stage.records import MeshRecord
 from usdrelight.stage.timing import frame_time, light_time_codes
-from usdrelight.stage.validate import check_finite
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
-from .blender_photo import photo_stage_payload, script_text, with_snapshot
+from .blender_photo import photo_stage_payload, script_text
+from .blender_read import blender_lights, lights_layer
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
-from .blender_animation import author_keys, light_keys, object_keys, scene_animation
-from .blender_units import (UNREAD, Y_UP_TO_Z_UP, BlenderLights, blender_light_to_usd, check_light,
-                            focal_length, foreign_unit_scale, light_to_blender, not_read_warning, spot_blend,
-                            stage_units)
+from .blender_animation import light_keys, object_keys, scene_animation
+from .blender_units import Y_UP_TO_Z_UP, focal_length, light_to_blender, spot_blend
 from .blender_units import camera_lens as _lens
 from .report import ReadReport, WriteReport, check_options
 
@@ -181,7 +175,8 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     payload = {"settings": {"resolution": [W, H], "samples": spp, "max_depth": max_depth, "film_exposure": exposure},
                "materials": list(mats.values()), "meshes": meshes, "camera": cam, "lights": lights,
                "stage": {"metersPerUnit": float(rec.meters_per_unit), "upAxis": rec.up_axis,
-                         "timeCodesPerSecond": float(stage.GetTimeCodesPerSecond())},
+                         "timeCodesPerSecond": float(stage.GetTimeCodesPerSecond()),
+                         "lights": [l["usd_path"] for l in lights if l["type"] != "WORLD"]},
                "animation": animation,
                "photo_stage": photo_stage_payload(stage, rec, data_dir)}
     return payload, dict(rec.warnings)
@@ -221,160 +216,12 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     return WriteReport([str(data_dir)], warnings, script_text(payload))
 
 
-# ---- Blender -> USD (lights) -------------------------------------------------------------------
-DUMP_SCRIPT = Path(__file__).resolve().parent / "blender_dump.py.txt"
-"""Run inside Blender by :func:`blender_lights`: the lights of a .blend (and their keyframes) as JSON."""
-
-
-def blender_lights(path) -> BlenderLights:
-    """The lights of the .blend's active scene as plain records (Blender units, Z-up world matrix); a light that
-    does not render (hidden from render, or in a collection excluded or hidden from render) is only
-    ``{"name", "hidden": True}``. The list's ``stage``: the source stage's metersPerUnit / upAxis recorded by
-    :func:`write_to_file` (None for a .blend made otherwise)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UsdRelightError(f"file not found: {path}")
-    with tempfile.TemporaryDirectory() as td:
-        script = Path(td) / "dump.py"
-        script.write_text(with_snapshot(DUMP_SCRIPT.read_text()))
-        out = Path(td) / "lights.json"
-        run_blender(script, str(path.absolute()), str(out))
-        dump = json.loads(out.read_text())
-    lights = BlenderLights(dump["lights"])
-    lights.stage = dump["stage"]
-    lights.animation = dump.get("animation")
-    lights.unit_scale = dump.get("unit_scale", 1.0)
-    lights.not_read = dump.get("not_read") or {}
-    return lights
-
-
-def _usd_record(b: dict, up: str, mpu: float, unit_scale: float = 1.0) -> dict:
-    """:func:`blender_light_to_usd` of one dumped Blender light, checked (one clear error for bad values)."""
-    try:
-        with np.errstate(all="ignore"):  # a zero size gives Inf: refused by check_light below
-            u = blender_light_to_usd(b, up, mpu, unit_scale)
-    except ValueError as exc:
-        raise UsdRelightError(str(exc)) from None
-    except (ZeroDivisionError, KeyError, TypeError) as exc:  # a malformed record
-        raise UsdRelightError(f"Blender light {b.get('name', '?')!r}: unusable values "
-                              f"({type(exc).__name__})") from None
-    check_light(u, b.get("name", "?"))
-    return u
-
-
-def _author_time_range(stage, anim: dict | None, meta: dict | None) -> None:
-    """The .blend's frame range and frames per second on the layer; the source stage's timeCodesPerSecond (so
-    that sublayered into it no sample is rescaled)."""
-    if anim:
-        stage.SetStartTimeCode(float(anim["frame_start"]))
-        stage.SetEndTimeCode(float(anim["frame_end"]))
-        stage.SetFramesPerSecond(float(anim["fps"]))
-    if meta and meta.get("timeCodesPerSecond"):
-        stage.SetTimeCodesPerSecond(float(meta["timeCodesPerSecond"]))
-
-
-#: Counted for each of the stage's own fitted lights a .blend carries unchanged (lights_fitted.usda has them).
-FITTED_LEFT_OUT = ("fitted light of the stage, unchanged (left out: it stays in lights_fitted.usda; a copy of it "
-                   "made in Blender, Shift D, comes back as your own)")
-#: Counted for each fitted light edited in Blender: read back as an override of it, at its own path.
-FITTED_EDITED = "fitted light edited in Blender (read back as an override of it, at its path in lights_fitted.usda)"
-
-
+# ---- Blender -> USD (lights): converters.blender_read ----------------------------------------------
 def read_from_file(path, **options) -> ReadReport:
     """The .blend's lights as a UsdLux layer ``def "Scene" { Lights { User { ... } } }`` in the units and up axis
     of the stage the .blend was made from (recorded by :func:`write_to_file`), so that sublayered into that stage
-    every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres. The stage's own fitted
-    lights, as :func:`write_to_file` put them in the .blend, are left out (counted in the warnings): the layer is
-    for ``lights_user.usda``, beside ``lights_fitted.usda``, which already holds them; one edited in Blender
-    comes back as an ``over`` at its own path, which the user layer (stronger) applies to it.
-
-    Each light becomes a UsdLux light with normalize off emitting what it renders in Cycles, Blender's Normalize
-    and Exposure included (:func:`usdrelight.converters.blender_units.blender_emission`); colour temperature is
-    folded into the colour, diffuse / specular factors become UsdLux ``diffuse`` / ``specular``. What UsdLux has
-    no place for is in the report's warnings, one per kind (``UNREAD``); the scene's other objects (meshes,
-    cameras, ...; empties aside) are not read, counted in one warning line (not for a .blend usdrelight made from a
-    stage, whose meshes and camera are that stage's own). Options: :data:`READ_OPTIONS` (the
-    layer at ``usd_path``, or in memory)."""
-    from pxr import Gf, UsdGeom, UsdLux
-
+    every light is where Blender shows it; a .blend made otherwise: upAxis Y, metres
+    (:func:`usdrelight.converters.blender_read.lights_layer` says what comes back and how). Options:
+    :data:`READ_OPTIONS` (the layer at ``usd_path``, or in memory)."""
     usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
-    lights = blender_lights(path)
-    up, mpu = stage_units(getattr(lights, "stage", None))
-    warnings = Counter()
-    # a .blend usdrelight made from a stage: its meshes and camera are that stage's own, nothing is lost
-    skipped = None if getattr(lights, "stage", None) else \
-        not_read_warning(getattr(lights, "not_read", None) or {}, Path(path).name)
-    if skipped:
-        warnings[skipped] += 1
-    unit = foreign_unit_scale(lights)
-    if unit != 1.0:  # a .blend made otherwise, modelled in its own unit: the layer is in that unit
-        mpu = unit
-        warnings[f"Blender scene unit scale {unit:g}: the layer is in that unit (metersPerUnit {unit:g}); a point "
-                 "or spot light's intensity x its square, so that it lights as Cycles shows it (Cycles ignores the "
-                 "unit scale)"] += 1
-    stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {Path(path).name} by usdrelight.",
-                         up_axis=up, meters_per_unit=mpu)
-    if any(not b.get("hidden") for b in lights):
-        UsdGeom.Scope.Define(stage, LIGHTS)
-        UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
-    used = set()
-    for b in lights:
-        keys = b.get("keys") or []
-        if b.get("hidden"):  # a keyframed light hidden now but shown at a key: read from its first shown key
-            b = next((k for _, k in keys if not k.get("hidden")), b)
-        if b.get("hidden"):
-            warnings["Blender light hidden from render (not read)"] += 1
-            continue
-        fitted = b.get("as_written") and str(b.get("usd_path", "")).startswith(FITTED_LIGHTS_SCOPE + "/")
-        if fitted and not b.get("edited"):
-            warnings[FITTED_LEFT_OUT] += 1  # the stage has it already: read back, it would light the scene twice
-            continue
-        u = _usd_record(b, up, mpu, unit)
-        cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
-               "DistantLight": UsdLux.DistantLight}[u["kind"]]
-        if fitted:  # edited in Blender: an override of that fitted light (this layer is the stronger one)
-            warnings[FITTED_EDITED] += 1
-            light = cls(stage.OverridePrim(b["usd_path"]))
-            light.CreateExposureAttr(0.0)
-            light.CreateEnableColorTemperatureAttr(False)
-        else:
-            name = "".join(c if c.isalnum() else "_" for c in u["name"]) or "Light"
-            if name[0].isdigit():
-                name = "_" + name
-            while name in used:
-                name += "_"
-            used.add(name)
-            light = cls.Define(stage, f"{USER_LIGHTS_SCOPE}/{name}")
-        set_light_rgb(light, float(u["intensity"]) * np.asarray(u["color"], np.float64))
-        light.CreateNormalizeAttr(False)
-        for key, attr in (("diffuse", light.CreateDiffuseAttr), ("specular", light.CreateSpecularAttr)):
-            if abs(float(b.get(key, 1.0)) - 1.0) > 1e-6:
-                attr(float(b[key]))
-        for key in b.get("unread", ()):
-            warnings[UNREAD.get(key, f"Blender light {key} (not read)")] += 1
-        if u["kind"] == "SphereLight":
-            light.CreateRadiusAttr(float(u["radius"]))
-            light.CreateTreatAsPointAttr(bool(u["treatAsPoint"]))
-            if "coneAngle" in u:
-                sh = UsdLux.ShapingAPI.Apply(light.GetPrim())
-                sh.CreateShapingConeAngleAttr(float(u["coneAngle"]))
-                sh.CreateShapingConeSoftnessAttr(float(u["coneSoftness"]))
-        elif u["kind"] == "DiskLight":
-            light.CreateRadiusAttr(float(u["radius"]))
-        elif u["kind"] == "RectLight":
-            light.CreateWidthAttr(float(u["width"]))
-            light.CreateHeightAttr(float(u["height"]))
-        elif u["kind"] == "DistantLight":
-            light.CreateAngleAttr(float(u["angle"]))
-        UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
-        if keys:  # keyframes -> time samples at the same time codes (blender_animation)
-            author_keys(light, [(f, _usd_record(k, up, mpu, unit)) for f, k in keys if not k.get("hidden")])
-            if any(k.get("hidden") for _, k in keys):
-                vis = UsdGeom.Imageable(light).CreateVisibilityAttr()
-                for f, k in keys:
-                    vis.Set(UsdGeom.Tokens.invisible if k.get("hidden") else UsdGeom.Tokens.inherited, f)
-    if any(b.get("keys") for b in lights):
-        _author_time_range(stage, getattr(lights, "animation", None), getattr(lights, "stage", None))
-    stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: read alone or sublayered over /Scene's Xform
-    check_finite(stage, str(path))
-    return ReadReport(stage, dict(warnings))
+    return lights_layer(blender_lights(path), Path(path).name, usd_path)

@@ -218,7 +218,8 @@ def not_read_warning(counts: dict, name: str) -> str | None:
     if not parts:
         return None
     listed = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
-    return f"{listed} in {name} are not read: .blend -> USD carries lights only"
+    one = len(parts) == 1 and sum(int(counts[t]) for t in order) == 1
+    return f"{listed} in {name} {'is' if one else 'are'} not read: .blend -> USD carries lights only"
 
 
 def stage_units(meta) -> tuple[str, float]:
@@ -317,4 +318,7 @@ UNREAD = {"transmission_factor": "Blender light transmission factor other than 1
           "use_soft_falloff": "Blender point/spot light of radius > 0 with soft falloff (read as a sphere light "
                               "without it: +1% light 1 m below a 0.1 m sphere, measured)",
           "use_square": "Blender square spot (read as a round cone)",
-          "spread": "Blender area light spread below 180 deg (read as a Lambertian emitter)"}
+          "spread": "Blender area light spread below 180 deg (read as a Lambertian emitter)",
+          "use_shadow": "Blender light with shadows off (read with shadows: UsdLux ShadowAPI is not written)",
+          "visible_diffuse": "Blender light not seen by diffuse rays (read as lighting everything)",
+          "light_linking": "Blender light linking (read as lighting every object)"}

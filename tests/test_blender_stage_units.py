@@ -107,4 +107,5 @@ def test_the_standalone_script_records_the_stage_units_too(tmp_path):
     write_to_file(_stage(tmp_path / "s.usda", "Z", 0.01), tmp_path / "s.py")
     run_blender(tmp_path / "s.py", str(tmp_path / "s.blend"))
     lights = blender_lights(tmp_path / "s.blend")
-    assert len(lights) == 3 and lights.stage == {"metersPerUnit": 0.01, "upAxis": "Z", "timeCodesPerSecond": 24.0}
+    assert len(lights) == 3 and lights.stage == {"metersPerUnit": 0.01, "upAxis": "Z", "timeCodesPerSecond": 24.0,
+                                                 "lights": ["/World/Rig/Key", "/World/Rig/Panel", "/World/Rig/Spot"]}

@@ -241,7 +241,7 @@ def test_fit_cli_can_skip_the_verification_render(cli, tmp_path):
         cli("fit", stage, "--verify-spp", "-1")
     assert exc.value.code == 2
     rc, _, err = cli("fit", stage, "--verify-spp", "70000")  # the message names 0 as valid too
-    assert rc == 2 and "must be 0 (no verification render) or an integer in [1, 65536], got 70000" in err, err
+    assert rc == 2 and "verify_spp (--verify-spp) must be an integer in [0, 65536], got 70000" in err, err
 
 
 def test_fit_runs_under_dasks_malloc_settings(tmp_path):

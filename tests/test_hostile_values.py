@@ -122,7 +122,10 @@ def test_usd_values_that_would_leak_nan_inf_or_negative_light(cli, tmp_path, cas
     assert not (tmp_path / "r").exists()
 
 
-def test_blend_lights_with_nan_inf_or_zero_size_are_refused(cli, tmp_path, monkeypatch):
+def test_blend_lights_with_nan_inf_are_refused_and_zero_size_or_negative_ones_left_out(cli, tmp_path, monkeypatch):
+    """NaN / Inf / a negative colour: one error, nothing written. A zero-size area light or a negative power
+    (Blender allows both: nothing rendered, light taken away) aborted the whole file; now left out, warned,
+    beside the file's other lights."""
     from usdrelight.converters import blender
 
     good = {"name": "L", "type": "POINT", "matrix": np.eye(4).tolist(), "color": [1, 1, 1], "power": 10.0,
@@ -130,13 +133,19 @@ def test_blend_lights_with_nan_inf_or_zero_size_are_refused(cli, tmp_path, monke
     (tmp_path / "x.blend").write_bytes(b"BLENDER")
     for bad, needle in (({"matrix": [[float("nan")] * 4] * 4}, "non-finite"),
                         ({"power": float("inf")}, "non-finite intensity"),
-                        ({"power": -3.0}, "negative intensity"),
-                        ({"color": [1, -1, 1]}, "negative color"),
-                        ({"type": "AREA", "shape": "SQUARE", "size": 0.0}, "non-finite")):
+                        ({"color": [1, -1, 1]}, "negative color")):
         monkeypatch.setattr(blender, "blender_lights", lambda path, b=bad: [{**good, **b}])
         rc, _, err = cli("convert", tmp_path / "x.blend", tmp_path / "lights.usda")
         _one_error(rc, err, needle)
         assert not (tmp_path / "lights.usda").exists()
+    for i, bad in enumerate(({"power": -3.0}, {"type": "AREA", "shape": "SQUARE", "size": 0.0},
+                             {"type": "AREA", "shape": "RECTANGLE", "size": 1.0, "size_y": 1.0,
+                              "matrix": np.diag([1.0, 0.0, 1.0, 1.0]).tolist()})):
+        monkeypatch.setattr(blender, "blender_lights", lambda path, b=bad: [{**good, **b, "name": "Z"}, good])
+        rc, _, err = cli("convert", tmp_path / "x.blend", tmp_path / f"lights{i}.usda")
+        assert rc == 0 and "zero size or zero scale, or of negative power" in err, err
+        text = (tmp_path / f"lights{i}.usda").read_text()
+        assert '"L"' in text and '"Z"' not in text
     monkeypatch.setattr(blender, "blender_lights", lambda path: [good])
     assert cli("convert", tmp_path / "x.blend", tmp_path / "lights.usda")[0] == 0
 

@@ -181,8 +181,9 @@ def _write_version(est: PhotoEstimates, mesh: PixelMesh, outdir: Path, aovs) -> 
         sizes = {p.relative_to(tmp).as_posix(): p.stat().st_size for p in tmp.rglob("*") if p.is_file()}
         if not (outdir / USER_LIGHTS).exists():
             user = _light_layer_text("Your own lights: put them under /Scene/Lights/User. build and fit never "
-                                     "write this layer; the web app's Save and a convert into it rewrite it, "
-                                     "keeping your other lights (not your comments).")
+                                     "write this layer; the web app's Save rewrites it, keeping your other "
+                                     "lights (not your comments); the layer `usdrelight convert X.blend L.usda` "
+                                     "writes may be copied over it or sublayered into it.")
             write_text_atomic(outdir / USER_LIGHTS, user)
         else:
             log.info("keeping the existing user-lights layer %s", outdir / USER_LIGHTS)
