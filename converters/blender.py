@@ -111,7 +111,8 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     mesh_lights = {l.path: l for l in rec.lights if l.kind == "mesh"}
     emitting = set()
     for i, m in enumerate(all_meshes):
-        key = m.material.path or "__default__"
+        # a mesh without a bound material: its displayColor (or the grey default), one Blender material per colour
+        key = m.material.path or "displayColor_" + "_".join(f"{c:.4g}" for c in np.ravel(m.material.diffuse))
         # a MeshLightAPI mesh (or one of its GeomSubsets) emits: its own copy of the material, with emission
         light = mesh_lights.get(m.path) or mesh_lights.get(m.path.rsplit("/", 1)[0])
         if light is not None:

@@ -394,3 +394,29 @@ def test_a_held_stage_holds_every_key_in_blender(tmp_path, interpolation):
     assert got["light_x"] == pytest.approx(light_x, abs=1e-5)
     assert got["camera_x"] == pytest.approx(cam_x, abs=1e-5)
     assert got["energy"] == pytest.approx(light_to_blender(light)["power"], rel=1e-5)
+
+
+def test_display_color_meshes_keep_their_own_colours(tmp_path):
+    """Three meshes with only primvars:displayColor (red, green, blue): the .blend gave all three the first
+    one's material (one key for every mesh without a bound material; Cycles rendered the green quad red)."""
+    from usdrelight.converters.blender import scene_payload
+
+    quads = "".join(f'''
+def Mesh "Q{i}" {{
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [({i}, 0, 0), ({i + 1}, 0, 0), ({i + 1}, 1, 0), ({i}, 1, 0)]
+    color3f[] primvars:displayColor = [({rgb})]
+}}''' for i, rgb in enumerate(("0.8, 0.1, 0.1", "0.1, 0.8, 0.1", "0.1, 0.1, 0.8")))
+    (tmp_path / "s.usda").write_text('#usda 1.0\n(\n    upAxis = "Y"\n    metersPerUnit = 1\n)\n' + quads + '''
+def Camera "Cam" {
+    double3 xformOp:translate = (1.5, 0.5, 4)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+''')
+    payload, _ = scene_payload(open_stage(tmp_path / "s.usda"), tmp_path / "data")
+    mats = {m["name"]: m for m in payload["materials"]}
+    got = {m["usd_path"]: mats[m["material"]]["diffuse"] for m in payload["meshes"]}
+    np.testing.assert_allclose(got["/Q0"], [0.8, 0.1, 0.1], rtol=1e-5)
+    np.testing.assert_allclose(got["/Q1"], [0.1, 0.8, 0.1], rtol=1e-5)
+    np.testing.assert_allclose(got["/Q2"], [0.1, 0.1, 0.8], rtol=1e-5)

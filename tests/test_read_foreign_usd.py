@@ -240,3 +240,49 @@ def SphereLight "Old" {
 }''')
     w = read_scene(path).warnings
     assert any("diffuse/specular multipliers" in k for k in w) and any("shadow:enable off" in k for k in w)
+
+
+def test_material_inputs_are_followed_through_interfaces_and_node_graphs(tmp_path):
+    """tests/data/material_interfaces.usda: diffuseColor connected to the Material's own input baseColor; a
+    UsdUVTexture whose file is connected to a Material input; diffuseColor connected to a NodeGraph output
+    wrapping a UsdUVTexture (scale 2, 1, 1, 1). All three were read as the grey default (0.18) with a warning
+    about a shader 'None'; UsdShade resolves them to the colour and the textures."""
+    import shutil
+
+    from usdrelight.imageio import write_image
+    from usdrelight.stage.records import TextureRecord
+
+    shutil.copy(Path(__file__).parent / "data" / "material_interfaces.usda", tmp_path / "m.usda")
+    write_image(tmp_path / "grey128.png", np.full((4, 4, 3), 0.5, np.float32))
+    scene = read_scene(tmp_path / "m.usda")
+    mats = {m.path: m.material for m in scene.meshes}
+    assert mats["/World/A"].diffuse == pytest.approx((0.8, 0.2, 0.1))
+    for path, scale in (("/World/B", (1.0, 1.0, 1.0, 1.0)), ("/World/C", (2.0, 1.0, 1.0, 1.0))):
+        tex = mats[path].diffuse
+        assert isinstance(tex, TextureRecord) and Path(tex.path) == tmp_path / "grey128.png" and tex.scale == scale
+    assert not any("shader 'None'" in w or "without a file" in w for w in scene.warnings)
+
+
+def test_an_unbound_geom_subset_keeps_its_meshs_display_color(tmp_path):
+    """A displayColor mesh (no material) with a materialBind GeomSubset bound to nothing: the subset's faces were
+    the grey default (0.18) while the rest was the mesh's yellow."""
+    path = _stage(tmp_path, '''
+def Mesh "DC" (
+    prepend apiSchemas = ["MaterialBindingAPI"]
+)
+{
+    int[] faceVertexCounts = [4, 4]
+    int[] faceVertexIndices = [0, 1, 5, 4, 4, 5, 2, 3]
+    point3f[] points = [(0, -1, 0), (1, -1, 0), (1, 1, 0), (0, 1, 0), (0, 0, 0), (1, 0, 0)]
+    color3f[] primvars:displayColor = [(0.9, 0.9, 0.1)]
+    def GeomSubset "top"
+    {
+        uniform token elementType = "face"
+        uniform token familyName = "materialBind"
+        int[] indices = [1]
+    }
+}''', up="Z")
+    meshes = read_scene(path).meshes
+    assert sorted(m.path for m in meshes) == ["/DC", "/DC/top"]
+    for m in meshes:
+        assert m.material.diffuse == pytest.approx((0.9, 0.9, 0.1)), m.path

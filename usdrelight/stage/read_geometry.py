@@ -1,253 +1,23 @@
-"""Read the geometry of a USD stage: materials (UsdPreviewSurface) and meshes, as :mod:`records <usdrelight.stage.records>`.
+"""Read the geometry of a USD stage: meshes, as :mod:`records <usdrelight.stage.records>` (their materials:
+:mod:`.read_material`).
 
 Meshes: polygons fan-triangulated (holes ignored with a warning); normals and st with vertex / varying /
 faceVarying / uniform / constant interpolation, indexed or not (zero-length normals take the surface's own,
 with a warning); leftHanded orientation and mirroring transforms flip the winding; material-bind GeomSubsets split a mesh into one record per material.
-Materials: UsdPreviewSurface inputs as constants or UsdUVTexture records. What is not represented is
-counted in ``warnings`` (one line per kind). Matrices: column-vector convention (see records).
+What is not represented is counted in ``warnings`` (one line per kind). Matrices: column-vector convention (see
+records).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_image_size
-from ..safe_paths import check_read, stage_folder
 from .mesh_math import fan_triangles, fill_zero_normals, normal_inverse
 from .mesh_math import mesh_area as _area
-from .records import MaterialRecord, MeshRecord, TextureRecord
+from .read_material import OPACITY_WARNING, read_material
+from .records import MaterialRecord, MeshRecord
 
 __all__ = ["OPACITY_WARNING", "mesh_area", "normal_inverse", "read_material", "read_mesh"]
-
-
-#: Counted for a material with opacity < 1; renderers that render it (Mitsuba: a mask) drop the line.
-OPACITY_WARNING = "UsdPreviewSurface opacity < 1 (rendered opaque)"
-
-
-# ---- materials --------------------------------------------------------------------------------
-def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | None:
-    sid = shader.GetIdAttr().Get()
-    if sid != "UsdUVTexture":
-        warnings[f"shader '{sid}' feeding a UsdPreviewSurface input (constant used)"] += 1
-        return None
-    f = shader.GetInput("file")
-    asset = f.Get() if f else None
-    if asset is None or not asset.path:
-        warnings["UsdUVTexture without a file"] += 1
-        return None
-    resolved = asset.resolvedPath or ""
-    if not resolved:
-        udim = " (UDIM tiles are not read: name one tile's file)" if "<UDIM>" in asset.path else ""
-        raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()}){udim}")
-    check_read(resolved, stage_folder(shader.GetPrim().GetStage()), f"texture (used by {shader.GetPath()})")
-    if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
-        check_image_size(resolved)
-    cs = shader.GetInput("sourceColorSpace")
-    scale = _vec(shader, "scale", (1.0, 1.0, 1.0, 1.0), warnings)
-    bias = _vec(shader, "bias", (0.0, 0.0, 0.0, 0.0), warnings)
-    if not np.all(np.isfinite(scale + bias)):
-        warnings["non-finite UsdUVTexture scale / bias (1 / 0 used)"] += 1
-        scale, bias = (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
-    return TextureRecord(resolved, str(cs.Get()) if cs and cs.Get() else "auto", scale, bias, output_name,
-                         _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
-                         **_st_transform(shader, warnings))
-
-
-WRAPS = ("repeat", "mirror", "clamp", "black")
-
-
-def _wrap(shader, name: str, warnings) -> str:
-    """wrapS / wrapT; ``useMetadata`` (the fallback) resolves to black: image metadata is not read."""
-    inp = shader.GetInput(name)
-    v = str(inp.Get()) if inp and inp.Get() is not None else "useMetadata"
-    if v == "useMetadata":
-        return "black"
-    if v not in WRAPS:
-        warnings[f"UsdUVTexture {name} '{v}' (black used)"] += 1
-        return "black"
-    return v
-
-
-def _vec(shader, name: str, default: tuple, warnings) -> tuple:
-    """A float vector input of ``len(default)`` components; another shape is warned and ``default`` used."""
-    v = _get(shader, name, default)
-    try:
-        out = tuple(float(x) for x in v)
-    except TypeError:  # a scalar where a vector belongs
-        out = ()
-    if len(out) != len(default):
-        warnings[f"{shader.GetIdAttr().Get()} {name} with {len(out) or 1} component(s), not {len(default)} "
-                 f"(default used)"] += 1
-        return default
-    return out
-
-
-def _get(shader, name: str, default):
-    inp = shader.GetInput(name)
-    v = inp.Get() if inp else None
-    return default if v is None else v
-
-
-def _st_transform(tex, warnings) -> dict:
-    """The UsdTransform2d between the texture's ``st`` and a UsdPrimvarReader_float2, as TextureRecord fields
-    (``{}``: none). Another node feeding ``st`` is warned and left out (the mesh's st used as they are)."""
-    from pxr import UsdShade
-
-    st = tex.GetInput("st")
-    if not st or not st.HasConnectedSource():
-        return {}
-    node = UsdShade.Shader(st.GetConnectedSource()[0].GetPrim())
-    sid = node.GetIdAttr().Get()
-    out = {}
-    if sid == "UsdTransform2d":
-        rotation = _get(node, "rotation", 0.0)
-        out = {"st_scale": _vec(node, "scale", (1.0, 1.0), warnings),
-               "st_rotation": float(rotation) if isinstance(rotation, (int, float)) else float("nan"),
-               "st_translation": _vec(node, "translation", (0.0, 0.0), warnings)}
-        if not all(np.isfinite([*out["st_scale"], out["st_rotation"], *out["st_translation"]])):
-            warnings["non-finite UsdTransform2d (ignored)"] += 1
-            out = {}
-        inp = node.GetInput("in")
-        if not inp or not inp.HasConnectedSource():
-            warnings["UsdTransform2d without a connected 'in' (the mesh's st used)"] += 1
-            return out
-        node = UsdShade.Shader(inp.GetConnectedSource()[0].GetPrim())
-        sid = node.GetIdAttr().Get()
-    if sid != "UsdPrimvarReader_float2":
-        warnings[f"UsdUVTexture st from a '{sid}' node (the mesh's st used)"] += 1
-    return out
-
-
-def _input_value(shader, name, default, warnings):
-    from pxr import UsdShade
-
-    inp = shader.GetInput(name)
-    if not inp:
-        return default
-    if inp.HasConnectedSource():
-        src, out_name, _ = inp.GetConnectedSource()
-        tex = _texture_from_source(UsdShade.Shader(src.GetPrim()), str(out_name), warnings)
-        if tex is not None:
-            return tex
-    v = inp.Get()
-    if v is None:
-        return default
-    return tuple(float(x) for x in v) if hasattr(v, "__len__") else float(v)
-
-
-def read_material(prim, warnings) -> MaterialRecord:
-    """The UsdPreviewSurface bound to ``prim`` as a record (grey diffuse when none); what cannot be read counts
-    into ``warnings`` (a Counter of one-line messages, logged once per stage)."""
-    from pxr import UsdShade
-
-    binding = UsdShade.MaterialBindingAPI(prim)
-    mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.full)  # a full render's binding, else all-purpose
-    if not mat:  # only a preview binding (material:binding:preview): better than grey
-        mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.preview)
-    if not mat:
-        return _display_color_material(prim, warnings)
-    surf = mat.ComputeSurfaceSource()[0]
-    if not surf or surf.GetIdAttr().Get() != "UsdPreviewSurface":
-        warnings[f"material without a UsdPreviewSurface ({mat.GetPath()}): grey diffuse used"] += 1
-        return MaterialRecord(path=str(mat.GetPath()))
-    d = MaterialRecord()
-    ior = _input_value(surf, "ior", d.ior, warnings)
-    rec = MaterialRecord(
-        path=str(mat.GetPath()),
-        diffuse=_input_value(surf, "diffuseColor", d.diffuse, warnings),
-        roughness=_input_value(surf, "roughness", d.roughness, warnings),
-        metallic=_input_value(surf, "metallic", d.metallic, warnings),
-        specular=_input_value(surf, "specularColor", d.specular, warnings),
-        use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings)),
-        ior=_ior(ior, d.ior, warnings),
-        opacity=_input_value(surf, "opacity", d.opacity, warnings),
-        opacity_threshold=_threshold(surf, warnings),
-        one_sided=_one_sided(mat.GetPrim()),
-        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings),
-        st_primvar=_st_primvar(mat, warnings))
-    for name in ("normal", "displacement", "occlusion", "clearcoat"):
-        inp = surf.GetInput(name)
-        if inp and (inp.HasConnectedSource() or (inp.Get() not in (None, 0.0))):
-            warnings[f"UsdPreviewSurface input '{name}' (ignored)"] += 1
-    if rec.opacity != 1.0:
-        warnings[OPACITY_WARNING] += 1
-    if isinstance(rec.emissive, TextureRecord) or max(rec.emissive) > 0:
-        warnings["UsdPreviewSurface emissiveColor (ignored)"] += 1
-    return rec
-
-
-def _display_color_material(prim, warnings) -> MaterialRecord:
-    """No material bound: the gprim's ``displayColor`` as its diffuse colour, as USD viewers show it (its mean
-    where it varies over the surface, warned); the grey default without one."""
-    from pxr import UsdGeom
-
-    gprim = UsdGeom.Gprim(prim)
-    pv = gprim.GetDisplayColorPrimvar() if gprim else None
-    vals = pv.ComputeFlattened() if pv and pv.HasAuthoredValue() else None
-    if vals is None or len(vals) == 0:
-        return MaterialRecord()
-    rgb = np.asarray(vals, np.float64).reshape(-1, 3)
-    if not np.all(np.isfinite(rgb)):
-        warnings["non-finite displayColor (grey used)"] += 1
-        return MaterialRecord()
-    if len(rgb) > 1:
-        warnings["displayColor varying over a surface (its mean used)"] += 1
-    return MaterialRecord(diffuse=tuple(float(c) for c in np.clip(rgb.mean(0), 0.0, 1.0)))
-
-
-def _st_primvar(mat, warnings) -> str:
-    """The ``varname`` of the material's UsdPrimvarReader_float2 nodes (a value, or a material input it is
-    connected to): the mesh primvar its textures use. None: ``st``; several different ones: the first, warned."""
-    from pxr import Usd, UsdShade
-
-    names = []
-    for p in Usd.PrimRange(mat.GetPrim()):
-        node = UsdShade.Shader(p)
-        if not node or node.GetIdAttr().Get() != "UsdPrimvarReader_float2":
-            continue
-        inp = node.GetInput("varname")
-        attrs = inp.GetValueProducingAttributes() if inp else []
-        v = attrs[0].Get() if attrs else None
-        if v:
-            names.append(str(v))
-    if len(set(names)) > 1:
-        warnings[f"textures reading several UV sets ({', '.join(sorted(set(names)))}): {names[0]} used"] += 1
-    return names[0] if names else "st"
-
-
-def _ior(v, default: float, warnings) -> float:
-    """UsdPreviewSurface ior: a finite number > 0; a texture, a vector or another value: ``default``, warned."""
-    if isinstance(v, TextureRecord):
-        warnings[f"textured ior ({default} used)"] += 1
-        return default
-    if not isinstance(v, float) or not np.isfinite(v) or v <= 0.0:
-        warnings[f"ior {v!r} is not a finite number > 0 ({default} used)"] += 1
-        return default
-    return v
-
-
-def _threshold(surf, warnings) -> float:
-    """opacityThreshold as a float in [0, 1] (a connected texture: 0.5, warned)."""
-    v = _input_value(surf, "opacityThreshold", 0.0, warnings)
-    if isinstance(v, TextureRecord):
-        warnings["textured opacityThreshold (0.5 used)"] += 1
-        return 0.5
-    v = float(v)
-    if not np.isfinite(v):
-        warnings["non-finite opacityThreshold (0 used)"] += 1
-        return 0.0
-    return min(max(v, 0.0), 1.0)
-
-
-def _one_sided(mat_prim) -> bool:
-    """Whether the Mitsuba XML reader marked this material one-sided (customData mitsuba.twosided false)."""
-    import json
-
-    data = mat_prim.GetCustomDataByKey("mitsuba")
-    try:
-        return isinstance(data, str) and json.loads(data).get("twosided") is False
-    except (ValueError, AttributeError):
-        return False
 
 
 # ---- meshes -----------------------------------------------------------------------------------
@@ -367,7 +137,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
             continue
         taken |= sel
         records.append(_compact(str(sub.GetPath()), w_pts, faces[sel], v_n, v_uv,
-                                read_material(sub.GetPrim(), warnings), ds))
+                                read_material(sub.GetPrim(), warnings, material), ds))
     if not taken.all():
         records.append(_compact(str(prim.GetPath()), w_pts, faces[~taken], v_n, v_uv, material, ds))
     return records
