@@ -20,6 +20,7 @@ import numpy as np
 from .atomic import atomic_path
 from .errors import UsdRelightError
 from .native_io import captured_stderr
+from .pfm import read_pfm
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +154,8 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
     pixels = _display_window(pixels, spec, path)
+    if pixels.shape[2] > 1:
+        pixels = pixels[:, :, _colour_first(list(spec.channelnames), pixels.shape[2], path)]
     orientation = int(spec.get_int_attribute("Orientation", 1))
     if orientation != 1:
         buf = oiio.ImageBuf(oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], oiio.FLOAT))
@@ -162,6 +165,21 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
         if pixels.ndim == 2:
             pixels = pixels[:, :, None]
     return pixels, is_float
+
+
+def _colour_first(names: list, n: int, path: Path) -> list:
+    """Channel order with the colour first: R, G, B (then A) by name, or those of the one layer that has them
+    (an EXR's ``diffuse.R``...: OpenImageIO may list ``Z`` before them); the file's order when none is named.
+    Several RGB layers: an error (which one is the photo is not said)."""
+    prefixes = {"" if name == "R" else name[:-1] for name in names if name == "R" or name.endswith(".R")}
+    layers = sorted(p for p in prefixes if all(p + c in names for c in "GB"))  # "" or "diffuse."
+    if len(names) != n or not layers:
+        return list(range(n))
+    if len(layers) > 1:
+        raise UsdRelightError(f"image {path}: several colour layers ({', '.join(l[:-1] or 'R, G, B' for l in layers)}): "
+                              "keep one (oiiotool --ch)")
+    first = [names.index(layers[0] + c) for c in "RGBA" if layers[0] + c in names]
+    return first + [i for i in range(n) if i not in first]
 
 
 def _display_window(pixels: np.ndarray, spec, path: Path) -> np.ndarray:
@@ -231,11 +249,11 @@ INTEGER_MAX = {"uint8": 255.0, "int8": 127.0, "uint16": 65535.0, "int16": 32767.
 
 
 def read_stored_map(path: str | os.PathLike, channels: int) -> tuple[np.ndarray, str | None]:
-    """A data map's values as the file stores them (an integer PNG's integers, not scaled to [0, 1]) as float64
+    """A measured map's values (:func:`read_map` with ``exact``) as the file stores them (an integer PNG's integers, not scaled to [0, 1]) as float64
     (H, W, channels) (:func:`read_map`'s layout), and the integer type's name (``uint16``...; None for float
     data): a measurement stored as integers is in a unit the file does not name."""
     path = Path(path)
-    arr = read_map(path, channels).astype(np.float64)
+    arr = read_map(path, channels, exact=True).astype(np.float64)
     if path.suffix.lower() == ".npy":
         try:
             kind = np.load(path, mmap_mode="r", allow_pickle=False).dtype
@@ -250,12 +268,15 @@ def read_stored_map(path: str | os.PathLike, channels: int) -> tuple[np.ndarray,
     return arr, None
 
 
-def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
+def read_map(path: str | os.PathLike, channels: int, exact: bool = False) -> np.ndarray:
     """Read a data map (depth, point map, albedo, mask) without colour conversion.
 
     ``.npy`` files are loaded with numpy (no pickles); anything else goes through OpenImageIO
     (EXR, PFM, TIFF, PNG, ...). Returns float32 (H, W, channels); a single-channel map is
-    returned as (H, W, 1) and a grey map is replicated when 3 channels are wanted.
+    returned as (H, W, 1) and a grey map is replicated when 3 channels are wanted. ``exact`` (a measurement: a
+    depth or point map): one channel is wanted from a file of one channel, a grey one (colour channels alike,
+    alpha aside) or grey + alpha; three from a file of three or more (a one-channel file is refused, not
+    replicated).
     """
     path = Path(path)
     if not path.is_file():
@@ -263,9 +284,14 @@ def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)
-        except Exception as exc:  # numpy raises several types for corrupt files
-            raise UsdRelightError(f"cannot read {path}: {exc}") from None
-        arr = np.asarray(arr, dtype=np.float32)
+        except Exception as exc:  # numpy raises several types for corrupt files; its text may quote the file
+            what = "it holds pickled (object) data, never loaded" if "pickle" in str(exc).lower() else \
+                "not a NumPy .npy array"
+            raise UsdRelightError(f"cannot read {path}: {what}") from None
+        if arr.dtype.kind not in "biuf":  # strings, complex numbers, records: no map
+            raise UsdRelightError(f"cannot read {path}: it holds {arr.dtype.kind!r}-kind values, not real numbers")
+        with np.errstate(over="ignore"):  # a float64 beyond float32 becomes Inf: an invalid pixel where it matters
+            arr = np.asarray(arr, dtype=np.float32)
         if arr.ndim == 2:
             arr = arr[:, :, None]
         if arr.ndim == 3 and arr.shape[0] in (1, 3) and arr.shape[2] not in (1, 3):
@@ -276,6 +302,8 @@ def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
         arr, _ = read_raw(path)
     if arr.ndim != 3:
         raise UsdRelightError(f"{path}: expected an image-shaped array, got shape {arr.shape}")
+    if exact:
+        _check_exact(path, arr, channels)
     if channels == 1:
         return np.ascontiguousarray(arr[:, :, :1])
     if arr.shape[2] == 1:
@@ -285,30 +313,16 @@ def read_map(path: str | os.PathLike, channels: int) -> np.ndarray:
     return np.ascontiguousarray(arr[:, :, :channels])
 
 
-def read_pfm(path: str | os.PathLike) -> np.ndarray:
-    """Read a Portable Float Map (``PF`` colour or ``Pf`` grey) as float32 (H, W, C), top row first.
-
-    PFM stores rows bottom-to-top and gives endianness by the sign of the scale line (negative =
-    little-endian); this reader follows that specification (as Middlebury's ``disp0.pfm`` do).
-    """
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            kind = f.readline().strip()
-            if kind not in (b"PF", b"Pf"):
-                raise ValueError("not a PFM file")
-            dims = f.readline().split()
-            while not dims:
-                dims = f.readline().split()
-            w, h = int(dims[0]), int(dims[1])
-            scale = float(f.readline().strip())
-            c = 3 if kind == b"PF" else 1
-            data = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4")
-        if w <= 0 or h <= 0 or data.size < w * h * c:
-            raise ValueError("truncated data")
-    except (OSError, ValueError, IndexError) as exc:
-        raise UsdRelightError(f"cannot read PFM {path}: {exc}") from None
-    return np.ascontiguousarray(data[: w * h * c].reshape(h, w, c)[::-1], dtype=np.float32)
+def _check_exact(path, arr: np.ndarray, channels: int) -> None:
+    """:func:`read_map`'s ``exact`` rule (one clear error naming the channel count)."""
+    c = arr.shape[2]
+    if channels == 3 and c < 3:
+        raise UsdRelightError(f"{path}: expected 3 channels (X, Y, Z), got {c}")
+    if channels == 1 and c > 2:
+        colour = arr[:, :, :3]
+        if not np.array_equal(colour, np.broadcast_to(colour[:, :, :1], colour.shape), equal_nan=True):
+            raise UsdRelightError(f"{path}: {c} channels that differ, where one value per pixel is wanted (a "
+                                  "point map goes to --points)")
 
 
 def write_image(path: str | os.PathLike, pixels: np.ndarray, dtype: str = "half", srgb: bool = False,

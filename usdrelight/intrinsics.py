@@ -15,6 +15,7 @@ half a pixel on load (``cx_internal = cx_opencv + 0.5``).
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import UsdRelightError
+
+log = logging.getLogger(__name__)
 
 DEFAULT_FOV_X_DEG = 60.0
 
@@ -79,32 +82,50 @@ class Intrinsics:
         """
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark, as Notepad writes, is fine
         except FileNotFoundError:
             raise UsdRelightError(f"file not found: {path}") from None
         except (OSError, ValueError) as exc:
             raise UsdRelightError(f"cannot parse intrinsics {path}: {exc}") from None
-        try:
-            if isinstance(data, dict) and "fx" in data:
-                if "width" in data and "height" in data and (int(data["width"]), int(data["height"])) != (width, height):
-                    raise UsdRelightError(
-                        f"intrinsics {path} are for {data['width']}x{data['height']}, photo is {width}x{height}")
-                fy = data.get("fy", data["fx"])
-                return cls.from_opencv(float(data["fx"]), float(fy), float(data["cx"]), float(data["cy"]), width, height)
-            K = data["K"] if isinstance(data, dict) else data
-            K = np.asarray(K, dtype=np.float64)
-            if K.shape != (3, 3):
-                raise UsdRelightError(f"intrinsics {path}: expected a 3x3 matrix, got shape {K.shape}")
-            normalized = data.get("normalized") if isinstance(data, dict) else None
-            if normalized is None:
-                normalized = abs(K[0, 2]) <= 1.5 and abs(K[1, 2]) <= 1.5
-            if normalized:
-                return cls.from_normalized(K, width, height)
-            return cls.from_opencv(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
-        except UsdRelightError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UsdRelightError(f"intrinsics {path}: malformed ({exc})") from None
+
+        def number(v, key: str) -> float:  # the file's values are never quoted back (it may be anything)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise UsdRelightError(f"intrinsics {path}: {key} must be a number, got {type(v).__name__}")
+            try:
+                x = float(v)
+            except OverflowError:
+                x = float("inf")
+            if not math.isfinite(x):
+                raise UsdRelightError(f"intrinsics {path}: {key} must be finite")
+            return x
+
+        if isinstance(data, dict) and "fx" in data:
+            if "width" in data and "height" in data:
+                size = (number(data["width"], "width"), number(data["height"], "height"))
+                if size != (width, height):
+                    raise UsdRelightError(f"intrinsics {path} are for {size[0]:g}x{size[1]:g}, photo is "
+                                          f"{width}x{height}")
+            missing = [k for k in ("cx", "cy") if k not in data]
+            if missing:
+                raise UsdRelightError(f"intrinsics {path}: malformed (no {' and '.join(missing)})")
+            fx = number(data["fx"], "fx")
+            fy = number(data["fy"], "fy") if "fy" in data else fx  # square pixels when fy is not given
+            return cls.from_opencv(fx, fy, number(data["cx"], "cx"), number(data["cy"], "cy"), width, height)
+        K = data.get("K") if isinstance(data, dict) else data
+        if not (isinstance(K, list) and len(K) == 3 and all(isinstance(r, list) and len(r) == 3 for r in K)):
+            raise UsdRelightError(f"intrinsics {path}: expected fx, fy, cx, cy, a 3x3 matrix K, or a bare 3x3 list")
+        K = np.array([[number(v, f"K[{i}][{j}]") for j, v in enumerate(r)] for i, r in enumerate(K)])
+        if abs(K[1, 0]) + abs(K[2, 0]) + abs(K[2, 1]) > 0 or K[2, 2] != 1:
+            raise UsdRelightError(f"intrinsics {path}: a camera matrix K has a last row (0, 0, 1) and zeros below "
+                                  "its diagonal")
+        if K[0, 1] != 0:
+            log.warning("intrinsics %s: skew K[0][1] = %g is not represented (a USD camera has none)", path, K[0, 1])
+        normalized = data.get("normalized") if isinstance(data, dict) else None
+        if normalized is None:
+            normalized = abs(K[0, 2]) <= 1.5 and abs(K[1, 2]) <= 1.5
+        if normalized:
+            return cls.from_normalized(K, width, height)
+        return cls.from_opencv(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
 
     @classmethod
     def fit_to_points(cls, points: np.ndarray, valid: np.ndarray) -> "Intrinsics":

@@ -1,0 +1,87 @@
+"""Photos and side files a probe found misread or answered badly: an EXR whose colour is a layer, depth and
+point maps of the wrong channel count, side files of strings or huge numbers (exit 1, 'unexpected'), and
+messages that quoted a foreign file's content. Each builds (or fails) through the CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import make_photo
+from usdrelight.imageio import read_photo
+
+SECRET = "SECRET_API_KEY=sk-live-0123"
+
+
+def _one_error(rc, err, needle):
+    assert rc == 2 and err.count("\n") == 1 and err.startswith("usdrelight: error:"), err
+    assert "unexpected" not in err and SECRET not in err and needle in err, err
+
+
+def test_an_exr_photo_whose_colour_is_a_layer_reads_that_layer(tmp_path):
+    """Channels diffuse.R, diffuse.G, diffuse.B and Z: OpenImageIO lists Z first, and the photo was (Z, R, G):
+    its red was the depth (5.0)."""
+    import OpenImageIO as oiio
+
+    rgb = np.zeros((8, 12, 3), np.float32) + [0.2, 0.4, 0.6]
+    spec = oiio.ImageSpec(12, 8, 4, oiio.FLOAT)
+    spec.channelnames = ("diffuse.R", "diffuse.G", "diffuse.B", "Z")
+    out = oiio.ImageOutput.create(str(tmp_path / "p.exr"))
+    out.open(str(tmp_path / "p.exr"), spec)
+    out.write_image(np.concatenate([rgb, np.full((8, 12, 1), 5.0, np.float32)], -1))
+    out.close()
+    np.testing.assert_allclose(read_photo(tmp_path / "p.exr"), rgb, rtol=1e-6)
+
+
+def test_depth_and_point_maps_of_the_wrong_channel_count_are_refused(cli, tmp_path):
+    """A point map given as --depth (its X was read as depth: a garbage mesh, exit 0), a one-channel map as
+    --points (replicated to X = Y = Z); a grey depth PNG saved as RGB (channels alike) is still taken."""
+    photo = make_photo(tmp_path / "p.png", 16, 20)
+    v, u = np.mgrid[0:16, 0:20]
+    pts = np.stack([(u - 9.5) / 20.0 * 2, (v - 7.5) / 20.0 * 2, np.full((16, 20), 2.0)], -1).astype(np.float32)
+    np.save(tmp_path / "pts.npy", pts)
+    np.save(tmp_path / "depth1.npy", pts[..., 2:])
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "pts.npy", "-o", tmp_path / "a")
+    _one_error(rc, err, "3 channels that differ, where one value per pixel is wanted")
+    rc, _, err = cli("build", photo, "--points", tmp_path / "depth1.npy", "-o", tmp_path / "b")
+    _one_error(rc, err, "expected 3 channels (X, Y, Z), got 1")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    np.save(tmp_path / "grey3.npy", np.repeat(pts[..., 2:], 3, -1))
+    assert cli("build", photo, "--depth", tmp_path / "grey3.npy", "-o", tmp_path / "c")[0] == 0
+
+
+def test_strings_huge_numbers_and_foreign_content_are_one_error_that_quotes_nothing(cli, tmp_path):
+    photo = make_photo(tmp_path / "p.png", 16, 20)
+    np.save(tmp_path / "s.npy", np.array([["a"] * 20] * 16))
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "s.npy", "-o", tmp_path / "o")
+    _one_error(rc, err, "not real numbers")  # was exit 1, 'unexpected ValueError'
+    (tmp_path / "bad.npy").write_bytes(b"\x93NUMPY\x01\x00v\x00{'descr': '" + SECRET.encode() +
+                                       b"', 'fortran_order': False, 'shape': (16, 20), }" + b" " * 40 + b"\n")
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "bad.npy", "-o", tmp_path / "o")
+    _one_error(rc, err, "not a NumPy .npy array")
+    (tmp_path / "bad.pfm").write_bytes(b"Pf\n" + SECRET.encode() + b" 3\n-1\n")
+    rc, _, err = cli("build", photo, "--depth", tmp_path / "bad.pfm", "-o", tmp_path / "o")
+    _one_error(rc, err, "not a valid PFM header")
+    for bad, needle in (({"fx": SECRET, "cx": 9.5, "cy": 7.5}, "fx must be a number, got str"),
+                        ('{"fx": 1' + "0" * 400 + ', "cx": 9.5, "cy": 7.5}', "fx must be finite"),
+                        ({"fx": True, "cx": 9.5, "cy": 7.5}, "fx must be a number, got bool"),
+                        ({"K": [[20, 0, 9.5], [0, 20, 7.5], [SECRET, 0, 1]]}, "K[2][0] must be a number"),
+                        ({"K": [[20, 0, 9.5], [0, 20, 7.5], [0, 0, 0]]}, "last row (0, 0, 1)"),
+                        ([SECRET], "expected fx, fy, cx, cy, a 3x3 matrix K")):
+        (tmp_path / "k.json").write_text(bad if isinstance(bad, str) else json.dumps(bad))
+        rc, _, err = cli("build", photo, "--intrinsics", tmp_path / "k.json", "-o", tmp_path / "o")
+        _one_error(rc, err, needle)  # 1e400: exit 1 'unexpected OverflowError'; the string was quoted back
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + json.dumps({"fx": 20, "cx": 9.5, "cy": 7.5}).encode())
+    assert cli("build", photo, "--intrinsics", tmp_path / "bom.json", "-o", tmp_path / "bom")[0] == 0  # Notepad's
+
+
+@pytest.mark.parametrize("k", [{"fx": 20, "fy": 20, "cx": 9.5, "cy": 7.5}, {"fx": 20, "cx": 9.5, "cy": 7.5},
+                               {"K": [[20, 0, 9.5], [0, 20, 7.5], [0, 0, 1]]}, [[20, 0, 9.5], [0, 20, 7.5], [0, 0, 1]]])
+def test_the_intrinsics_forms_still_read_alike(cli, tmp_path, k):
+    photo = make_photo(tmp_path / "p.png", 16, 20)
+    (tmp_path / "k.json").write_text(json.dumps(k))
+    rep = cli.json("build", photo, "--intrinsics", tmp_path / "k.json", "-o", tmp_path / "o")
+    assert rep["intrinsics_opencv"]["fx"] == pytest.approx(20) and rep["intrinsics_opencv"]["fy"] == pytest.approx(20)
+    assert rep["intrinsics_opencv"]["cx"] == pytest.approx(9.5) and rep["intrinsics_opencv"]["cy"] == pytest.approx(7.5)
