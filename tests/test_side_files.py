@@ -85,3 +85,23 @@ def test_the_intrinsics_forms_still_read_alike(cli, tmp_path, k):
     rep = cli.json("build", photo, "--intrinsics", tmp_path / "k.json", "-o", tmp_path / "o")
     assert rep["intrinsics_opencv"]["fx"] == pytest.approx(20) and rep["intrinsics_opencv"]["fy"] == pytest.approx(20)
     assert rep["intrinsics_opencv"]["cx"] == pytest.approx(9.5) and rep["intrinsics_opencv"]["cy"] == pytest.approx(7.5)
+
+
+@pytest.mark.parametrize("fy", [80.0, 40.4])
+def test_non_square_pixels_are_traced_where_the_stage_camera_puts_them(cli, tmp_path, fy):
+    """fx 40, fy 80 (and 1% apart, as calibrations give): the stage's camera was right but the fast renderer
+    (and so fit and relight) traced square pixels of fx: its surface landed 4 px (up to 7.5) from its pixel and
+    half the pixels saw nothing. Now every pixel's hit reprojects onto its own centre (the 1/64 px nudge)."""
+    from usdrelight.relight.session import RelightSession
+
+    photo = make_photo(tmp_path / "p.png", 32, 48)
+    np.save(tmp_path / "d.npy", np.full((32, 48), 2.0, np.float32))
+    (tmp_path / "k.json").write_text(json.dumps({"fx": 40.0, "fy": fy, "cx": 23.5, "cy": 15.5}))
+    assert cli("build", photo, "--depth", tmp_path / "d.npy", "--intrinsics", tmp_path / "k.json",
+               "-o", tmp_path / "s")[0] == 0
+    with RelightSession(tmp_path / "s" / "scene.usda", mode="render") as s:
+        k, surf = s.scene.camera.intrinsics, s.engine.surface
+        p = surf.p * [1.0, -1.0, -1.0]  # the camera at the origin looking down -Z: OpenCV's frame
+        err = np.hypot(k.cx + k.fx * p[:, 0] / p[:, 2] - (surf.idx[:, 1] + 0.5),
+                       k.cy + k.fy * p[:, 1] / p[:, 2] - (surf.idx[:, 0] + 0.5))
+    assert len(p) >= 47 * 31 and err.max() < 0.05, (len(p), err.max())  # the mesh ends at the last pixel centres

@@ -147,6 +147,13 @@ class Intrinsics:
         return cls(float(fx), float(fy), float(cx), float(cy), w, h)
 
     # ---- views --------------------------------------------------------------------------
+    @property
+    def film_y_map(self) -> tuple[float, float]:
+        """(fx / fy, cy / height): a camera of square pixels (focal fx, as Mitsuba's perspective sensor) sees
+        this camera's pixel row v (pixels from the top) at the normalized film row c + (v / height - c) r, with
+        (r, c) this pair; (1, c) for square pixels."""
+        return self.fx / self.fy, self.cy / self.height
+
     def opencv(self) -> dict:
         """Intrinsics in OpenCV's pixel-centre-at-integer convention."""
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx - 0.5, "cy": self.cy - 0.5,

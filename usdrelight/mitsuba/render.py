@@ -90,34 +90,46 @@ class RenderResult:
     """What the Mitsuba mapping could not represent: one line per kind -> count."""
 
 
-def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5)):
+def _film_rows(v, y_map):
+    """Normalized film rows of the sensor (square pixels) for normalized pixel rows ``v`` of a camera whose
+    :attr:`usdrelight.intrinsics.Intrinsics.film_y_map` is ``y_map`` (None: the same rows)."""
+    if y_map is None:
+        return v
+    r, c = y_map
+    return c + (v - c) * r
+
+
+def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5), y_map=None):
     """One camera ray per pixel through the point ``offset`` (pixel units, (0.5, 0.5) = centre) of each pixel,
-    row-major: returns (rays, surface interactions)."""
+    row-major: returns (rays, surface interactions). ``y_map``: the camera's
+    :attr:`~usdrelight.intrinsics.Intrinsics.film_y_map`, for pixels that are not square (the sensor's are)."""
     sensor = scene.sensors()[0]
     dx, dy = offset
-    jj, ii = np.meshgrid((np.arange(width) + dx) / width, (np.arange(height) + dy) / height)
+    jj, ii = np.meshgrid((np.arange(width) + dx) / width, _film_rows((np.arange(height) + dy) / height, y_map))
     pos = mi.Point2f(jj.ravel().astype(np.float32), ii.ravel().astype(np.float32))
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     return ray, scene.ray_intersect(ray)
 
 
-def trace_pixel_centres(mi, scene, width: int, height: int):
-    """One camera ray through each pixel centre, row-major: returns (rays, surface interactions).
+def trace_pixel_centres(mi, scene, width: int, height: int, y_map=None):
+    """One camera ray through each pixel centre, row-major: returns (rays, surface interactions) (``y_map``:
+    :func:`trace_pixels`).
 
     Centres are nudged by (1/64, 1/128) px: a ray through the exact centre passes exactly through a
     vertex of a pixel mesh, where Mitsuba's (non-watertight) triangle test can miss every triangle."""
     dx, dy = PRIMARY_RAY_NUDGE_PX
-    return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy))
+    return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy), y_map)
 
 
-def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pixel_footprint(mi, scene, width: int, height: int, k: int = 4,
+                    y_map=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(albedo (H * W, 3), coverage (H * W,), hit point (H * W, 3)) of every pixel from k x k stratified camera
     rays: the diffuse albedo averaged over the pixel's area with misses counting as 0, the fraction of the area
     that sees geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel), and the mean
     world-space position of the rays that hit (0 where none).
 
     The k x k rays of a run of pixels are one wavefront (ray ``pixel * k^2 + s``, s row-major in the pixel), made
-    by Mitsuba's JIT, in chunks of about 4M rays to bound memory."""
+    by Mitsuba's JIT, in chunks of about 4M rays to bound memory. ``y_map``: :func:`trace_pixels`."""
     import drjit as dr
 
     sensor = scene.sensors()[0]
@@ -132,7 +144,7 @@ def pixel_footprint(mi, scene, width: int, height: int, k: int = 4) -> tuple[np.
         s = i % kk
         row = pix // width
         fx = (mi.Float(pix - row * width) + (mi.Float(s % k) + 0.5) / k + dx) / width
-        fy = (mi.Float(row) + (mi.Float(s // k) + 0.5) / k + dy) / height
+        fy = _film_rows((mi.Float(row) + (mi.Float(s // k) + 0.5) / k + dy) / height, y_map)
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(fx, fy), mi.Point2f(0.5, 0.5))
         si = scene.ray_intersect(ray)
         hit = si.is_valid()

@@ -167,6 +167,11 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
         dec = estimate_decomposition(photo, albedo_file=opts.albedo, shading_file=opts.shading,
                                      model=opts.albedo_model, estimator=opts.albedo_from,
                                      model_paths=model_paths, device=opts.device)
+    k = geo.intrinsics
+    if abs(k.fx - k.fy) > 1e-6 * k.fx:
+        log.warning("non-square pixels (fy / fx = %.4g): the stage's camera, the fast renderer, fit and relight "
+                    "follow them; Mitsuba renders (render, --renderer mitsuba) and the Mitsuba XML draw square "
+                    "pixels of fx", k.fy / k.fx)
     runs = {}
     for step, run in (("geometry", geo.run), ("albedo", dec.run)):
         if run is not None:

@@ -345,7 +345,7 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         tr = replace(raw, env_filter=env_filter)
         step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
-                                                       settings.footprint)
+                                                       settings.footprint, surf.scene.camera.intrinsics.film_y_map)
         step("footprint")
         fringe = pixel_fringe(surf, albedo, coverage, hit_points)
         pixel_albedo, coverage = albedo[surf.flat_index()], coverage[surf.flat_index()]
