@@ -54,6 +54,12 @@ CLOSED_FORMS = {
     "spot": (LightRecord("/s", "sphere", _at([0, 1, 0], [0, -1, 0]), np.full(3, 20.0), treat_as_point=True,
                          cone_angle_deg=30.0, cone_softness=0.2), ALBEDO * 20 / np.pi),
     "sphere": (LightRecord("/sp", "sphere", _at([0, 1, 0]), np.full(3, 10.0), radius=0.2), ALBEDO * 10 * 0.2 ** 2),
+    # a soft spot (ShapingAPI on a sphere of radius 0.2, as Cycles' spot of that radius): the sphere's light, the
+    # cone from its centre (was the sphere alone: lit all round); pointing away, 0 below it
+    "sphere_spot": (LightRecord("/ss", "sphere", _at([0, 1, 0], [0, -1, 0]), np.full(3, 10.0), radius=0.2,
+                                cone_angle_deg=30.0, cone_softness=0.2), ALBEDO * 10 * 0.2 ** 2),
+    "sphere_spot_away": (LightRecord("/sa", "sphere", _at([0, 1, 0], [0, 1, 0]), np.full(3, 10.0), radius=0.2,
+                                     cone_angle_deg=30.0, cone_softness=0.2), 0.0 * ALBEDO),
     "disk": (LightRecord("/d", "disk", _at([0, 1, 0], [0, -1, 0]), np.full(3, 4.0), radius=0.5),
              ALBEDO * 4 * 0.25 / 1.25),
     "rect": (LightRecord("/r", "rect", _at([0, 1, 0], [0, -1, 0]), np.full(3, 4.0), width=0.6, height=0.4),

@@ -9,7 +9,8 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
   clamped to ``LightTransport.r_min`` as in the fit;
 * spot (+ ShapingAPI): the same times Mitsuba's spot falloff: 1 inside the beam (coneAngle * (1 - softness)),
   falling linearly in angle to 0 at the cutoff (coneAngle);
-* sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface;
+* sphere: uniform sampling of the cone the sphere subtends, shadow rays to its surface (with ShapingAPI: times
+  the spot falloff from its centre, as Cycles draws a spot of that radius; Mitsuba's XML has no such light);
 * rect and disk: stratified sampling of the solid angle they subtend at each pixel (:func:`panel_light`,
   :func:`disk_light`; area sampling, :func:`planar_light`, for a sheared or degenerate frame); both one-sided,
   emitting towards the light's -Z, and capped at the physical bound (E / pi <= L); a RectLight's texture
@@ -76,6 +77,8 @@ def sphere_light(tr: LightTransport, light: LightRecord, samples: int, rng) -> n
     for sl in _chunks(len(o), samples):
         weight[sl] = _sphere_weight(tr, o[sl], w[sl], dist[sl], n[sl], radius, shifted_grid(shift[sl], samples))
     out[outside] = weight[:, None] * emitted_radiance(light)[None, :]
+    if light.cone_angle_deg is not None:  # a soft spot (ShapingAPI on a sphere of radius > 0): the cone from its
+        out *= spot_falloff(light, surf.p)[:, None]  # centre, as Cycles draws a spot of that radius
     return out
 
 
