@@ -390,3 +390,63 @@ def test_a_fine_step_without_video_is_no_error(animated_stage, tmp_path, cli):
     res = cli.json("relight", animated_stage, "--frames", "1:1.02:0.01", "--max-side", "32", "--mode", "add",
                    "-o", tmp_path / "o")
     assert [f["time"] for f in res["frames"]] == [1, 1.01, 1.02]
+
+
+CM_STAGE = '''#usda 1.0
+(
+    upAxis = "Z"
+    metersPerUnit = 0.01
+    defaultPrim = "World"
+)
+def Xform "World" {
+    def Mesh "Floor" {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+        point3f[] points = [(-300, -300, 0), (300, -300, 0), (300, 300, 0), (-300, 300, 0)]
+        color3f[] primvars:displayColor = [(0.5, 0.5, 0.5)]
+    }
+    def Camera "Cam" {
+        float focalLength = 24
+        float horizontalAperture = 36
+        float verticalAperture = 27
+        double3 xformOp:translate = (0, -400, 200)
+        float3 xformOp:rotateXYZ = (70, 0, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateXYZ"]
+    }
+}
+def RenderSettings "Render" {
+    uniform int2 resolution = (64, 48)
+}
+'''
+
+
+def test_saved_lights_of_a_foreign_centimetre_stage_light_it_as_rendered(cli, tmp_path):
+    """A Z-up centimetre stage rooted at /World: the --save-lights layer was `over "Scene"` (nothing defined
+    there: 'no light to relight with') in metres without metersPerUnit (sublayered, the light came 100x too
+    close). Now a typeless def in the stage's unit and up axis: read back, the lights are the --light ones, and
+    the stage relit from the layer alone is the relight that wrote it."""
+    from usdrelight.imageio import read_map
+    from usdrelight.stage.light_specs import parse_lights
+    from usdrelight.stage.read import read_lights
+    from usdrelight.stage.validate import open_stage
+
+    (tmp_path / "shot.usda").write_text(CM_STAGE)
+    specs = [["point:0.3,0.2,1:20,20,20", "rect:0,0,1.5:0,0,-1:5,5,5:0.5,0.3"]]
+    (tmp_path / "seq.json").write_text(json.dumps(specs))
+    rc, _, err = cli("relight", tmp_path / "shot.usda", "--sequence", tmp_path / "seq.json", "--mode", "render",
+                     "--save-lights", tmp_path / "saved.usda", "-o", tmp_path / "a")
+    assert rc == 0, err
+    (tmp_path / "lit.usda").write_text('#usda 1.0\n(\n    upAxis = "Z"\n    metersPerUnit = 0.01\n'
+                                       '    subLayers = [@./saved.usda@, @./shot.usda@]\n)\n')
+    got = sorted(read_lights(open_stage(tmp_path / "lit.usda"), 1.0), key=lambda l: l.path)
+    want = parse_lights(specs[0])
+    assert [g.kind for g in got] == ["sphere", "rect"]
+    for g, w in zip(got, want):  # read in metres: the stage's 0.01 scale on the light's axes and sizes
+        np.testing.assert_allclose(g.to_world[:3, 3], w.to_world[:3, 3], atol=1e-5)
+        np.testing.assert_allclose(g.to_world[:3, :3] / 0.01, w.to_world[:3, :3], atol=1e-5)
+        np.testing.assert_allclose((g.width * 0.01, g.height * 0.01), (w.width, w.height), rtol=1e-6)
+        np.testing.assert_allclose(g.radiance, w.radiance, rtol=1e-6)
+    rc, _, err = cli("relight", tmp_path / "lit.usda", "--mode", "render", "--time", "1", "-o", tmp_path / "b")
+    assert rc == 0, err
+    np.testing.assert_allclose(read_map(tmp_path / "b" / "relit.exr", 3),
+                               read_map(tmp_path / "a" / "relit_0000.exr", 3), rtol=1e-4, atol=1e-6)

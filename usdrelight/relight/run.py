@@ -27,6 +27,7 @@ from ..safe_paths import confined_path, writable_parent
 from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.light_syntax import MAX_AREA_SAMPLES
+from ..stage.read import stage_meters_per_unit
 from ..stage.timing import check_time, parse_frames, stage_fps, video_fps
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
@@ -170,6 +171,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`);
     ``area_samples``: the fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None:
     :class:`usdrelight.engine.EngineSettings`' 16)."""
+    from pxr import UsdGeom
+
     t0 = time_module.perf_counter()
     if sequence is not None and frames is not None:
         raise UsdRelightError("--sequence and --frames both choose the frames: give one")
@@ -201,7 +204,9 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
         fps = None if video is None else stage_fps(session.usd_stage) if per_frame is not None else \
             video_fps(session.usd_stage, times[1] - times[0] if times is not None and len(times) > 1 else 1.0)
         layer = write_sequence_layer(save_lights, per_frame, fps=stage_fps(session.usd_stage),  # none rescaled
-                                     time_codes_per_second=session.usd_stage.GetTimeCodesPerSecond()) \
+                                     time_codes_per_second=session.usd_stage.GetTimeCodesPerSecond(),
+                                     meters_per_unit=stage_meters_per_unit(session.usd_stage),
+                                     up_axis=str(UsdGeom.GetStageUpAxis(session.usd_stage))) \
             if save_lights is not None else None
         try:
             return _run(session, stage_path, out, common, plan, len(plan) > 1 or seq is not None or

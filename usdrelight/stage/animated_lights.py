@@ -51,10 +51,14 @@ def _rotation_quat(m: np.ndarray):
 
 
 def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1.0, fps: float = 24.0,
-                         time_codes_per_second: float | None = None) -> Path:
+                         time_codes_per_second: float | None = None, meters_per_unit: float = 1.0,
+                         up_axis: str | None = None) -> Path:
     """Write ``frames`` (frame i: its light records, metres) as a new time-sampled lights layer at ``path``
     (frame i at time code ``start + i``); see the module docstring. ``time_codes_per_second``: the stage's, which
-    the layer takes (None: ``fps``), so that sublayered into it no sample is rescaled. Returns ``path``."""
+    the layer takes (None: ``fps``), so that sublayered into it no sample is rescaled; ``meters_per_unit`` and
+    ``up_axis``: the stage's, which the layer takes (positions and sizes in its unit), so that sublayered into
+    it every light is where it was rendered. ``/Scene`` is a typeless ``def`` (the stage's own may be an Xform;
+    on a stage of another root the lights still compose). Returns ``path``."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 
     area_types = {"sphere": UsdLux.SphereLight, "disk": UsdLux.DiskLight, "rect": UsdLux.RectLight}
@@ -80,7 +84,11 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
     stage.SetEndTimeCode(start + len(frames) - 1)
     stage.SetFramesPerSecond(fps)
     stage.SetTimeCodesPerSecond(fps if time_codes_per_second is None else time_codes_per_second)
-    stage.OverridePrim(ROOT)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    if up_axis is not None:
+        UsdGeom.SetStageUpAxis(stage, up_axis)
+    unit = 1.0 / meters_per_unit  # metres -> the stage's unit
+    stage.DefinePrim(ROOT)
     UsdGeom.Scope.Define(stage, LIGHTS)
     UsdGeom.Scope.Define(stage, RELIGHT_LIGHTS_SCOPE)
     for n in range(count):
@@ -106,7 +114,7 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
             vis.Set(UsdGeom.Tokens.inherited if rec is not None else UsdGeom.Tokens.invisible, t)
             if rec is None:
                 continue
-            translate.Set(Gf.Vec3d(*map(float, rec.to_world[:3, 3])), t)
+            translate.Set(Gf.Vec3d(*(float(x) * unit for x in rec.to_world[:3, 3])), t)
             orient.Set(_rotation_quat(rec.to_world), t)
             k, rgb = split_rgb(rec.radiance)
             intensity.Set(float(k), t)
@@ -117,11 +125,10 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
             if kind == "sun":
                 light.CreateAngleAttr().Set(float(rec.angle_deg), t)
             elif kind in ("sphere", "disk"):
-                light.CreateRadiusAttr().Set(float(rec.radius), t)
+                light.CreateRadiusAttr().Set(float(rec.radius) * unit, t)
             elif kind == "rect":
-                light.CreateWidthAttr().Set(float(rec.width), t)
-                light.CreateHeightAttr().Set(float(rec.height), t)
-    layer.GetPrimAtPath(ROOT).specifier = Sdf.SpecifierOver  # /Scene is defined by the stage's scene.usda
+                light.CreateWidthAttr().Set(float(rec.width) * unit, t)
+                light.CreateHeightAttr().Set(float(rec.height) * unit, t)
     text = layer.ExportToString()
     with atomic_path(path) as tmp:
         tmp.write_text(text)
