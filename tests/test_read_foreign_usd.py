@@ -286,3 +286,27 @@ def Mesh "DC" (
     assert sorted(m.path for m in meshes) == ["/DC", "/DC/top"]
     for m in meshes:
         assert m.material.diffuse == pytest.approx((0.9, 0.9, 0.1)), m.path
+
+
+def test_a_time_sampled_product_name_is_read_at_the_render_time(tmp_path):
+    """Solaris samples productName per frame (render/beauty.$F4.exr): it was read as '' ('must be a relative
+    path inside ...', whatever --time said)."""
+    path = _stage(tmp_path, '''
+def Camera "Cam" {
+}
+def Scope "Render" {
+    def RenderSettings "Settings" {
+        rel camera = </Cam>
+        rel products = </Render/Beauty>
+        uniform int2 resolution = (8, 8)
+    }
+    def RenderProduct "Beauty" {
+        token productName.timeSamples = { 1: "render/beauty.0001.exr", 2: "render/beauty.0002.exr" }
+        rel orderedVars = </Render/Color>
+    }
+    def RenderVar "Color" {
+        uniform string sourceName = "color"
+    }
+}''')
+    assert [p.product_name for p in read_scene(path, 2.0).products] == ["render/beauty.0002.exr"]
+    assert [p.product_name for p in read_scene(path).products] == ["render/beauty.0001.exr"]  # the first frame

@@ -107,11 +107,12 @@ PRODUCT_OVERRIDES = ("resolution", "pixelAspectRatio", "aspectRatioConformPolicy
                      "instantaneousShutter", "disableMotionBlur")
 
 
-def _read_products(stage, settings, warnings) -> tuple[ProductRecord, ...]:
-    """The RenderProducts of ``settings`` and their RenderVars; targets naming nothing are skipped, a product's
+def _read_products(stage, settings, warnings, t=None) -> tuple[ProductRecord, ...]:
+    """The RenderProducts of ``settings`` and their RenderVars (a productName read at time code ``t``: Solaris
+    samples it per frame, ``render.$F4.exr``); targets naming nothing are skipped, a product's
     own camera or SettingsBase values (the settings' are rendered) and a settings' dataWindowNDC other than the
     full image (the full image is rendered) counted in ``warnings``."""
-    from pxr import UsdRender
+    from pxr import Usd, UsdRender
 
     window = settings.GetDataWindowNDCAttr().Get()
     if window is not None and tuple(window) != (0.0, 0.0, 1.0, 1.0):
@@ -137,7 +138,11 @@ def _read_products(stage, settings, warnings) -> tuple[ProductRecord, ...]:
                                                    str(var.GetSourceTypeAttr().Get()), str(var.GetDataTypeAttr().Get())))
             else:
                 warnings["RenderProduct orderedVars naming no RenderVar (skipped)"] += 1
-        products.append(ProductRecord(ppath.name, str(prod.GetProductNameAttr().Get()), tuple(render_vars)))
+        attr = prod.GetProductNameAttr()
+        name = attr.Get(t) if t is not None else attr.Get()
+        if name is None:  # sampled only, read at the default time: the first sample (as render's first frame)
+            name = attr.Get(Usd.TimeCode.EarliestTime())
+        products.append(ProductRecord(ppath.name, str(name or ""), tuple(render_vars)))
     return tuple(products)
 
 
@@ -348,7 +353,7 @@ def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
         cam_prim = stage.GetPrimAtPath(targets[0]) if targets else None
         if targets and not (cam_prim and cam_prim.IsA(UsdGeom.Camera)):  # was "Accessed invalid null prim", exit 1
             raise UsdRelightError(f"{settings.GetPath()}: camera {targets[0]} is not a Camera on the stage")
-        products = _read_products(stage, settings, warnings)
+        products = _read_products(stage, settings, warnings, t)
     if cam_prim is None:
         cam_prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Camera)), None)
     camera = None
