@@ -139,9 +139,10 @@ def _read_products(stage, settings, warnings, t=None) -> tuple[ProductRecord, ..
             else:
                 warnings["RenderProduct orderedVars naming no RenderVar (skipped)"] += 1
         attr = prod.GetProductNameAttr()
-        name = attr.Get(t) if t is not None else attr.Get()
-        if name is None:  # sampled only, read at the default time: the first sample (as render's first frame)
-            name = attr.Get(Usd.TimeCode.EarliestTime())
+        at = Usd.TimeCode.Default() if t is None else Usd.TimeCode(t)
+        if at.IsDefault() and attr.GetNumTimeSamples():  # sampled, read at the default time: its first sample
+            at = Usd.TimeCode.EarliestTime()
+        name = attr.Get(at)
         products.append(ProductRecord(ppath.name, str(name or ""), tuple(render_vars)))
     return tuple(products)
 
