@@ -310,3 +310,22 @@ def Scope "Render" {
 }''')
     assert [p.product_name for p in read_scene(path, 2.0).products] == ["render/beauty.0002.exr"]
     assert [p.product_name for p in read_scene(path).products] == ["render/beauty.0001.exr"]  # the first frame
+
+
+def test_uvs_and_normals_of_the_wrong_count_are_warned(tmp_path):
+    """faceVarying st of 3 values for 4 corners, vertex normals of 2 for 4 points: dropped in silence (the
+    texture rendered as one texel)."""
+    path = _stage(tmp_path, '''
+def Mesh "Quad" {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+    normal3f[] normals = [(0, 0, 1), (0, 0, 1)] (interpolation = "vertex")
+    texCoord2f[] primvars:st = [(0, 0), (1, 0), (1, 1)] (interpolation = "faceVarying")
+}''')
+    scene = read_scene(path)
+    (mesh,) = scene.meshes
+    assert mesh.uv is None and mesh.normals is None
+    assert scene.warnings == {
+        "normals with a count their vertex interpolation does not match (the mesh read without them)": 1,
+        "primvar st with a count its faceVarying interpolation does not match (the mesh read without it)": 1}

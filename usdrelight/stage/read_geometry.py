@@ -21,9 +21,10 @@ __all__ = ["OPACITY_WARNING", "mesh_area", "normal_inverse", "read_material", "r
 
 
 # ---- meshes -----------------------------------------------------------------------------------
-def _primvar(pv, n_points, n_corners, n_faces, t):
+def _primvar(pv, n_points, n_corners, n_faces, t, warnings=None):
     """Flattened primvar values at time code ``t`` and their interpolation class: 'point' | 'corner' | 'face' |
-    'constant'."""
+    'constant'; (None, None) when its element count does not match its interpolation (counted in
+    ``warnings``: the mesh is read without it)."""
     vals = pv.ComputeFlattened(t)
     if vals is None:
         return None, None
@@ -33,6 +34,9 @@ def _primvar(pv, n_points, n_corners, n_faces, t):
             "constant": "constant"}.get(interp)
     expected = {"point": n_points, "corner": n_corners, "face": n_faces, "constant": 1}.get(kind)
     if kind is None or arr.shape[0] != expected:
+        if warnings is not None:
+            warnings[f"primvar {pv.GetPrimvarName()} with a count its {interp} interpolation does not match "
+                     "(the mesh read without it)"] += 1
         return None, None
     return arr, kind
 
@@ -76,13 +80,16 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
     normals, nkind = None, None
     pv = pv_api.GetPrimvar("normals")
     if pv and pv.HasValue():
-        normals, nkind = _primvar(pv, len(pts), n_corners, len(counts), t)
+        normals, nkind = _primvar(pv, len(pts), n_corners, len(counts), t, warnings)
     if normals is None and mesh.GetNormalsAttr().HasValue():
         arr = np.asarray(mesh.GetNormalsAttr().Get(t), dtype=np.float64)
         interp = mesh.GetNormalsInterpolation()
         nkind = {"vertex": "point", "varying": "point", "faceVarying": "corner", "uniform": "face"}.get(interp)
         expected = {"point": len(pts), "corner": n_corners, "face": len(counts)}.get(nkind)
         normals = arr if nkind and len(arr) == expected else None
+        if normals is None:
+            warnings[f"normals with a count their {interp} interpolation does not match (the mesh read without "
+                     "them)"] += 1
     uv, ukind = None, None
     pv = pv_api.GetPrimvar(st_name)
     if not (pv and pv.HasValue()):
@@ -91,7 +98,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
                 pv = cand
                 break
     if pv and pv.HasValue():
-        uv, ukind = _primvar(pv, len(pts), n_corners, len(counts), t)
+        uv, ukind = _primvar(pv, len(pts), n_corners, len(counts), t, warnings)
     for name, arr in (("normals", normals), (st_name, uv)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) {name}")
