@@ -320,6 +320,7 @@ def Mesh "Quad" {
     int[] faceVertexCounts = [4]
     int[] faceVertexIndices = [0, 1, 2, 3]
     point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+    uniform token subdivisionScheme = "none"
     normal3f[] normals = [(0, 0, 1), (0, 0, 1)] (interpolation = "vertex")
     texCoord2f[] primvars:st = [(0, 0), (1, 0), (1, 1)] (interpolation = "faceVarying")
 }''')
