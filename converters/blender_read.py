@@ -14,7 +14,9 @@ not linear or the light moves through a parent, NLA strips, drivers or constrain
 * a light made in Blender, or a copy of one of the stage's (Shift D), comes back as a new light under
   ``/Scene/Lights/User``, named after the Blender object;
 * what UsdLux has no place for is warned, one line per kind; a light UsdLux cannot hold (zero size, negative
-  power) is left out, warned.
+  power) is left out, warned;
+* the World of a .blend made otherwise comes back as a DomeLight when it is a plain colour (else warned); the
+  World of a .blend usdrelight made is the stage's domes, warned when edited.
 """
 from __future__ import annotations
 
@@ -53,6 +55,33 @@ FITTED_OFF = ("fitted light deleted or hidden from render in Blender (read back 
 DEGENERATE = ("Blender light of zero size or zero scale, or of negative power (left out: Cycles renders nothing "
               "or takes light away; UsdLux has no such light)")
 HIDDEN = "Blender light hidden from render (not read)"
+WORLD_EDITED = ("Blender World edited since usdrelight wrote it (not read: the stage's dome lights stay as they "
+                "are; edit them in lights_user.usda)")
+WORLD_UNREAD = ("Blender World of an environment texture or a node setup (not read: only a plain colour World "
+                "comes back, as a DomeLight)")
+
+
+def _world(stage, lights, warnings) -> None:
+    """The World of a .blend made otherwise: a plain colour x strength as a DomeLight ``World`` (Cycles'
+    background radiance is UsdLux's dome radiance); a texture or another node setup warned. A .blend usdrelight
+    made: its World is the stage's domes, only warned when edited."""
+    from pxr import UsdLux
+
+    world = getattr(lights, "world", None)
+    if getattr(lights, "stage", None) is not None:
+        if getattr(lights, "world_edited", False):
+            warnings[WORLD_EDITED] += 1
+        return
+    if not world:
+        return
+    if world.get("kind") != "color":
+        warnings[WORLD_UNREAD] += 1
+        return
+    rgb = np.asarray(world.get("rgb", [0, 0, 0]), np.float64) * float(world.get("strength", 1.0))
+    if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
+        raise UsdRelightError("Blender World: non-finite or negative colour x strength")
+    if rgb.max() > 0:
+        set_light_rgb(UsdLux.DomeLight.Define(stage, f"{USER_LIGHTS_SCOPE}/World"), rgb)
 
 
 def blender_lights(path) -> BlenderLights:
@@ -74,6 +103,8 @@ def blender_lights(path) -> BlenderLights:
     lights.animation = dump.get("animation")
     lights.unit_scale = dump.get("unit_scale", 1.0)
     lights.not_read = dump.get("not_read") or {}
+    lights.world = dump.get("world")
+    lights.world_edited = bool(dump.get("world_edited"))
     return lights
 
 
@@ -209,9 +240,11 @@ def lights_layer(lights: BlenderLights, name: str, usd_path=None) -> ReadReport:
                  "unit scale)"] += 1
     stage = create_stage(usd_path, ROOT, None, f"Lights brought back from {name} by usdrelight.",
                          up_axis=up, meters_per_unit=mpu)
-    if any(not b.get("hidden") for b in lights):
+    if any(not b.get("hidden") for b in lights) or (meta is None and (getattr(lights, "world", None) or {}).get(
+            "kind") == "color"):
         UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
+    _world(stage, lights, warnings)
     kept = {b["usd_path"] for b in lights if b.get("as_written") and _in_scope(b.get("usd_path"), USER_LIGHTS_SCOPE)}
     taken: set = set()
     for b in lights:

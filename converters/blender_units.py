@@ -206,6 +206,10 @@ class BlenderLights(list):
     unit_scale: float = 1.0
     not_read: dict = {}
     """Objects of the scene that are not lights (nor empties), by Blender type: {"MESH": 2, "CAMERA": 1}."""
+    world: dict | None = None
+    """What the scene's World emits (``world_state`` of the Blender scripts), None without one."""
+    world_edited: bool = False
+    """A World usdrelight wrote, changed in Blender since."""
 
 
 def not_read_warning(counts: dict, name: str) -> str | None:

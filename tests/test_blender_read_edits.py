@@ -119,6 +119,8 @@ for name, x in (("LampA", 10.0), ("LampB", -10.0)):
     e.instance_type, e.instance_collection = "COLLECTION", lamp
     e.location = (x, 0, 0)
     sc.collection.objects.link(e)
+bg = next(n for n in sc.world.node_tree.nodes if n.type == "BACKGROUND")  # the World made brighter
+bg.inputs["Color"].default_value = (0.2, 0.2, 0.2, 1.0)
 bpy.ops.wm.save_as_mainfile(filepath=args[1])
 '''
 
@@ -172,6 +174,7 @@ def test_edited_blend_read_back_keeps_every_light_once_at_its_path(edited, layer
     bulbs = sorted(l.to_world[0, 3] for l in lights if "Bulb" in l.path)  # were dropped
     np.testing.assert_allclose(bulbs, [-10.0, 10.0], atol=1e-4)
     assert all(l.to_world[1, 3] == pytest.approx(1.0) for l in lights if "Bulb" in l.path)
+    assert any(w.startswith("Blender World edited since usdrelight wrote it") for w in report.read_warnings)
     assert report.read_warnings.get("fitted light deleted or hidden from render in Blender (read back as an override "
                                     "that makes it invisible, at its path in lights_fitted.usda)") == 2
 
@@ -182,3 +185,29 @@ def test_the_rigged_light_follows_its_parent_at_every_frame(edited):
     for t in (1.0, 2.0, 4.5, 5.0):
         rigged = next(l for l in read_lights(stage, t) if l.path.endswith("/Rigged"))
         assert rigged.to_world[0, 3] == pytest.approx(t - 1.0, abs=1e-4), t
+
+
+FOREIGN = r'''
+import bpy, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+sc = bpy.context.scene
+w = bpy.data.worlds.new("Sky")
+sc.world = w
+w.use_nodes = True
+bg = next(n for n in w.node_tree.nodes if n.type == "BACKGROUND")
+bg.inputs["Color"].default_value = (0.1, 0.2, 0.3, 1.0)
+bg.inputs["Strength"].default_value = 2.0
+bpy.ops.wm.save_as_mainfile(filepath=args[0])
+'''
+
+
+def test_a_foreign_blends_plain_colour_world_comes_back_as_a_dome(tmp_path):
+    """A .blend made in Blender whose World is a colour x strength: it lights the Cycles render but was not read
+    (no light, no warning); now a DomeLight of that radiance."""
+    (tmp_path / "make.py").write_text(FOREIGN)
+    run_blender(tmp_path / "make.py", str(tmp_path / "w.blend"))
+    convert(tmp_path / "w.blend", tmp_path / "w.usda")
+    (dome,) = read_lights(open_stage(tmp_path / "w.usda"))
+    assert dome.kind == "dome" and dome.path == "/Scene/Lights/User/World"
+    np.testing.assert_allclose(dome.radiance, [0.2, 0.4, 0.6], rtol=1e-5)

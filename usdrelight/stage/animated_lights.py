@@ -26,6 +26,7 @@ import numpy as np
 from ..atomic import atomic_path
 from ..errors import UsdRelightError
 from ..safe_paths import writable_parent
+from .create import create_stage
 from .layout import LIGHTS, RELIGHT_LIGHTS_SCOPE, ROOT
 from .lux import split_rgb
 from .records import LightRecord
@@ -59,7 +60,7 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
     ``up_axis``: the stage's, which the layer takes (positions and sizes in its unit), so that sublayered into
     it every light is where it was rendered. ``/Scene`` is a typeless ``def`` (the stage's own may be an Xform;
     on a stage of another root the lights still compose). Returns ``path``."""
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+    from pxr import Gf, Usd, UsdGeom, UsdLux
 
     area_types = {"sphere": UsdLux.SphereLight, "disk": UsdLux.DiskLight, "rect": UsdLux.RectLight}
     path = Path(path)
@@ -77,18 +78,15 @@ def write_sequence_layer(path, frames: list[list[LightRecord]], start: float = 1
             if kinds.setdefault(n, _kind(light)) != _kind(light):
                 raise UsdRelightError(f"light {n} of the sequence changes kind ({kinds[n]} -> {_kind(light)}): "
                                       f"a prim keeps one kind over time")
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    layer.documentation = "Animated lights written by usdrelight relight --save-lights (one sample per frame)."
-    stage = Usd.Stage.Open(layer)
+    stage = create_stage(None, ROOT, None, "Animated lights written by usdrelight relight --save-lights (one "
+                         "sample per frame).", up_axis=up_axis or "Y", meters_per_unit=meters_per_unit)
+    stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: the stage's own /Scene may be an Xform
+    layer = stage.GetRootLayer()
     stage.SetStartTimeCode(start)
     stage.SetEndTimeCode(start + len(frames) - 1)
     stage.SetFramesPerSecond(fps)
     stage.SetTimeCodesPerSecond(fps if time_codes_per_second is None else time_codes_per_second)
-    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
-    if up_axis is not None:
-        UsdGeom.SetStageUpAxis(stage, up_axis)
     unit = 1.0 / meters_per_unit  # metres -> the stage's unit
-    stage.DefinePrim(ROOT)
     UsdGeom.Scope.Define(stage, LIGHTS)
     UsdGeom.Scope.Define(stage, RELIGHT_LIGHTS_SCOPE)
     for n in range(count):
