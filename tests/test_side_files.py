@@ -105,3 +105,20 @@ def test_non_square_pixels_are_traced_where_the_stage_camera_puts_them(cli, tmp_
         err = np.hypot(k.cx + k.fx * p[:, 0] / p[:, 2] - (surf.idx[:, 1] + 0.5),
                        k.cy + k.fy * p[:, 1] / p[:, 2] - (surf.idx[:, 0] + 0.5))
     assert len(p) >= 47 * 31 and err.max() < 0.05, (len(p), err.max())  # the mesh ends at the last pixel centres
+
+
+def test_outputs_are_not_empty_nor_inside_the_stages_versions(cli, tmp_path):
+    """-o '' wrote into the current folder; a relight -o inside versions/current (or the textures link) was
+    taken, and the next fit removed its files and left dangling links. One error each, nothing written."""
+    photo = make_photo(tmp_path / "p.png", 16, 20)
+    with pytest.raises(SystemExit) as exc:  # argparse refuses it (one line, exit 2), before anything runs
+        cli("build", photo, "-o", "")
+    assert exc.value.code == 2
+    assert cli("build", photo, "-o", tmp_path / "s")[0] == 0
+    stage = tmp_path / "s" / "scene.usda"
+    for inside in (tmp_path / "s" / "textures" / "r", tmp_path / "s" / "versions" / "current" / "r"):
+        rc, _, err = cli("relight", stage, "--light", "point:0,1,-2:3,3,3", "--mode", "render", "-o", inside)
+        _one_error(rc, err, "inside the stage's versions/ folder")
+        assert not inside.exists()
+        rc, _, err = cli("render", stage, "--spp", "1", "-o", inside)
+        _one_error(rc, err, "inside the stage's versions/ folder")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def positive_int(text: str) -> int:
@@ -33,6 +34,13 @@ def positive_float(text: str) -> float:
     if not (v > 0 and v != float("inf")):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return v
+
+
+def path(text: str) -> Path:
+    """A file or folder path, not empty (an empty one meant the current folder, silently)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must not be empty (write '.' for the current folder)")
+    return Path(text)
 
 
 def port(text: str) -> int:

@@ -11,11 +11,10 @@ import re
 import signal
 import sys
 import threading
-from pathlib import Path
 
 from . import __version__
-from .argtypes import add_frames_argument, add_time_argument, non_negative_int as _non_negative_int, port as _port, \
-    positive_float as _positive_float, positive_int as _positive_int, OneLineParser
+from .argtypes import add_frames_argument, add_time_argument, non_negative_int as _non_negative_int, path as _path, \
+    port as _port, positive_float as _positive_float, positive_int as _positive_int, OneLineParser
 from .batch.args import add_batch_parser
 from .commands import stderr_console, cmd_batch, cmd_build, cmd_convert, cmd_fit, cmd_neural, cmd_relight, \
     cmd_render, cmd_serve, cmd_train, cmd_validate
@@ -50,7 +49,7 @@ def _setup_logging(verbosity: int) -> None:
 # ---- parser ---------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     reads = argparse.ArgumentParser(add_help=False)  # commands that read scene files
-    reads.add_argument("--allow-path", action="append", type=Path, default=[], metavar="DIR",
+    reads.add_argument("--allow-path", action="append", type=_path, default=[], metavar="DIR",
                        help="also let the scene read files under DIR (repeatable; by default a scene reads only "
                             "inside its own folder tree)")
     common = argparse.ArgumentParser(add_help=False)
@@ -69,23 +68,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("build", parents=[common], help="photo -> OUTDIR/scene.usda",
                        description="Build a relightable USD scene from one photograph.")
-    b.add_argument("photo", type=Path, help="photograph (JPEG/PNG/TIFF: sRGB; EXR: linear)")
-    b.add_argument("-o", "--output", type=Path, required=True, help="output directory (gets scene.usda)")
+    b.add_argument("photo", type=_path, help="photograph (JPEG/PNG/TIFF: sRGB; EXR: linear)")
+    b.add_argument("-o", "--output", type=_path, required=True, help="output directory (gets scene.usda)")
     g = b.add_mutually_exclusive_group()
-    g.add_argument("--depth", type=Path, help="z-depth map in metres (.npy/.exr/.pfm; 16-bit PNG with --depth-scale); "
+    g.add_argument("--depth", type=_path, help="z-depth map in metres (.npy/.exr/.pfm; 16-bit PNG with --depth-scale); "
                    "<=0, NaN, Inf = invalid")
-    g.add_argument("--points", type=Path, help="point map HxWx3, OpenCV camera frame, Inf/NaN = invalid")
-    g.add_argument("--geometry-model", type=Path, help="ONNX geometry model (see README, model contracts)")
+    g.add_argument("--points", type=_path, help="point map HxWx3, OpenCV camera frame, Inf/NaN = invalid")
+    g.add_argument("--geometry-model", type=_path, help="ONNX geometry model (see README, model contracts)")
     b.add_argument("--depth-scale", type=_positive_float, metavar="M",
                    help="metres per stored unit of --depth/--points (0.001: millimetres); needed for integer files")
     k = b.add_mutually_exclusive_group()
-    k.add_argument("--intrinsics", type=Path, help='JSON: {"fx","fy","cx","cy"} (OpenCV pixels) or normalized 3x3')
+    k.add_argument("--intrinsics", type=_path, help='JSON: {"fx","fy","cx","cy"} (OpenCV pixels) or normalized 3x3')
     k.add_argument("--fov-x", type=float, help="horizontal field of view in degrees")
-    b.add_argument("--albedo", type=Path, help="albedo map (linear), e.g. CID hr_alb")
-    b.add_argument("--shading", type=Path, help="diffuse shading map (linear), e.g. CID dif_shd; needs --albedo")
-    b.add_argument("--albedo-model", type=Path, help="ONNX albedo model (see README, model contracts)")
+    b.add_argument("--albedo", type=_path, help="albedo map (linear), e.g. CID hr_alb")
+    b.add_argument("--shading", type=_path, help="diffuse shading map (linear), e.g. CID dif_shd; needs --albedo")
+    b.add_argument("--albedo-model", type=_path, help="ONNX albedo model (see README, model contracts)")
     add_estimator_arguments(b, g)
-    b.add_argument("--mask", type=Path, help="valid-pixel mask (non-zero = keep)")
+    b.add_argument("--mask", type=_path, help="valid-pixel mask (non-zero = keep)")
     b.add_argument("--decimate", type=_positive_int, default=1, metavar="N",
                    help="keep every N-th pixel row and column as vertices (projective UVs are kept)")
     b.add_argument("--max-grazing-deg", type=float, default=88.0,
@@ -94,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render", parents=[common, reads, device], help="render the AOVs the stage's RenderSettings declare",
                        description="Render the stage's RenderProducts with Mitsuba (llvm_ad_rgb) to linear EXR.")
-    r.add_argument("stage", type=Path)
-    r.add_argument("-o", "--output", type=Path, help="output folder (default: the stage's folder)")
+    r.add_argument("stage", type=_path)
+    r.add_argument("-o", "--output", type=_path, help="output folder (default: the stage's folder)")
     r.add_argument("--spp", type=_positive_int, default=64, help="samples per pixel of the path-traced AOV")
     r.add_argument("--max-depth", type=_positive_int, default=3,
                    help="path length as in Mitsuba (2 = direct only, 3 = one indirect bounce)")
@@ -107,14 +106,14 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", parents=[common, reads, device], help="fit lights to the photo's diffuse image",
                        description="Fit an environment map and point lights so the render reproduces D; write "
                                    "them into the fitted-lights layer.")
-    f.add_argument("stage", type=Path)
+    f.add_argument("stage", type=_path)
     f.add_argument("--method", choices=["adam", "fast"], default="fast")
     f.add_argument("--lights", type=int, default=16, help="number of point lights to start from (K)")
     f.add_argument("--env-res", help="environment resolution HxW (fast: basis cells, default 8x16; adam: "
                                      "texels, default 128x256; 0x0 = no environment)")
     f.add_argument("--iterations", type=_positive_int)
     f.add_argument("--max-side", type=_positive_int, default=512, help="longer image side of the fit")
-    f.add_argument("--report", type=Path, help="write fit_report.json and an error-vs-time plot here")
+    f.add_argument("--report", type=_path, help="write fit_report.json and an error-vs-time plot here")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--verify-spp", type=_non_negative_int, default=128, metavar="N",
                    help="samples per pixel of the Mitsuba verification render (0: skip it)")
@@ -123,9 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("neural", parents=[common, reads, device], help="run the neural renderer on the stage's AOVs",
                        description="Read D~, albedo and valid mask through the stage's RenderProducts, fill "
                                    "holes, run the ONNX network; write linear EXR and sRGB PNG.")
-    n.add_argument("stage", type=Path)
-    n.add_argument("--model", type=Path, help="ONNX model (default: the shipped one)")
-    n.add_argument("-o", "--output", type=Path, help="output folder (default: STAGE_DIR/neural)")
+    n.add_argument("stage", type=_path)
+    n.add_argument("--model", type=_path, help="ONNX model (default: the shipped one)")
+    n.add_argument("-o", "--output", type=_path, help="output folder (default: STAGE_DIR/neural)")
     n.add_argument("--render-missing", action="store_true", help="render AOVs whose files are missing")
     n.add_argument("--spp", type=_positive_int, default=64)
     n.set_defaults(func=cmd_neural)
@@ -136,17 +135,17 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Self-supervised pairs from a folder of photos (+ optional estimator "
                                     "outputs NAME.depth.exr, NAME.intrinsics.json, NAME.albedo.exr), then training "
                                     "and ONNX export.")
-    tr.add_argument("data", type=Path)
-    tr.add_argument("-o", "--output", type=Path, required=True, help="ONNX file to write")
-    tr.add_argument("--work", type=Path, help="folder for the per-photo stages (cached)")
+    tr.add_argument("data", type=_path)
+    tr.add_argument("-o", "--output", type=_path, required=True, help="ONNX file to write")
+    tr.add_argument("--work", type=_path, help="folder for the per-photo stages (cached)")
     tr.add_argument("--steps", type=_positive_int, default=1500)
     tr.set_defaults(func=cmd_train)
 
     add_batch_parser(sub, common, cmd_batch)
     c = sub.add_parser("convert", parents=[common, reads], help="convert between USD and Mitsuba XML, Blender, glTF/PLY/OBJ",
                        description="Convert SRC to DST, each format chosen by its suffix.")
-    c.add_argument("src", type=Path)
-    c.add_argument("dst", type=Path)
+    c.add_argument("src", type=_path)
+    c.add_argument("dst", type=_path)
     c.add_argument("--spp", type=_positive_int, metavar="N",
                    help="samples per pixel the written scene renders with (Mitsuba XML, Blender; default 64)")
     c.add_argument("--max-depth", type=_positive_int, metavar="N",
@@ -160,11 +159,11 @@ def build_parser() -> argparse.ArgumentParser:
     sv = sub.add_parser("serve", parents=[common, reads, device], help="interactive relighting web app (the serve extra)",
                         description="A local web app: the photo mesh, camera and lights in 3D, light editing, "
                                     "the relit photo live; saves lights_user.usda. Ctrl-C stops it.")
-    sv.add_argument("stage", type=Path)
+    sv.add_argument("stage", type=_path)
     sv.add_argument("--host", default="127.0.0.1",
                     help="address to listen on (default 127.0.0.1: this machine only)")
     sv.add_argument("--port", type=_port, default=8080, help="port (the next free one when taken; 0 = any)")
-    sv.add_argument("--hdri", type=Path, action="append", metavar="FILE",
+    sv.add_argument("--hdri", type=_path, action="append", metavar="FILE",
                     help="latlong HDRI (.exr/.hdr) offered to dome lights (repeatable)")
     sv.add_argument("--mode", choices=["auto", "neural", "ratio", "add", "render", "transfer", "residual"],
                     help="initial output mode (default: auto, resolved per frame as relight resolves it)")
@@ -175,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Exit 0 only when no validator reports an error: every pxr.UsdValidation validator, "
                                    "and usdrelight's own reader (usdrelight:ReadScene: what render and fit would "
                                    "refuse, as errors; what they leave out, as warnings).")
-    v.add_argument("stage", type=Path)
+    v.add_argument("stage", type=_path)
     v.set_defaults(func=cmd_validate)
     return p
 

@@ -5,7 +5,7 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from ..argtypes import non_negative_int as _non_negative_int, positive_int as _positive_int
+from ..argtypes import non_negative_int as _non_negative_int, path as _path, positive_int as _positive_int
 from ..errors import UsdRelightError
 from ..estimate import names
 from ..estimate.hub import prepare as prepare_models
@@ -25,8 +25,8 @@ def add_batch_parser(sub, common: argparse.ArgumentParser, func) -> argparse.Arg
     d = BatchOptions()
     bt = sub.add_parser("batch", parents=[common], help="build + fit a folder of photos on Dask (resumable)",
                         description=DESCRIPTION)
-    bt.add_argument("photos", type=Path, metavar="PHOTO_DIR")
-    bt.add_argument("-o", "--output", type=Path, required=True, metavar="OUT_DIR")
+    bt.add_argument("photos", type=_path, metavar="PHOTO_DIR")
+    bt.add_argument("-o", "--output", type=_path, required=True, metavar="OUT_DIR")
     where = bt.add_mutually_exclusive_group()
     where.add_argument("--workers", type=_positive_int, default=d.workers,
                        help="worker processes of the embedded Dask LocalCluster, 1 thread each (default 2; at most "

@@ -34,7 +34,7 @@ from ..stage.read import read_scene
 from ..stage.records import RenderVarRecord, SceneRecord
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
-from ..stage.versions import is_stage_folder, stage_free
+from ..stage.versions import check_outside_versions, is_stage_folder, stage_free
 from .runtime import load_mitsuba
 from .scene_dict import scene_dict, to_mitsuba
 
@@ -291,6 +291,8 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     if "beauty" in wanted and not rec.lights:
         rec.warnings["no light in the stage (its colour AOVs are black; fit it, or add lights)"] += 1
     base = Path(out_dir) if out_dir is not None else Path(stage_path).resolve().parent
+    if out_dir is not None:
+        check_outside_versions(stage_path, out_dir)
     paths = {p.name: confined_path(base, p.product_name, f"RenderProduct {p.name} productName") for p in products}
     seen: dict = {}
     for name, path in paths.items():  # two products of one file: the second wrote over the first in silence

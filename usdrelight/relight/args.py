@@ -2,9 +2,8 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from ..argtypes import add_frames_argument, add_time_argument, positive_int as _positive_int
+from ..argtypes import add_frames_argument, add_time_argument, path as _path, positive_int as _positive_int
 from ..stage.light_syntax import MAX_AREA_SAMPLES, SYNTAX as LIGHT_SYNTAX
 
 DESCRIPTION = ("Relight the photo: the stage's lights (its user layer, time samples read at --time or at each "
@@ -17,19 +16,19 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     """Add the ``relight`` subcommand to the subparsers ``sub``; ``func(args)`` runs it."""
     rl = sub.add_parser("relight", parents=parents, help="apply lights, render, composite or run the network",
                         description=DESCRIPTION)
-    rl.add_argument("stage", type=Path)
+    rl.add_argument("stage", type=_path)
     rl.add_argument("--light", action="append", metavar="SPEC",
                     help=f"{LIGHT_SYNTAX} (repeatable; applies to every frame)")
     frames = rl.add_mutually_exclusive_group()
-    frames.add_argument("--sequence", type=Path, metavar="LIGHTS.json",
+    frames.add_argument("--sequence", type=_path, metavar="LIGHTS.json",
                         help="JSON list of frames, each a list of --light strings: writes relit_NNNN.exr/.png and "
                              "render_diffuse_NNNN.exr")
     add_frames_argument(frames, "relit frames (lights whose time samples do not change between frames are not "
                                 "rendered again)")
     add_time_argument(rl)
-    rl.add_argument("--video", type=Path, metavar="OUT.mp4",
+    rl.add_argument("--video", type=_path, metavar="OUT.mp4",
                     help="also encode the frames as an H.264 MP4 at the stage's framesPerSecond (PyAV)")
-    rl.add_argument("--save-lights", type=Path, metavar="LAYER.usda",
+    rl.add_argument("--save-lights", type=_path, metavar="LAYER.usda",
                     help="with --sequence: also write the sequence as a new time-sampled UsdLux layer (frame i at "
                          "time code 1 + i), to sublayer into lights_user.usda")
     rl.add_argument("--renderer", choices=["fast", "mitsuba"], default="fast",
@@ -46,8 +45,8 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
                          "network on the render")
     rl.add_argument("--contact-sheet", action="store_true",
                     help="also write contact_sheet.png: photo, diffuse render and every mode's result")
-    rl.add_argument("--model", type=Path)
-    rl.add_argument("-o", "--output", type=Path)
+    rl.add_argument("--model", type=_path)
+    rl.add_argument("-o", "--output", type=_path)
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
     rl.add_argument("--area-samples", type=int, metavar="N",
                     help=f"shadow rays per pixel for sphere, disk, rect and wide sun lights (fast renderer; default "

@@ -28,6 +28,7 @@ from ..stage.animated_lights import write_sequence_layer
 from ..stage.light_specs import parse_lights
 from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.read import stage_meters_per_unit
+from ..stage.versions import check_outside_versions
 from ..stage.timing import check_time, parse_frames, stage_fps, video_fps
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
@@ -184,6 +185,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     video = check_video_path(video) if video is not None else None
     if out:  # a folder that cannot be made fails before the stage's transport is prepared
         writable_parent(Path(out) / "relit.exr", "the relit photo")
+        check_outside_versions(stage_path, out)
     seq = read_sequence(sequence) if sequence is not None else None
     times = parse_frames(frames) if frames else None  # a bad range fails before the stage is read
     # parsed once, before any work: a bad spec fails fast, and each frame reuses the records

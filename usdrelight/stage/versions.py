@@ -102,6 +102,17 @@ def no_versions_link(stage_dir) -> None:
                               f"versions only inside the stage folder (nothing was written)")
 
 
+def check_outside_versions(stage_path, out, what: str = "-o") -> None:
+    """UsdRelightError when the output folder ``out`` lies inside the stage's ``versions/`` (itself or through the
+    ``textures``, ``lights`` ... links): the next build or fit replaces that folder, files written there would
+    be lost and leave dangling links."""
+    inner = (Path(stage_path).absolute().parent / VERSIONS).resolve()
+    target = Path(out).absolute().resolve()
+    if target == inner or inner in target.parents:
+        raise UsdRelightError(f"{what} {out} is inside the stage's {VERSIONS}/ folder, which build and fit replace: "
+                              "write elsewhere (nothing was written)")
+
+
 def check_stage_folder(folder, what: str = "build") -> None:
     """UsdRelightError when ``folder`` exists, is not a usdrelight stage and holds a file a publish would write
     or remove (``scene.usda``, ``geometry.usdc``, ``textures/albedo.exr`` ...): someone else's files there are
