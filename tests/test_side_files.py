@@ -122,3 +122,24 @@ def test_outputs_are_not_empty_nor_inside_the_stages_versions(cli, tmp_path):
         assert not inside.exists()
         rc, _, err = cli("render", stage, "--spp", "1", "-o", inside)
         _one_error(rc, err, "inside the stage's versions/ folder")
+
+
+def test_a_black_photo_an_albedo_above_one_and_a_nan_grazing_angle_are_said(cli, tmp_path):
+    """Built in silence before: an all-black photo (its relight stays black), an albedo map above 1 (clamped);
+    --max-grazing-deg nan ended in 'no triangle survives', which did not name it."""
+    from usdrelight.imageio import write_image
+
+    write_image(tmp_path / "black.exr", np.zeros((16, 20, 3), np.float32), "float")
+    rc, _, err = cli("build", tmp_path / "black.exr", "-o", tmp_path / "a")
+    assert rc == 0 and "is black (every pixel 0 or below)" in err, err
+    photo = make_photo(tmp_path / "p.png", 16, 20)
+    albedo = np.full((16, 20, 3), 0.5, np.float32)
+    albedo[:4] = 2.0  # a quarter of the pixels
+    write_image(tmp_path / "alb.exr", albedo, "float")
+    rc, _, err = cli("build", photo, "--albedo", tmp_path / "alb.exr", "-o", tmp_path / "b")
+    assert rc == 0 and "albedo above 1 in 25.00% of the pixels" in err, err
+    with pytest.raises(SystemExit) as exc:
+        cli("build", photo, "--max-grazing-deg", "nan", "-o", tmp_path / "c")
+    assert exc.value.code == 2
+    rc, _, err = cli("build", photo, "--max-grazing-deg", "120", "-o", tmp_path / "c")
+    _one_error(rc, err, "max_grazing_deg (--max-grazing-deg) must be in (0, 90] degrees, got 120")

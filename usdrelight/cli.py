@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--mask", type=_path, help="valid-pixel mask (non-zero = keep)")
     b.add_argument("--decimate", type=_positive_int, default=1, metavar="N",
                    help="keep every N-th pixel row and column as vertices (projective UVs are kept)")
-    b.add_argument("--max-grazing-deg", type=float, default=88.0,
+    b.add_argument("--max-grazing-deg", type=_positive_float, default=88.0,
                    help="cut triangles whose normal is more than this many degrees from the view ray")
     b.set_defaults(func=cmd_build)
 

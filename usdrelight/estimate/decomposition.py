@@ -18,6 +18,7 @@ Every output is finite; albedo is clamped to [ALBEDO_MIN, 1] so I / A stays boun
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,8 @@ from .hf_decomposition import marigold
 from .names import ALBEDO, onnx_file
 from .onnx_models import run_albedo_model
 from .records import Decomposition, Photo
+
+log = logging.getLogger(__name__)
 
 ALBEDO_MIN = 1e-3
 RETINEX_THRESHOLD = 0.08  # log-luminance step per pixel above which an edge counts as reflectance
@@ -44,7 +47,12 @@ def _finish(rgb: np.ndarray, albedo: np.ndarray, shading: np.ndarray, source: st
 
 
 def from_maps(rgb: np.ndarray, albedo: np.ndarray, shading: np.ndarray | None, source: str) -> Decomposition:
-    """Albedo with optional shading. Without shading, S = I / A so that D = I."""
+    """Albedo with optional shading. Without shading, S = I / A so that D = I. An albedo above 1 (no surface
+    reflects more than it receives) is clamped to 1, warned with the share of pixels."""
+    above = float(np.mean(np.nan_to_num(albedo, nan=0.0) > 1.0 + 1e-6))
+    if above > 0:
+        log.warning("albedo above 1 in %.2f%% of the pixels (clamped to 1: no surface reflects more light than it "
+                    "receives); a map in another unit or encoding?", 100 * above)
     albedo = np.clip(albedo, ALBEDO_MIN, 1.0)
     if shading is None:
         shading = rgb / albedo

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import whole
+from ..checks import number, whole
 from ..errors import UsdRelightError
 from ..estimate.decomposition import estimate_decomposition
 from ..estimate.geometry import estimate_geometry, resolve_intrinsics
@@ -141,7 +141,10 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
     opts = BuildOptions() if opts is None else opts
     if not isinstance(opts, BuildOptions):
         raise UsdRelightError(f"opts must be a BuildOptions, got {type(opts).__name__}")
-    opts = replace(opts, stride=whole(opts.stride, "stride", 1, flag="--decimate"),
+    grazing = number(opts.max_grazing_deg, "max_grazing_deg")
+    if not 0 < grazing <= 90:
+        raise UsdRelightError(f"max_grazing_deg (--max-grazing-deg) must be in (0, 90] degrees, got {grazing:g}")
+    opts = replace(opts, stride=whole(opts.stride, "stride", 1, flag="--decimate"), max_grazing_deg=grazing,
                    geometry=None if opts.geometry is None else str(opts.geometry),
                    albedo_from=None if opts.albedo_from is None else str(opts.albedo_from))
     check_stage_folder(outdir)  # before any work: someone else's USD files are never written over
@@ -157,6 +160,9 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
         photo = Photo(Path(photo_path), read_photo(photo_path))
         if photo.width < 2 or photo.height < 2:
             raise UsdRelightError(f"photo {photo_path} is too small ({photo.width}x{photo.height})")
+        if float(photo.rgb.max()) <= 0:
+            log.warning("the photo %s is black (every pixel 0 or below): its albedo and light come out 0, and a "
+                        "relight of it stays black", Path(photo_path).name)
         mask = load_mask(opts.mask, photo) if opts.mask is not None else None
         intr = resolve_intrinsics(photo, opts.intrinsics, opts.fov_x)
     with _timed(sec, "geometry", progress):
