@@ -159,3 +159,21 @@ def test_point_map_size_mismatch(cli, bad_setup):
     tmp, photo, out = bad_setup
     np.save(tmp / "p.npy", np.ones((24, 30, 3), np.float32))
     _assert_clean_failure(*cli("build", photo, "--points", tmp / "p.npy", "-o", out), out)
+
+
+def test_validate_of_a_missing_texture_prints_its_findings_not_usds_own_lines(tmp_path):
+    """USD's C++ warnings (Warning: in _EnqueueDependency at line 145 of .../assetLocalization.cpp, twice) went
+    to stderr beside the finding that says the same."""
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+def Material "M" {
+    def Shader "Tex" {
+        uniform token info:id = "UsdUVTexture"
+        asset inputs:file = @missing.png@
+        float3 outputs:rgb
+    }
+}
+''')
+    exe = os.path.join(os.path.dirname(sys.executable), "usdrelight")
+    r = subprocess.run([exe, "validate", str(tmp_path / "s.usda")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1 and "unresolvable external dependency 'missing.png'" in r.stdout + r.stderr
+    assert "assetLocalization.cpp" not in r.stdout + r.stderr, r.stderr

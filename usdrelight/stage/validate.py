@@ -87,7 +87,12 @@ def validate_stage(stage) -> list[Finding]:
     validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
     ctx = UsdValidation.ValidationContext(validators)
     out = []
-    for err in ctx.Validate(stage):
+    with captured_stderr() as native:  # USD's own lines (an unresolvable asset, twice) repeat what a finding says
+        errors = ctx.Validate(stage)
+    for line in native.text.splitlines():
+        if line.strip():
+            log.debug("%s", line.strip())
+    for err in errors:
         if err.HasNoError():
             continue
         name = err.GetValidator().GetMetadata().name if err.GetValidator() else err.GetName()
