@@ -330,3 +330,13 @@ def Mesh "Quad" {
     assert scene.warnings == {
         "normals with a count their vertex interpolation does not match (the mesh read without them)": 1,
         "primvar st with a count its faceVarying interpolation does not match (the mesh read without it)": 1}
+
+
+def test_a_referenced_layer_of_other_units_is_warned(tmp_path):
+    """A centimetre Z-up asset referenced into a metre Y-up stage: USD does not rescale it (100x too large) and
+    no command said so."""
+    (tmp_path / "asset.usda").write_text('#usda 1.0\n(\n    upAxis = "Z"\n    metersPerUnit = 0.01\n    '
+                                         'defaultPrim = "A"\n)\ndef Sphere "A" {\n    double radius = 50\n}\n')
+    path = _stage(tmp_path, 'def Xform "Ref" (\n    references = @./asset.usda@\n)\n{\n}')
+    assert read_scene(path).warnings == {"layer asset.usda authors metersPerUnit 0.01 and upAxis Z, the stage 1 "
+                                         "and Y (USD composes it unscaled and unturned)": 1}

@@ -281,6 +281,25 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     return tuple(lights)
 
 
+def other_unit_layers(stage, mpu: float) -> list[str]:
+    """One line per layer the stage uses (sublayers, references, payloads) that authors another metersPerUnit or
+    upAxis than the stage: USD composes its contents as they are, unscaled and unturned (a centimetre asset
+    referenced into a metre stage comes out 100x too large)."""
+    from pxr import UsdGeom
+
+    up, out = str(UsdGeom.GetStageUpAxis(stage)), []
+    for layer in stage.GetUsedLayers(includeClipLayers=False):
+        if layer == stage.GetRootLayer() or layer.anonymous:
+            continue
+        info = layer.pseudoRoot
+        m = float(info.GetInfo("metersPerUnit")) if info.HasInfo("metersPerUnit") else mpu
+        u = str(info.GetInfo("upAxis")) if info.HasInfo("upAxis") else up
+        if m != mpu or u != up:
+            out.append(f"layer {layer.GetDisplayName()} authors metersPerUnit {m:g} and upAxis {u}, the stage "
+                       f"{mpu:g} and {up} (USD composes it unscaled and unturned)")
+    return out
+
+
 def read_scene(stage, time=None) -> SceneRecord:
     """Collect everything a renderer needs from ``stage`` (a ``Usd.Stage``, or the path of one: opened with
     :func:`usdrelight.stage.validate.open_stage`) into a :class:`SceneRecord`, in metres (the stage's
@@ -292,7 +311,7 @@ def read_scene(stage, time=None) -> SceneRecord:
     t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else \
         Usd.TimeCode(check_time(time))
     mpu = stage_meters_per_unit(stage)
-    warnings: Counter = Counter(rescaled_layers(stage))
+    warnings: Counter = Counter(rescaled_layers(stage) + other_unit_layers(stage, mpu))
     meshes, shapes, lights = [], [], []
     xcache = UsdGeom.XformCache(t)
     prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
