@@ -93,7 +93,7 @@ class RenderResult:
 def _film_rows(v, y_map):
     """Normalized film rows of the sensor (square pixels) for normalized pixel rows ``v`` of a camera whose
     :attr:`usdrelight.intrinsics.Intrinsics.film_y_map` is ``y_map`` (None: the same rows)."""
-    if y_map is None:
+    if y_map is None or y_map[0] == 1.0:  # square pixels: the rows as they are, bit for bit
         return v
     r, c = y_map
     return c + (v - c) * r
