@@ -51,6 +51,9 @@ FITTED_EDITED = "fitted light edited in Blender (read back as an override of it,
 #: Counted for each fitted light deleted in Blender or hidden from render there.
 FITTED_OFF = ("fitted light deleted or hidden from render in Blender (read back as an override that makes it "
               "invisible, at its path in lights_fitted.usda)")
+#: Counted for each light of lights_user.usda deleted in Blender or hidden from render there.
+USER_OFF = ("light of lights_user.usda deleted or hidden from render in Blender (an override that makes it "
+            "invisible: off also where this layer is sublayered into lights_user.usda)")
 #: Counted for each light UsdLux cannot hold.
 DEGENERATE = ("Blender light of zero size or zero scale, or of negative power (left out: Cycles renders nothing "
               "or takes light away; UsdLux has no such light)")
@@ -61,7 +64,7 @@ WORLD_UNREAD = ("Blender World of an environment texture or a node setup (not re
                 "comes back, as a DomeLight)")
 
 
-def _world(stage, lights, warnings) -> None:
+def _world(stage, lights, warnings, taken: set) -> None:
     """The World of a .blend made otherwise: a plain colour x strength as a DomeLight ``World`` (Cycles'
     background radiance is UsdLux's dome radiance); a texture or another node setup warned. A .blend usdrelight
     made: its World is the stage's domes, only warned when edited."""
@@ -81,7 +84,9 @@ def _world(stage, lights, warnings) -> None:
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         raise UsdRelightError("Blender World: non-finite or negative colour x strength")
     if rgb.max() > 0:
-        set_light_rgb(UsdLux.DomeLight.Define(stage, f"{USER_LIGHTS_SCOPE}/World"), rgb)
+        dome = UsdLux.DomeLight.Define(stage, f"{USER_LIGHTS_SCOPE}/World")
+        set_light_rgb(dome, rgb)
+        taken.add(f"{USER_LIGHTS_SCOPE}/World")  # a Blender light named World gets another name
 
 
 def blender_lights(path) -> BlenderLights:
@@ -151,7 +156,11 @@ def author_time_range(stage, anim: dict | None, meta: dict | None) -> None:
 
 
 def _in_scope(path, scope: str) -> bool:
-    return isinstance(path, str) and path.startswith(scope + "/")
+    """``path`` is a valid prim path under ``scope`` (a .blend's custom property may hold anything)."""
+    from pxr import Sdf
+
+    return isinstance(path, str) and path.startswith(scope + "/") and Sdf.Path.IsValidPathString(path) and \
+        Sdf.Path(path).IsPrimPath()
 
 
 def _switch_off(stage, path: str) -> None:
@@ -183,7 +192,7 @@ def _user_path(b: dict, taken: set, kept: set) -> str:
 def _author_light(stage, b: dict, u: dict, path: str, over: bool, warnings: Counter):
     """The UsdLux light of ``u`` (:func:`usd_record`) at ``path``: defined, or (``over``) an override of the
     fitted light there, its type included."""
-    from pxr import Gf, UsdGeom, UsdLux
+    from pxr import Gf, Sdf, UsdGeom, UsdLux
 
     cls = {"SphereLight": UsdLux.SphereLight, "DiskLight": UsdLux.DiskLight, "RectLight": UsdLux.RectLight,
            "DistantLight": UsdLux.DistantLight}[u["kind"]]
@@ -191,15 +200,18 @@ def _author_light(stage, b: dict, u: dict, path: str, over: bool, warnings: Coun
         prim = stage.OverridePrim(path)
         prim.SetTypeName(u["kind"])  # a point light made an area light in Blender is one here too
         light = cls(prim)
-        light.CreateExposureAttr(0.0)
-        light.CreateEnableColorTemperatureAttr(False)
     else:
         light = cls.Define(stage, path)
+    # every value the light's emission depends on is authored, so that over a weaker layer holding the same
+    # prim (lights_fitted.usda, or lights_user.usda when this layer is sublayered into it) nothing applies twice
     set_light_rgb(light, float(u["intensity"]) * np.asarray(u["color"], np.float64))
+    light.CreateExposureAttr(0.0)
+    light.CreateEnableColorTemperatureAttr(False)
     light.CreateNormalizeAttr(False)
-    for key, attr in (("diffuse", light.CreateDiffuseAttr), ("specular", light.CreateSpecularAttr)):
-        if abs(float(b.get(key, 1.0)) - 1.0) > 1e-6:
-            attr(float(b[key]))
+    light.CreateDiffuseAttr(float(b.get("diffuse", 1.0)))
+    light.CreateSpecularAttr(float(b.get("specular", 1.0)))
+    light.GetPrim().SetMetadata("apiSchemas", Sdf.TokenListOp.CreateExplicit(  # no weaker ShapingAPI stays
+        ["ShapingAPI"] if "coneAngle" in u else []))
     for key in b.get("unread", ()):
         warnings[UNREAD.get(key, f"Blender light {key} (not read)")] += 1
     if u["kind"] == "SphereLight":
@@ -216,7 +228,9 @@ def _author_light(stage, b: dict, u: dict, path: str, over: bool, warnings: Coun
         light.CreateHeightAttr(float(u["height"]))
     elif u["kind"] == "DistantLight":
         light.CreateAngleAttr(float(u["angle"]))
-    UsdGeom.Xformable(light).AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
+    xf = UsdGeom.Xformable(light)
+    xf.SetResetXformStack(True)  # a world matrix: no parent's transform (a Rig Xform of the stage) applies again
+    xf.AddTransformOp().Set(Gf.Matrix4d(np.asarray(u["matrix"]).T.tolist()))
     return light
 
 
@@ -244,18 +258,18 @@ def lights_layer(lights: BlenderLights, name: str, usd_path=None) -> ReadReport:
             "kind") == "color"):
         UsdGeom.Scope.Define(stage, LIGHTS)
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
-    _world(stage, lights, warnings)
     kept = {b["usd_path"] for b in lights if b.get("as_written") and _in_scope(b.get("usd_path"), USER_LIGHTS_SCOPE)}
     taken: set = set()
+    _world(stage, lights, warnings, taken)
     for b in lights:
         keys = b.get("keys") or []
         if b.get("hidden"):  # a keyframed light hidden now but shown at a key: read from its first shown key
             b = next((k for _, k in keys if not k.get("hidden")), b)
         fitted = b.get("as_written") and _in_scope(b.get("usd_path"), FITTED_LIGHTS_SCOPE)
         if b.get("hidden"):
-            if fitted:
+            if fitted or b.get("as_written") and _in_scope(b.get("usd_path"), USER_LIGHTS_SCOPE):
                 _switch_off(stage, b["usd_path"])
-                warnings[FITTED_OFF] += 1
+                warnings[FITTED_OFF if fitted else USER_OFF] += 1
             else:
                 warnings[HIDDEN] += 1
             continue
@@ -278,10 +292,11 @@ def lights_layer(lights: BlenderLights, name: str, usd_path=None) -> ReadReport:
                 for f, k in keys:
                     vis.Set(UsdGeom.Tokens.invisible if k.get("hidden") else UsdGeom.Tokens.inherited, f)
     present = {b.get("usd_path") for b in lights if b.get("as_written")}
-    for path in (meta or {}).get("lights") or ():  # the stage's fitted lights deleted in Blender
-        if _in_scope(path, FITTED_LIGHTS_SCOPE) and path not in present:
-            _switch_off(stage, path)
-            warnings[FITTED_OFF] += 1
+    for path in (meta or {}).get("lights") or ():  # the stage's fitted and user lights deleted in Blender
+        for scope, what in ((FITTED_LIGHTS_SCOPE, FITTED_OFF), (USER_LIGHTS_SCOPE, USER_OFF)):
+            if _in_scope(path, scope) and path not in present:
+                _switch_off(stage, path)
+                warnings[what] += 1
     if any(b.get("keys") for b in lights):
         author_time_range(stage, getattr(lights, "animation", None), meta)
     stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: read alone or sublayered over /Scene's Xform

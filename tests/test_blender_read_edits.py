@@ -52,6 +52,28 @@ over "Scene" {
                 double3 xformOp:translate = (0, 3, 1)
                 uniform token[] xformOpOrder = ["xformOp:translate"]
             }
+            def SphereLight "Gone" {
+                float inputs:intensity = 1
+                bool treatAsPoint = 1
+                double3 xformOp:translate = (2, 3, 1)
+                uniform token[] xformOpOrder = ["xformOp:translate"]
+            }
+            def Xform "Rig" {
+                double3 xformOp:translate = (0, 0, 5)
+                uniform token[] xformOpOrder = ["xformOp:translate"]
+                def SphereLight "Warm" (
+                    prepend apiSchemas = ["ShapingAPI"]
+                ) {
+                    float inputs:intensity = 2
+                    float inputs:exposure = 1
+                    bool inputs:enableColorTemperature = 1
+                    float inputs:colorTemperature = 3000
+                    float inputs:shaping:cone:angle = 60
+                    bool treatAsPoint = 1
+                    double3 xformOp:translate = (0, 1, 1)
+                    uniform token[] xformOpOrder = ["xformOp:translate"]
+                }
+            }
         }
     }
 }
@@ -80,6 +102,7 @@ bpy.data.objects.remove(by_path["/Scene/Lights/Fitted/Point1"])  # deleted
 by_path["/Scene/Lights/Fitted/Point2"].hide_render = True  # hidden from render
 p3 = by_path["/Scene/Lights/Fitted/Point3"].data  # warmer: colour temperature on
 p3.use_temperature, p3.temperature = True, 3000.0
+bpy.data.objects.remove(by_path["/Scene/Lights/User/Gone"])  # a user light deleted
 fill = by_path["/Scene/Lights/User/Fill"]  # a copy of a user light (Shift D)
 dup = fill.copy(); dup.data = fill.data.copy(); dup.location.x += 1.0
 sc.collection.objects.link(dup)
@@ -157,9 +180,17 @@ def test_edited_blend_read_back_keeps_every_light_once_at_its_path(edited, layer
     paths = sorted(l.path for l in lights)
     # Point1 deleted and Point2 hidden: switched off (they lit the stage from lights_fitted.usda before)
     assert "/Scene/Lights/Fitted/Point1" not in paths and "/Scene/Lights/Fitted/Point2" not in paths
+    assert "/Scene/Lights/User/Gone" not in paths  # deleted in Blender: off in both ways of using the layer
     # user lights at their own paths (they came back as Scene_Lights_User_Key: doubled when sublayered)
     assert paths.count("/Scene/Lights/User/Key") == 1 and paths.count("/Scene/Lights/User/Fill") == 1
-    assert len(paths) == 9, paths  # Point0, Point3, Key, Fill, Fill's copy, Rigged, ViewportOff, 2 instanced Bulbs
+    assert len(paths) == 10, paths  # Point0, Point3, Key, Fill, Fill's copy, Warm, Rigged, ViewportOff, 2 Bulbs
+    # exposure 1 and 3000 K, a cone, under a translated Xform: applied once (sublayered, the exposure and the
+    # temperature were applied twice and the Rig's translation added again: z 11)
+    warm = _at(lights, "/Scene/Lights/User/Rig/Warm")
+    orig = _at(read_lights(open_stage(d / "scene.usda")), "/Scene/Lights/User/Rig/Warm")
+    np.testing.assert_allclose(warm.radiance, orig.radiance, rtol=1e-3)
+    np.testing.assert_allclose(warm.to_world[:3, 3], orig.to_world[:3, 3], atol=1e-5)
+    assert warm.cone_angle_deg == pytest.approx(60.0, rel=1e-4)
     p0 = _at(lights, "/Scene/Lights/Fitted/Point0")  # renamed and retyped: a 0.5 m rect (was a point light, 16x)
     assert p0.kind == "rect" and p0.width == pytest.approx(0.5) and p0.height == pytest.approx(0.5)
     np.testing.assert_allclose(p0.to_world[:3, 3], [0, 1, -2], atol=1e-5)
@@ -211,3 +242,30 @@ def test_a_foreign_blends_plain_colour_world_comes_back_as_a_dome(tmp_path):
     (dome,) = read_lights(open_stage(tmp_path / "w.usda"))
     assert dome.kind == "dome" and dome.path == "/Scene/Lights/User/World"
     np.testing.assert_allclose(dome.radiance, [0.2, 0.4, 0.6], rtol=1e-5)
+
+
+OLD_WRITER = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+sc = bpy.context.scene
+meta = json.loads(sc["usdrelight_stage"])
+meta.pop("lights")
+sc["usdrelight_stage"] = json.dumps(meta)
+for o in sc.objects:
+    if o.type == "LIGHT":
+        snap = json.loads(o["usd_written"])
+        o["usd_written"] = json.dumps(snap[:27] + [snap[30]])
+bpy.ops.wm.save_as_mainfile(filepath=args[1])
+'''
+
+
+def test_a_blend_of_the_writer_before_keeps_its_unchanged_fitted_lights_out(edited):
+    """The writer before recorded 28-number snapshots and no light list: its unchanged fitted lights came back
+    as overrides (pinning their values over every later fit) once the snapshot grew."""
+    d, _ = edited
+    (d / "old.py").write_text(OLD_WRITER)
+    run_blender(d / "old.py", str(d / "s.blend"), str(d / "old.blend"))
+    report = convert(d / "old.blend", d / "old.usda")
+    assert sum(v for k, v in report.read_warnings.items() if k.startswith("fitted light of the stage, unchanged")) == 4
+    assert "Fitted" not in (d / "old.usda").read_text()

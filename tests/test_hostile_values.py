@@ -177,3 +177,27 @@ def test_the_xml_export_never_writes_a_non_finite_number(tmp_path):
             _fmt(x)
     assert _fmt(0.5) == "0.5"
     assert Sdf  # noqa: imported for stage edits above
+
+
+def test_blend_light_paths_that_are_no_prim_paths_and_a_light_named_world(cli, tmp_path, monkeypatch):
+    """A .blend's usd_path property holding 'bad name' or 'x.y:z' was an 'unexpected ErrorException'; a
+    Blender light named World replaced the World's DomeLight of a .blend made in Blender."""
+    from usdrelight.converters import blender
+    from usdrelight.converters.blender_units import BlenderLights
+    from usdrelight.stage.read import read_lights
+    from usdrelight.stage.validate import open_stage
+
+    good = {"name": "World", "type": "POINT", "matrix": np.eye(4).tolist(), "color": [1, 1, 1], "power": 10.0,
+            "radius": 0.0}
+    (tmp_path / "x.blend").write_bytes(b"BLENDER")
+    for i, path in enumerate(("/Scene/Lights/Fitted/bad name", "/Scene/Lights/User/x.y:z")):
+        monkeypatch.setattr(blender, "blender_lights", lambda p, q=path: BlenderLights(
+            [{**good, "usd_path": q, "as_written": True, "edited": True}]))
+        rc, _, err = cli("convert", tmp_path / "x.blend", tmp_path / f"l{i}.usda")
+        assert rc == 0, err  # read as a new light of the user's
+    lights = BlenderLights([good])
+    lights.world = {"kind": "color", "rgb": [0.1, 0.2, 0.3], "strength": 1.0}
+    monkeypatch.setattr(blender, "blender_lights", lambda p: lights)
+    assert cli("convert", tmp_path / "x.blend", tmp_path / "w.usda")[0] == 0
+    kinds = sorted(l.kind for l in read_lights(open_stage(tmp_path / "w.usda")))
+    assert kinds == ["dome", "sphere"]

@@ -340,3 +340,43 @@ def test_a_referenced_layer_of_other_units_is_warned(tmp_path):
     path = _stage(tmp_path, 'def Xform "Ref" (\n    references = @./asset.usda@\n)\n{\n}')
     assert read_scene(path).warnings == {"layer asset.usda authors metersPerUnit 0.01 and upAxis Z, the stage 1 "
                                          "and Y (USD composes it unscaled and unturned)": 1}
+
+
+def test_a_texture_input_fed_by_another_node_keeps_its_own_value(tmp_path):
+    """UsdUVTexture scale connected to a UsdPrimvarReader_float4's output: 'unexpected AttributeError' (the
+    resolver's output name was read as a value); its own authored value is used, as before."""
+    from usdrelight.imageio import write_image
+    from usdrelight.stage.records import TextureRecord
+
+    write_image(tmp_path / "t.png", np.full((4, 4, 3), 0.5, np.float32))
+    path = _stage(tmp_path, '''
+def Mesh "Quad" (
+    prepend apiSchemas = ["MaterialBindingAPI"]
+) {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)]
+    uniform token subdivisionScheme = "none"
+    rel material:binding = </M>
+}
+def Material "M" {
+    token outputs:surface.connect = </M/PS.outputs:surface>
+    def Shader "PS" {
+        uniform token info:id = "UsdPreviewSurface"
+        color3f inputs:diffuseColor.connect = </M/Tex.outputs:rgb>
+        token outputs:surface
+    }
+    def Shader "Tex" {
+        uniform token info:id = "UsdUVTexture"
+        asset inputs:file = @t.png@
+        float4 inputs:scale = (0.5, 0.5, 0.5, 1)
+        float4 inputs:scale.connect = </M/Fade.outputs:result>
+        float3 outputs:rgb
+    }
+    def Shader "Fade" {
+        uniform token info:id = "UsdPrimvarReader_float4"
+        float4 outputs:result
+    }
+}''')
+    tex = read_scene(path).meshes[0].material.diffuse
+    assert isinstance(tex, TextureRecord) and tex.scale == (0.5, 0.5, 0.5, 1.0)

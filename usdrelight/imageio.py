@@ -168,13 +168,15 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
 
 
 def _colour_first(names: list, n: int, path: Path) -> list:
-    """Channel order with the colour first: R, G, B (then A) by name, or those of the one layer that has them
-    (an EXR's ``diffuse.R``...: OpenImageIO may list ``Z`` before them); the file's order when none is named.
-    Several RGB layers: an error (which one is the photo is not said)."""
+    """Channel order with the colour first: R, G, B (then A) by name (a beauty beside AOV layers), else those of
+    the one layer that has them (an EXR's ``diffuse.R``...: OpenImageIO may list ``Z`` before them); the file's
+    order when none is named. Several prefixed RGB layers and no plain one: an error (which is the photo?)."""
     prefixes = {"" if name == "R" else name[:-1] for name in names if name == "R" or name.endswith(".R")}
     layers = sorted(p for p in prefixes if all(p + c in names for c in "GB"))  # "" or "diffuse."
     if len(names) != n or not layers:
         return list(range(n))
+    if "" in layers:  # a beauty R, G, B beside AOV layers (diffuse.R ...): the beauty
+        layers = [""]
     if len(layers) > 1:
         raise UsdRelightError(f"image {path}: several colour layers ({', '.join(l[:-1] or 'R, G, B' for l in layers)}): "
                               "keep one (oiiotool --ch)")
@@ -300,6 +302,8 @@ def read_map(path: str | os.PathLike, channels: int, exact: bool = False) -> np.
         arr = read_pfm(path)
     else:
         arr, _ = read_raw(path)
+        if exact and channels == 1 and arr.shape[2] > 1:  # a depth EXR with a preview beside its Z: the Z
+            arr = arr[:, :, _depth_channel(path, arr.shape[2])]
     if arr.ndim != 3:
         raise UsdRelightError(f"{path}: expected an image-shaped array, got shape {arr.shape}")
     if exact:
@@ -311,6 +315,14 @@ def read_map(path: str | os.PathLike, channels: int, exact: bool = False) -> np.
     if arr.shape[2] < channels:
         raise UsdRelightError(f"{path}: expected {channels} channels, got {arr.shape[2]}")
     return np.ascontiguousarray(arr[:, :, :channels])
+
+
+def _depth_channel(path: Path, n: int) -> slice:
+    """The one channel named Z or depth (or *.Z, *.depth) after :func:`read_raw`'s order, else all (a slice)."""
+    names = list(_checked_buf(path).spec().channelnames)
+    names = [names[i] for i in _colour_first(names, n, path)] if len(names) == n else []
+    found = [i for i, c in enumerate(names) if c.split(".")[-1] in ("Z", "depth")]
+    return slice(found[0], found[0] + 1) if len(found) == 1 else slice(None)
 
 
 def _check_exact(path, arr: np.ndarray, channels: int) -> None:

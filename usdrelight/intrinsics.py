@@ -121,6 +121,9 @@ class Intrinsics:
         if K[0, 1] != 0:
             log.warning("intrinsics %s: skew K[0][1] = %g is not represented (a USD camera has none)", path, K[0, 1])
         normalized = data.get("normalized") if isinstance(data, dict) else None
+        if normalized is not None and not isinstance(normalized, bool):
+            raise UsdRelightError(f"intrinsics {path}: normalized must be true or false, got "
+                                  f"{type(normalized).__name__}")
         if normalized is None:
             normalized = abs(K[0, 2]) <= 1.5 and abs(K[1, 2]) <= 1.5
         if normalized:
@@ -147,13 +150,6 @@ class Intrinsics:
         return cls(float(fx), float(fy), float(cx), float(cy), w, h)
 
     # ---- views --------------------------------------------------------------------------
-    @property
-    def film_y_map(self) -> tuple[float, float]:
-        """(fx / fy, cy / height): a camera of square pixels (focal fx, as Mitsuba's perspective sensor) sees
-        this camera's pixel row v (pixels from the top) at the normalized film row c + (v / height - c) r, with
-        (r, c) this pair; (1, c) for square pixels."""
-        return self.fx / self.fy, self.cy / self.height
-
     def opencv(self) -> dict:
         """Intrinsics in OpenCV's pixel-centre-at-integer convention."""
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx - 0.5, "cy": self.cy - 0.5,

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import time as time_module
 from dataclasses import dataclass, field
@@ -90,20 +91,34 @@ class RenderResult:
     """What the Mitsuba mapping could not represent: one line per kind -> count."""
 
 
+def film_y_map(mi, scene, camera) -> tuple[float, float] | None:
+    """How the scene's sensor (square pixels of its own focal length, over its own film) sees the rows of
+    ``camera`` (:class:`usdrelight.intrinsics.Intrinsics` of the pixels traced, possibly at another resolution
+    and not square): (r, c) such that pixel row v (pixels from the top) is the normalized film row
+    c + (v / height - c) r; None when r is 1 (the rows as they are, bit for bit)."""
+    if camera is None:
+        return None
+    sensor = scene.sensors()[0]
+    w_s, h_s = (int(x) for x in sensor.film().size())
+    fx_s = w_s / (2.0 * math.tan(math.radians(float(mi.traverse(sensor)["x_fov"][0])) / 2.0))
+    r = (fx_s / h_s) / (camera.fy / camera.height)
+    return None if r == 1.0 else (r, camera.cy / camera.height)
+
+
 def _film_rows(v, y_map):
-    """Normalized film rows of the sensor (square pixels) for normalized pixel rows ``v`` of a camera whose
-    :attr:`usdrelight.intrinsics.Intrinsics.film_y_map` is ``y_map`` (None: the same rows)."""
-    if y_map is None or y_map[0] == 1.0:  # square pixels: the rows as they are, bit for bit
+    """Normalized film rows for normalized pixel rows ``v`` (:func:`film_y_map`'s ``y_map``; None: the same)."""
+    if y_map is None:
         return v
     r, c = y_map
     return c + (v - c) * r
 
 
-def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5), y_map=None):
+def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5), camera=None):
     """One camera ray per pixel through the point ``offset`` (pixel units, (0.5, 0.5) = centre) of each pixel,
-    row-major: returns (rays, surface interactions). ``y_map``: the camera's
-    :attr:`~usdrelight.intrinsics.Intrinsics.film_y_map`, for pixels that are not square (the sensor's are)."""
+    row-major: returns (rays, surface interactions). ``camera``: the intrinsics of these pixels, when they may
+    be other than the sensor's square ones (:func:`film_y_map`; None: the sensor's own rows)."""
     sensor = scene.sensors()[0]
+    y_map = film_y_map(mi, scene, camera)
     dx, dy = offset
     jj, ii = np.meshgrid((np.arange(width) + dx) / width, _film_rows((np.arange(height) + dy) / height, y_map))
     pos = mi.Point2f(jj.ravel().astype(np.float32), ii.ravel().astype(np.float32))
@@ -111,28 +126,29 @@ def trace_pixels(mi, scene, width: int, height: int, offset=(0.5, 0.5), y_map=No
     return ray, scene.ray_intersect(ray)
 
 
-def trace_pixel_centres(mi, scene, width: int, height: int, y_map=None):
-    """One camera ray through each pixel centre, row-major: returns (rays, surface interactions) (``y_map``:
+def trace_pixel_centres(mi, scene, width: int, height: int, camera=None):
+    """One camera ray through each pixel centre, row-major: returns (rays, surface interactions) (``camera``:
     :func:`trace_pixels`).
 
     Centres are nudged by (1/64, 1/128) px: a ray through the exact centre passes exactly through a
     vertex of a pixel mesh, where Mitsuba's (non-watertight) triangle test can miss every triangle."""
     dx, dy = PRIMARY_RAY_NUDGE_PX
-    return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy), y_map)
+    return trace_pixels(mi, scene, width, height, (0.5 + dx, 0.5 + dy), camera)
 
 
 def pixel_footprint(mi, scene, width: int, height: int, k: int = 4,
-                    y_map=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    camera=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(albedo (H * W, 3), coverage (H * W,), hit point (H * W, 3)) of every pixel from k x k stratified camera
     rays: the diffuse albedo averaged over the pixel's area with misses counting as 0, the fraction of the area
     that sees geometry (what a box pixel filter sees; coverage 0.25 = a quarter of the pixel), and the mean
     world-space position of the rays that hit (0 where none).
 
     The k x k rays of a run of pixels are one wavefront (ray ``pixel * k^2 + s``, s row-major in the pixel), made
-    by Mitsuba's JIT, in chunks of about 4M rays to bound memory. ``y_map``: :func:`trace_pixels`."""
+    by Mitsuba's JIT, in chunks of about 4M rays to bound memory. ``camera``: :func:`trace_pixels`."""
     import drjit as dr
 
     sensor = scene.sensors()[0]
+    y_map = film_y_map(mi, scene, camera)
     dx, dy = PRIMARY_RAY_NUDGE_PX
     n, kk = width * height, k * k
     acc, pos, cov = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros(n)

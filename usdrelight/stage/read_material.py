@@ -92,7 +92,10 @@ def _vec(shader, name: str, default: tuple, warnings) -> tuple:
 def _get(shader, name: str, default):
     """The value of input ``name`` (through interface connections, :func:`_producer`), or ``default``."""
     inp = shader.GetInput(name)
-    v = _producer(inp)[1].Get() if inp else None
+    if not inp:
+        return default
+    src, attr = _producer(inp)
+    v = inp.Get() if src is not None else attr.Get()  # fed by a shader's output: its own authored value
     return default if v is None else v
 
 

@@ -44,7 +44,7 @@ except ImportError:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-TRANSPORT_VERSION = 5
+TRANSPORT_VERSION = 6
 """Bumped whenever the cached arrays or their meaning change (part of every key)."""
 CACHE_DIR = "cache"
 """The stage-folder sub-folder of :meth:`TransportCache.for_stage`."""
@@ -345,7 +345,7 @@ def prepare_transport(rec: SceneRecord, settings: TransportSettings = TransportS
         tr = replace(raw, env_filter=env_filter)
         step("filter")
         albedo, coverage, hit_points = pixel_footprint(load_mitsuba(), surf.mi_scene, surf.width, surf.height,
-                                                       settings.footprint, surf.scene.camera.intrinsics.film_y_map)
+                                                       settings.footprint, surf.scene.camera.intrinsics)
         step("footprint")
         fringe = pixel_fringe(surf, albedo, coverage, hit_points)
         pixel_albedo, coverage = albedo[surf.flat_index()], coverage[surf.flat_index()]

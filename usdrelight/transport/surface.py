@@ -106,7 +106,7 @@ def trace_surface(rec: SceneRecord, max_side: int | None, mi_scene=None, keep=No
     W, H = rec.resolution
     mi = load_mitsuba()
     scene = geometry_scene(rec) if mi_scene is None else mi_scene
-    ray, si = trace_pixel_centres(mi, scene, W, H, rec.camera.intrinsics.film_y_map)  # pixels square or not
+    ray, si = trace_pixel_centres(mi, scene, W, H, rec.camera.intrinsics)  # the sensor's square pixels or not
     hit = np.array(si.is_valid(), bool)
     p = np.array(si.p, np.float64).T
     n = np.array(si.sh_frame.n, np.float64).T
