@@ -167,3 +167,17 @@ def test_a_beauty_beside_aov_layers_and_a_depth_z_beside_a_preview(tmp_path):
     np.testing.assert_allclose(read_photo(beauty)[0, 0], [1, 2, 3])
     depth = exr("d.exr", ("R", "G", "B", "Z"), [0.2, 0.5, 0.9, 2.5])
     np.testing.assert_allclose(read_map(depth, 1, exact=True)[..., 0], 2.5)
+
+
+def test_a_very_wide_photo_relit_small_gets_its_light(cli, tmp_path):
+    """2000 x 3 relit at --max-side 64 (64 x 1: the rounded row is 10x taller than the camera's square pixel):
+    the sensor saw past the mesh, coverage 0, the added light gave a black image (max 0.0)."""
+    from usdrelight.imageio import read_map
+
+    photo = make_photo(tmp_path / "wide.png", 3, 2000)
+    assert cli("build", photo, "-o", tmp_path / "s")[0] == 0
+    rc, _, err = cli("relight", tmp_path / "s" / "scene.usda", "--mode", "render", "--max-side", "64",
+                     "--light", "point:0.5,0.5,-1.5:3,2.6,2", "-o", tmp_path / "r")
+    assert rc == 0, err
+    relit = read_map(tmp_path / "r" / "relit.exr", 3)
+    assert relit.shape == (1, 64, 3) and (relit.max(-1) > 0).mean() > 0.9
