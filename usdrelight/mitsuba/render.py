@@ -95,14 +95,16 @@ def film_y_map(mi, scene, camera) -> tuple[float, float] | None:
     """How the scene's sensor (square pixels of its own focal length, over its own film) sees the rows of
     ``camera`` (:class:`usdrelight.intrinsics.Intrinsics` of the pixels traced, possibly at another resolution
     and not square): (r, c) such that pixel row v (pixels from the top) is the normalized film row
-    c + (v / height - c) r; None when r is 1 (the rows as they are, bit for bit)."""
+    c + (v / height - c) r; None when r is 1 to 1e-6 (the rows as they are, bit for bit; a size rounded to
+    whole pixels at 4096 px is 2.4e-4 off)."""
     if camera is None:
         return None
     sensor = scene.sensors()[0]
     w_s, h_s = (int(x) for x in sensor.film().size())
     fx_s = w_s / (2.0 * math.tan(math.radians(float(mi.traverse(sensor)["x_fov"][0])) / 2.0))
     r = (fx_s / h_s) / (camera.fy / camera.height)
-    return None if r == 1.0 else (r, camera.cy / camera.height)
+    # the sensor keeps its field of view in float32: a camera of its own square pixels comes back within 1e-7
+    return None if abs(r - 1.0) < 1e-6 else (r, camera.cy / camera.height)
 
 
 def _film_rows(v, y_map):
