@@ -355,6 +355,29 @@ def test_a_range_saved_in_the_lights_layer_is_the_stages(animated_stage, tmp_pat
     assert [f["time"] for f in res["frames"]] == [1, 2, 3, 4, 5]
 
 
+def test_a_range_in_a_layer_sublayered_into_the_lights_layer_is_the_stages(animated_stage, tmp_path, cli):
+    """A relight --save-lights layer sublayered into lights_user.usda (as animation.md says to): its range sits
+    a level below the root's sublayers, and a bare --frames said 'the stage authors no time range'. The layer
+    stack is searched depth first (a 48-codes layer's 2..10, offset by 1 in its parent: 2..6)."""
+    import shutil
+
+    from pxr import Sdf
+
+    from usdrelight.stage.layout import USER_LIGHTS
+
+    stage = tmp_path / "st" / animated_stage.name
+    shutil.copytree(animated_stage.parent, stage.parent)
+    saved = Sdf.Layer.CreateNew(str(stage.parent / "saved.usda"))
+    saved.startTimeCode, saved.endTimeCode, saved.timeCodesPerSecond = 2, 10, 48
+    saved.Save()
+    user = Sdf.Layer.FindOrOpen(str(stage.parent / USER_LIGHTS))
+    user.subLayerPaths.append("./saved.usda")
+    user.subLayerOffsets[len(user.subLayerPaths) - 1] = Sdf.LayerOffset(1.0, 1.0)
+    user.Save()
+    res = cli.json("relight", stage, "--frames", "--max-side", "32", "--mode", "add", "-o", tmp_path / "o")
+    assert [f["time"] for f in res["frames"]] == [2, 3, 4, 5, 6]
+
+
 def test_a_pre_roll_range_is_read(animated_stage, tmp_path, cli):
     """'--frames -2:0' was 'unrecognized arguments: -2:0' (argparse takes '-2:0' for an option)."""
     res = cli.json("relight", animated_stage, "--frames", "-2:0", "--max-side", "32", "--mode", "add",

@@ -37,24 +37,38 @@ class TimeRange:
 
 def stage_time_range(stage, sublayers: bool = False) -> TimeRange | None:
     """The stage's authored start/end time codes and framesPerSecond (the root layer's, as usdview reads them), or
-    None when it authors no range. ``sublayers``: where the root authors none, that of the strongest sublayer of
-    the root that does (the user's lights layer, where the web app and the Blender route save a range), mapped to
+    None when it authors no range. ``sublayers``: where the root authors none, that of the strongest layer of
+    its layer stack that does (the user's lights layer, where the web app and the Blender route save a range, or
+    a layer sublayered into that one, such as a relight --save-lights layer), mapped to
     the stage's time codes by the sublayer's offset and timeCodesPerSecond as USD maps its samples (``--frames``
     alone takes it; a single frame's default time does not)."""
     if stage.HasAuthoredTimeCodeRange():
         return TimeRange(float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()), stage_fps(stage))
     if not sublayers:
         return None
+    found = _sublayer_range(stage.GetRootLayer(), float(stage.GetTimeCodesPerSecond()), 0.0, 1.0, set())
+    return None if found is None else TimeRange(found[0], found[1], stage_fps(stage))
+
+
+def _sublayer_range(parent, parent_tcps: float, shift: float, scale: float, seen: set):
+    """(start, end) in the stage's time codes of the strongest layer under ``parent`` (depth first, as USD orders
+    a layer stack: a sublayer's own sublayers before the next sublayer) that authors a range; ``shift`` and
+    ``scale`` map ``parent``'s time codes to the stage's."""
     from pxr import Sdf
 
-    root = stage.GetRootLayer()
-    for path, offset in zip(root.subLayerPaths, root.subLayerOffsets):
-        layer = Sdf.Layer.FindOrOpenRelativeToLayer(root, path)
-        if layer is None or not (layer.HasStartTimeCode() and layer.HasEndTimeCode()):
+    for path, offset in zip(parent.subLayerPaths, parent.subLayerOffsets):
+        layer = Sdf.Layer.FindOrOpenRelativeToLayer(parent, path)
+        if layer is None or layer.identifier in seen:
             continue
-        scale = offset.scale * float(stage.GetTimeCodesPerSecond()) / float(layer.timeCodesPerSecond)
-        return TimeRange(offset.offset + scale * float(layer.startTimeCode),
-                         offset.offset + scale * float(layer.endTimeCode), stage_fps(stage))
+        seen.add(layer.identifier)
+        tcps = float(layer.timeCodesPerSecond)
+        s = scale * offset.scale * parent_tcps / tcps  # this layer's time code -> the stage's
+        d = shift + scale * offset.offset
+        if layer.HasStartTimeCode() and layer.HasEndTimeCode():
+            return d + s * float(layer.startTimeCode), d + s * float(layer.endTimeCode)
+        found = _sublayer_range(layer, tcps, d, s, seen)
+        if found is not None:
+            return found
     return None
 
 
