@@ -108,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "them into the fitted-lights layer.")
     f.add_argument("stage", type=_path)
     f.add_argument("--method", choices=["adam", "fast"], default="fast")
-    f.add_argument("--lights", type=int, default=16, help="number of point lights to start from (K)")
+    f.add_argument("--lights", type=int, default=16, help="point lights: the most the fit keeps (fast, the default), "
+                                                           "or the number to start from (adam)")
     f.add_argument("--env-res", help="environment resolution HxW (fast: basis cells, default 8x16; adam: "
                                      "texels, default 128x256; 0x0 = no environment)")
     f.add_argument("--iterations", type=_positive_int)

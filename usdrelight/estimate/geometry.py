@@ -176,8 +176,8 @@ def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrin
             raise UsdRelightError(f"geometry model {Path(model).name} returned no valid pixel")
         if intrinsics is None and np.any(pts[ok][:, :2] != 0):
             intrinsics = Intrinsics.fit_to_points(pts, ok)
-        if intrinsics is None:
-            intrinsics = fallback_intrinsics(photo, warn=False)[0]
+        if intrinsics is None:  # a depth-only model: EXIF, else 60 degrees (warned)
+            intrinsics = fallback_intrinsics(photo)[0]
         geo = from_depth(pts[..., 2], intrinsics, ok, source=f"onnx:{Path(model).name}")
     else:
         if intrinsics is None:

@@ -27,7 +27,8 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
                                 "rendered again)")
     add_time_argument(rl)
     rl.add_argument("--video", type=_path, metavar="OUT.mp4",
-                    help="also encode the frames as an H.264 MP4 at the stage's framesPerSecond (PyAV)")
+                    help="also encode the frames as an H.264 MP4 (PyAV) in the stage's time: --frames at "
+                         "timeCodesPerSecond / STEP, a --sequence at framesPerSecond")
     rl.add_argument("--save-lights", type=_path, metavar="LAYER.usda",
                     help="with --sequence: also write the sequence as a new time-sampled UsdLux layer (frame i at "
                          "time code 1 + i), to sublayer into lights_user.usda")

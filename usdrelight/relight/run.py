@@ -168,7 +168,8 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     ``time``: the time code of a single frame or of a sequence. ``lights`` apply to every frame.
     ``fitted_scale`` (None: not given) scales the fitted lights and implies ``with_fitted``, 1 too; ``contact_sheet`` also writes
     contact_sheet.png: the photo, D~ and every mode's result for the (first) frame's lights; ``video`` also
-    encodes the frames as an H.264 MP4 at the stage's framesPerSecond; ``save_lights`` (with ``sequence``)
+    encodes the frames as an H.264 MP4 in the stage's time (``frames``: timeCodesPerSecond / STEP frames per
+    second; a ``sequence``: framesPerSecond); ``save_lights`` (with ``sequence``)
     also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`);
     ``area_samples``: the fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None:
     :class:`usdrelight.engine.EngineSettings`' 16)."""
