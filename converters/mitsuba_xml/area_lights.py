@@ -155,14 +155,17 @@ class AreaLights:
                            else R @ FLIP_Z)
         elif p.type == "disk":
             light = UsdLux.DiskLight.Define(self.stage, path)
-            light.CreateRadiusAttr(float(s[0]))
+            light.CreateRadiusAttr(float(np.sqrt(s[0] * s[1])))  # an ellipse: the disk of its area, its power
             if abs(s[0] - s[1]) > 1e-6 * s[0]:
-                self.warnings["elliptic disk emitter (radius from its x axis)"] += 1
+                self.warnings["elliptic disk emitter (the round disk of the same area: the same power)"] += 1
             self.set_xform(light.GetPrim(), R if flip else R @ FLIP_Z)
         else:
             light = UsdLux.SphereLight.Define(self.stage, path)
             c = np.asarray(p.props.get("center", (0, 0, 0)), np.float64)
-            light.CreateRadiusAttr(float(p.props.get("radius", 1.0)) * float(np.cbrt(np.prod(s))))
+            light.CreateRadiusAttr(float(p.props.get("radius", 1.0)) * float(s[0]))  # as Mitsuba: its x axis
+            if np.ptp(s) > 1e-6 * s.max():
+                self.warnings["sphere emitter under a non-uniform scale (Mitsuba draws the sphere of its x axis: "
+                              "so does the SphereLight)"] += 1
             T = R.copy()
             T[:3, 3] = (M @ np.r_[c, 1.0])[:3]
             self.set_xform(light.GetPrim(), T)

@@ -84,6 +84,9 @@ class MaterialBuilder:
         """A bitmap's ``wrap_mode`` (Mitsuba's default: repeat) as wrapS = wrapT, and its ``to_uv`` as
         UsdTransform2d inputs (None: identity; a shear or a reflection: None, warned)."""
         wrap = str(tex.props.get("wrap_mode", "repeat"))
+        if str(tex.props.get("filter_type", "bilinear")) != "bilinear":
+            self.warnings["bitmap filter_type other than bilinear (UsdUVTexture has none: filtered as the "
+                          "renderer does, bilinear in Mitsuba)"] += 1
         if wrap not in ("repeat", "mirror", "clamp"):
             self.warnings[f"bitmap wrap_mode '{wrap}' (repeat used)"] += 1
             wrap = "repeat"
