@@ -19,6 +19,8 @@ from collections import Counter
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
+import numpy as np
+
 from usdrelight.errors import UsdRelightError
 from usdrelight.safe_paths import check_read
 
@@ -117,6 +119,37 @@ def emissive_strengths(doc: dict) -> dict[str, float]:
     return {k: v for k, v in out.items() if k not in clash}
 
 
+def base_color_factors(doc: dict) -> dict[str, np.ndarray]:
+    """Material name -> ``pbrMetallicRoughness.baseColorFactor`` (RGBA floats) as the file writes it: trimesh
+    keeps it in 8 bits (0.003 read as 0.0039, +31%); a name two materials share with different factors is left
+    out (trimesh names materials, not indices)."""
+    out: dict = {}
+    clash = set()
+    for mat in doc.get("materials", []) or []:
+        if not isinstance(mat, dict) or not isinstance(mat.get("name"), str):
+            continue
+        f = (mat.get("pbrMetallicRoughness") or {}).get("baseColorFactor") \
+            if isinstance(mat.get("pbrMetallicRoughness"), dict) else None
+        try:
+            rgba = np.asarray(f, np.float64).reshape(4) if f is not None else None
+        except (TypeError, ValueError):
+            rgba = None
+        if rgba is None or not np.all(np.isfinite(rgba)) or rgba.min() < 0:
+            continue
+        if mat["name"] in out and not np.array_equal(out[mat["name"]], rgba):
+            clash.add(mat["name"])
+        out[mat["name"]] = rgba
+    return {k: v for k, v in out.items() if k not in clash}
+
+
+def check_readable(doc: dict, name: str) -> None:
+    """UsdRelightError for what the reader (trimesh) would read wrong without a word: sparse accessors (their
+    substituted values are not applied: vertices where the base data has them, or all at the origin)."""
+    if any(isinstance(a, dict) and a.get("sparse") for a in doc.get("accessors", []) or []):
+        raise UsdRelightError(f"{name}: sparse accessors, which the glTF reader does not apply (the geometry would "
+                              "come out wrong); write the file without them (gltf-transform's sparse off)")
+
+
 def unconverted(doc: dict) -> Counter:
     """One warning per kind of what the file holds and the USD stage does not get (its punctual lights and
     cameras are converted: :mod:`.gltf_lights`)."""
@@ -128,4 +161,19 @@ def unconverted(doc: dict) -> Counter:
     for name in sorted(set(doc.get("extensionsUsed", []) or []) - APPLIED):
         if isinstance(name, str):
             warnings[f"glTF extension {name} (not converted)"] += 1
+    for mat in doc.get("materials", []) or []:
+        if not isinstance(mat, dict):
+            continue
+        pbr = mat.get("pbrMetallicRoughness") if isinstance(mat.get("pbrMetallicRoughness"), dict) else {}
+        infos = [mat.get(k) for k in ("normalTexture", "occlusionTexture", "emissiveTexture")] + \
+            [pbr.get(k) for k in ("baseColorTexture", "metallicRoughnessTexture")]
+        if any(isinstance(i, dict) and i.get("texCoord", 0) != 0 for i in infos):
+            warnings["glTF texture of texCoord 1 or above (TEXCOORD_0 used)"] += 1
+    accessors = doc.get("accessors", []) or []
+    for mesh in doc.get("meshes", []) or []:
+        for prim in (mesh.get("primitives", []) or []) if isinstance(mesh, dict) else []:
+            i = (prim.get("attributes") or {}).get("COLOR_0") if isinstance(prim, dict) else None
+            if isinstance(i, int) and 0 <= i < len(accessors) and isinstance(accessors[i], dict) and \
+                    accessors[i].get("componentType") == 5126:
+                warnings["glTF COLOR_0 of floats (read through 8 bits: within 0.002)"] += 1
     return warnings

@@ -44,7 +44,8 @@ from usdrelight.stage.mesh_math import normal_inverse
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.validate import check_finite
 
-from .gltf_extras import emissive_strengths, glb_json, glb_with_json, gltf_files, gltf_json, unconverted
+from .gltf_extras import (base_color_factors, check_readable, emissive_strengths, glb_json, glb_with_json, gltf_files,
+                          gltf_json, unconverted)
 from .gltf_lights import add_lights_and_camera, author_lights_and_cameras
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
@@ -176,6 +177,8 @@ def read_from_file(path, **options) -> ReadReport:
     warnings: Counter = Counter()
     suffix = path.suffix.lower()
     doc = glb_json(path) if suffix == ".glb" else gltf_json(path) if suffix == ".gltf" else None
+    if doc:
+        check_readable(doc, path.name)
     try:
         fixed = absolute_obj_indices(path.read_bytes()) if suffix == ".obj" else None
         if suffix == ".gltf":  # its buffers and images read by usdrelight (checked, URIs decoded), given as a mapping
@@ -198,6 +201,7 @@ def read_from_file(path, **options) -> ReadReport:
         for name in missing_mtl(path):
             warnings[f"OBJ mtllib {name!r} not found in the file's folder (its materials: white)"] += 1
     strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
+    base_factors = base_color_factors(doc) if doc else {}
     warnings.update(unconverted(doc) if doc else {})
     for node in scene.graph.nodes_geometry:
         xf, geom_name = scene.graph[node]
@@ -243,7 +247,7 @@ def read_from_file(path, **options) -> ReadReport:
         if getattr(material, "doubleSided", False):  # glTF: no back-face culling for this material
             m.CreateDoubleSidedAttr(True)
         author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, suffix not in (".glb", ".gltf"),
-                        warnings)
+                        warnings, base_factors.get(getattr(material, "name", None)))
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
         raise UsdRelightError(f"{path.name}: no mesh in the file (nothing was written)")
     if doc:  # a glTF file's punctual lights and perspective cameras (trimesh reads neither)

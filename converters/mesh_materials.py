@@ -209,13 +209,17 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
     surf.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, rgb)))
 
 
-def author_material(stage, mesh, mesh_prim, look: str, usd_dir, srgb_colors: bool, warnings: Counter) -> None:
+def author_material(stage, mesh, mesh_prim, look: str, usd_dir, srgb_colors: bool, warnings: Counter,
+                    base_factor=None) -> None:
     """A UsdPreviewSurface at ``look`` from ``mesh``'s trimesh material (and its vertex colours), bound to
-    ``mesh_prim``; textures are written under ``usd_dir`` (None: a stage in memory)."""
+    ``mesh_prim``; textures are written under ``usd_dir`` (None: a stage in memory). ``base_factor``: the glTF
+    file's own RGBA baseColorFactor (trimesh's is 8-bit)."""
     from pxr import Gf, Sdf, UsdGeom, UsdShade, Vt
 
     mat, surf = define_preview_material(stage, look)
     t = _material_terms(getattr(mesh.visual, "material", None), warnings)
+    if base_factor is not None and hasattr(getattr(mesh.visual, "material", None), "baseColorFactor"):
+        t["base"] = np.asarray(base_factor, np.float64)
     if t["metallic"] == 0.0 and t["roughness"] == 1.0:
         author_lambertian(surf)
     else:
