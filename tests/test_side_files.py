@@ -181,3 +181,27 @@ def test_a_very_wide_photo_relit_small_gets_its_light(cli, tmp_path):
     assert rc == 0, err
     relit = read_map(tmp_path / "r" / "relit.exr", 3)
     assert relit.shape == (1, 64, 3) and (relit.max(-1) > 0).mean() > 0.9
+
+
+def test_a_photo_whose_icc_profile_is_not_srgb_is_warned(tmp_path, caplog):
+    """A Display P3 or Rec. 2020 photo (as phones write) was decoded as sRGB in silence; an sRGB one stays quiet."""
+    import logging
+    import struct
+
+    from PIL import Image
+
+    def profile(desc: str) -> bytes:  # a minimal ICC v4 header + one 'desc' (mluc) tag
+        text = desc.encode("utf-16-be")
+        tag = b"mluc" + b"\0" * 4 + struct.pack(">II", 1, 12) + b"enUS" + struct.pack(">II", len(text), 28) + text
+        body = struct.pack(">I", 1) + b"desc" + struct.pack(">II", 144, len(tag))
+        head = struct.pack(">I", 144 + len(tag)) + b"\0" * 32 + b"acsp" + b"\0" * 88
+        return head + body + tag
+
+    rgb = (np.random.default_rng(0).random((8, 8, 3)) * 255).astype(np.uint8)
+    for name, desc in (("p3.jpg", "Display P3"), ("srgb.jpg", "sRGB IEC61966-2.1")):
+        Image.fromarray(rgb).save(tmp_path / name, icc_profile=profile(desc))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            read_photo(tmp_path / name)
+        warned = any("embeds the colour profile" in r.getMessage() for r in caplog.records)
+        assert warned == (desc == "Display P3"), (name, caplog.text)

@@ -19,6 +19,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import UsdRelightError
+from .icc import warn_unless_srgb
 from .native_io import captured_stderr
 from .pfm import read_pfm
 
@@ -168,9 +169,8 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
 
 
 def _colour_first(names: list, n: int, path: Path) -> list:
-    """Channel order with the colour first: R, G, B (then A) by name (a beauty beside AOV layers), else those of
-    the one layer that has them (an EXR's ``diffuse.R``...: OpenImageIO may list ``Z`` before them); the file's
-    order when none is named. Several prefixed RGB layers and no plain one: an error (which is the photo?)."""
+    """Channel order, colour first: R, G, B (A) by name, else the one layer's (``diffuse.R``...: OpenImageIO may
+    list ``Z`` first); the file's order when none is named; several layers and no plain R, G, B: an error."""
     prefixes = {"" if name == "R" else name[:-1] for name in names if name == "R" or name.endswith(".R")}
     layers = sorted(p for p in prefixes if all(p + c in names for c in "GB"))  # "" or "diffuse."
     if len(names) != n or not layers:
@@ -219,15 +219,17 @@ def read_focal_35mm(path: str | os.PathLike) -> float | None:
 
 
 def _rgb(pixels: np.ndarray, decode: bool) -> np.ndarray:
-    """(H, W, 3) of read_raw's pixels: grey (and grey + alpha) replicated, alpha dropped, sRGB-decoded when
-    ``decode``."""
+    """(H, W, 3) of read_raw's pixels: grey (+ alpha) replicated, alpha dropped, sRGB-decoded when ``decode``."""
     rgb = np.repeat(pixels[:, :, :1], 3, axis=2) if pixels.shape[2] <= 2 else pixels[:, :, :3]
     return srgb_to_linear(rgb) if decode else rgb
 
 
 def read_photo(path: str | os.PathLike) -> np.ndarray:
-    """Read a photograph as linear RGB float32 (H, W, 3); alpha dropped, grey replicated."""
+    """Read a photograph as linear RGB float32 (H, W, 3); alpha dropped, grey replicated (an integer photo whose
+    ICC profile is not sRGB: decoded as sRGB, warned)."""
     pixels, is_float = read_raw(path)
+    if not is_float:
+        warn_unless_srgb(path, _checked_buf(Path(path)).spec().getattribute("ICCProfile"))
     rgb = _rgb(pixels, decode=not is_float)
     if not np.all(np.isfinite(rgb)):
         raise UsdRelightError(f"image {path} contains NaN or Inf pixels")
@@ -387,8 +389,7 @@ def image_attribute(path: str | os.PathLike, name: str) -> str | None:
 
 
 def resize_image(img: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize (H, W, C) float32 with OpenImageIO: box filter when shrinking (area average), triangle
-    when enlarging."""
+    """Resize (H, W, C) float32 with OpenImageIO: box filter when shrinking (area average), triangle enlarging."""
     if img.shape[:2] == (height, width):
         return img.astype(np.float32)
     oiio = _oiio()

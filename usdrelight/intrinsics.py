@@ -43,7 +43,8 @@ class Intrinsics:
     def __post_init__(self):
         vals = (self.fx, self.fy, self.cx, self.cy)
         if not all(math.isfinite(float(v)) for v in vals):
-            raise UsdRelightError(f"intrinsics must be finite, got fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+            raise UsdRelightError(f"intrinsics must be finite, got fx={self.fx} fy={self.fy} cx={self.cx - 0.5} "
+                                  f"cy={self.cy - 0.5} (OpenCV pixels)")
         if self.fx <= 0 or self.fy <= 0:
             raise UsdRelightError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
         if self.width <= 0 or self.height <= 0:

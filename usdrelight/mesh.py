@@ -103,10 +103,11 @@ def triangulate(points: np.ndarray, valid: np.ndarray, *, stride: int = 1,
         raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
     n = _face_normals(Pn, faces)
     centroid = Pn[faces[:, 0]] + Pn[faces[:, 1]] + Pn[faces[:, 2]]
-    dot = np.einsum("ij,ij->i", n, centroid)
-    n2 = np.einsum("ij,ij->i", n, n) * np.einsum("ij,ij->i", centroid, centroid)
-    cos_min = np.float32(np.cos(np.radians(max_grazing_deg)))
-    keep = (n2 > 0) & (dot * dot >= cos_min * cos_min * n2)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge mesh overflows float32: such a triangle is cut
+        dot = np.einsum("ij,ij->i", n, centroid)
+        n2 = np.einsum("ij,ij->i", n, n) * np.einsum("ij,ij->i", centroid, centroid)
+        cos_min = np.float32(np.cos(np.radians(max_grazing_deg)))
+        keep = (n2 > 0) & (dot * dot >= cos_min * cos_min * n2)
     faces, fn = faces[keep], n[keep].astype(np.float64)
     if faces.shape[0] == 0:
         raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
