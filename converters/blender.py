@@ -26,9 +26,9 @@ from usdrelight.atomic import atomic_path, write_bytes_atomic, write_text_atomic
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import emitted_radiance
 from usdrelight.stage.camera import cameras_left_out
-from usdrelight.stage.read import ellipsoid_mesh, read_camera, read_scene
+from usdrelight.stage.read import read_camera, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
-from usdrelight.stage.records import MeshRecord
+from usdrelight.stage.shapes import shape_mesh
 from usdrelight.stage.timing import frame_time, light_time_codes
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
@@ -56,33 +56,6 @@ CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "h
 
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
-def _shape_mesh(shape) -> MeshRecord:
-    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
-    :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
-    0.12% short of the sphere's)."""
-    if shape.kind == "sphere":  # an icosphere: no poles (a UV sphere's pole showed a ring in Cycles)
-        return ellipsoid_mesh(shape)
-    if shape.kind == "cube":
-        unit, faces = [], []
-        for axis in range(3):
-            for sign in (-1.0, 1.0):
-                u, v = (axis + 1) % 3, (axis + 2) % 3
-                quad = np.zeros((4, 3))
-                quad[:, axis] = sign
-                quad[:, u], quad[:, v] = [-1, 1, 1, -1], [-1, -1, 1, 1]
-                k = len(unit) * 4
-                faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]] if sign > 0 else [[k, k + 2, k + 1], [k, k + 3, k + 2]]
-                unit.append(quad)
-        unit, faces = np.concatenate(unit), np.asarray(faces)
-    else:  # rectangle [-1, 1]^2 in z = 0, normal +Z
-        unit, faces = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]])
-    m = shape.to_world
-    pts = unit @ m[:3, :3].T + m[:3, 3]
-    if np.linalg.det(m[:3, :3]) < 0:
-        faces = faces[:, ::-1]
-    return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), None, None, shape.material)
-
-
 def _lux_warnings(light, warnings) -> None:
     """What Cycles cannot show of a UsdLux light (one line per kind; README "UsdLux attributes not represented")."""
     sc = np.linalg.norm(light.to_world[:3, :3], axis=0)
@@ -107,7 +80,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
     mats, meshes = {}, []
-    all_meshes = list(rec.meshes) + [_shape_mesh(sh) for sh in rec.shapes]
+    all_meshes = list(rec.meshes) + [shape_mesh(sh) for sh in rec.shapes]
     mesh_lights = {l.path: l for l in rec.lights if l.kind == "mesh"}
     emitting = set()
     for i, m in enumerate(all_meshes):

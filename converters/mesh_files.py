@@ -42,6 +42,7 @@ from usdrelight.stage.create import create_stage
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.mesh_math import normal_inverse
 from usdrelight.stage.timing import frame_time
+from usdrelight.stage.shapes import shape_mesh
 from usdrelight.stage.validate import check_finite
 
 from .gltf_extras import (base_color_factors, check_readable, emissive_strengths, glb_json, glb_with_json, gltf_files,
@@ -120,11 +121,12 @@ def write_to_file(stage, path, **options) -> WriteReport:
     path = Path(path).absolute()
     rec = read_scene(stage, frame_time(stage, opts["time"]))
     warnings = Counter(rec.warnings)
-    if not rec.meshes:
+    meshes = list(rec.meshes) + [shape_mesh(sh) for sh in rec.shapes]  # gprims as meshes (a sphere: an icosphere)
+    if not meshes:
         raise UsdRelightError("the stage has no mesh to export")
     fmt = path.suffix.lower().lstrip(".")
-    for what, n in (("camera", rec.camera is not None), ("lights", len(rec.lights)), ("gprims", len(rec.shapes))):
-        if n and (what == "gprims" or fmt not in ("glb", "gltf")):  # glTF takes lights and the camera
+    for what, n in (("camera", rec.camera is not None), ("lights", len(rec.lights))):
+        if n and fmt not in ("glb", "gltf"):  # glTF takes lights and the camera
             warnings[f"{what} in a {path.suffix} file (not exported)"] += int(n)
     if fmt in ("glb", "gltf") and rec.camera is not None:
         warnings.update(cameras_left_out(stage, rec.camera, still=opts["time"] is None))
@@ -132,15 +134,15 @@ def write_to_file(stage, path, **options) -> WriteReport:
         warnings.pop(EMISSIVE_WARNING, None)  # emissiveFactor carries it
     axes = Z_UP_TO_Y_UP if rec.up_axis == "Z" else np.eye(3)  # points are metres already (read_scene)
     if fmt not in ("glb", "gltf"):
-        warnings[f"materials in a .{fmt} file (not exported)"] += len(rec.meshes)
-        if fmt == "ply" and len({m.uv is None for m in rec.meshes}) > 1:
+        warnings[f"materials in a .{fmt} file (not exported)"] += len(meshes)
+        if fmt == "ply" and len({m.uv is None for m in meshes}) > 1:
             warnings["UVs of only some meshes (one PLY vertex list: not exported)"] += 1
-        if fmt == "ply" and len({m.normals is None for m in rec.meshes}) > 1:
+        if fmt == "ply" and len({m.normals is None for m in meshes}) > 1:
             warnings["normals of only some meshes (one PLY vertex list: not exported)"] += 1
-        data = (obj_bytes if fmt == "obj" else ply_bytes)(rec.meshes, axes)
+        data = (obj_bytes if fmt == "obj" else ply_bytes)(meshes, axes)
     else:
         scene = trimesh.Scene()
-        for m in rec.meshes:
+        for m in meshes:
             visual = trimesh.visual.TextureVisuals(uv=texture_uv(m), material=pbr_material(trimesh, m.material,
                                                                                          warnings))
             # the visual goes in with the normals: assigning it later would drop the given normals from the cache

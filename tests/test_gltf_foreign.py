@@ -72,3 +72,32 @@ def test_a_second_uv_set_and_float_vertex_colours_are_warned(tmp_path):
     warnings = convert(tmp_path / "t.gltf", tmp_path / "t.usda").read_warnings
     assert warnings.get("glTF texture of texCoord 1 or above (TEXCOORD_0 used)") == 1, warnings
     assert warnings.get("glTF COLOR_0 of floats (read through 8 bits: within 0.002)") == 1, warnings
+
+
+def test_gprims_go_to_mesh_files_as_meshes(tmp_path):
+    """A Mitsuba scene's sphere and cube are Sphere / Cube gprims in USD: a .glb left them out ('gprims in a .glb
+    file (not exported)'), so they vanished. Now tessellated as Blender gets them (a sphere: an icosphere)."""
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+def Sphere "Ball" {
+    double radius = 0.5
+    double3 xformOp:translate = (2, 0, 0)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}
+def Cube "Box" {
+    double size = 1
+}
+''')
+    for suffix in (".glb", ".obj"):
+        report = convert(tmp_path / "s.usda", tmp_path / f"s{suffix}")
+        assert not any("gprims" in w for w in report.write_warnings), report.write_warnings
+        back = read_scene(convert(tmp_path / f"s{suffix}", tmp_path / f"back{suffix}.usda") and
+                          tmp_path / f"back{suffix}.usda").meshes
+        pts = np.concatenate([m.points for m in back])
+        ball = pts[pts[:, 0] > 1.0]
+        np.testing.assert_allclose(np.linalg.norm(ball - [2, 0, 0], axis=1), 0.5, rtol=1e-5)
+        box = pts[pts[:, 0] < 1.0]
+        np.testing.assert_allclose(np.abs(box).max(0), [0.5, 0.5, 0.5], rtol=1e-6)

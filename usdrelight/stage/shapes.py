@@ -1,0 +1,35 @@
+"""Gprims (Sphere, Cube, Plane records of :func:`usdrelight.stage.read.read_scene`) as triangle meshes, for the
+formats that hold only meshes (a .blend's, glTF, PLY, OBJ)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .read import ellipsoid_mesh
+from .records import MeshRecord, ShapeRecord
+
+
+def shape_mesh(shape: ShapeRecord) -> MeshRecord:
+    """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
+    :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
+    0.12% short of the sphere's)."""
+    if shape.kind == "sphere":  # an icosphere: no poles (a UV sphere's pole showed a ring in Cycles)
+        return ellipsoid_mesh(shape)
+    if shape.kind == "cube":
+        unit, faces = [], []
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                u, v = (axis + 1) % 3, (axis + 2) % 3
+                quad = np.zeros((4, 3))
+                quad[:, axis] = sign
+                quad[:, u], quad[:, v] = [-1, 1, 1, -1], [-1, -1, 1, 1]
+                k = len(unit) * 4
+                faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]] if sign > 0 else [[k, k + 2, k + 1], [k, k + 3, k + 2]]
+                unit.append(quad)
+        unit, faces = np.concatenate(unit), np.asarray(faces)
+    else:  # rectangle [-1, 1]^2 in z = 0, normal +Z
+        unit, faces = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]])
+    m = shape.to_world
+    pts = unit @ m[:3, :3].T + m[:3, 3]
+    if np.linalg.det(m[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), None, None, shape.material)
