@@ -87,17 +87,20 @@ def test_the_intrinsics_forms_still_read_alike(cli, tmp_path, k):
     assert rep["intrinsics_opencv"]["cx"] == pytest.approx(9.5) and rep["intrinsics_opencv"]["cy"] == pytest.approx(7.5)
 
 
-@pytest.mark.parametrize("fy, max_side", [(80.0, None), (40.4, None), (80.0, 20), (40.0, 21)])
-def test_non_square_pixels_are_traced_where_the_stage_camera_puts_them(cli, tmp_path, fy, max_side):
+@pytest.mark.parametrize("fy, max_side, size", [(80.0, None, (32, 48)), (404.0, None, (240, 320)),
+                                                (80.0, 20, (32, 48)), (40.0, 21, (32, 48))])
+def test_non_square_pixels_are_traced_where_the_stage_camera_puts_them(cli, tmp_path, fy, max_side, size):
     """fx 40, fy 80 (and 1% apart, as calibrations give; also at a reduced size): the stage's camera was right
     but the fast renderer
     (and so fit and relight) traced square pixels of fx: its surface landed 4 px (up to 7.5) from its pixel and
     half the pixels saw nothing. Now every pixel's hit reprojects onto its own centre (the 1/64 px nudge)."""
     from usdrelight.relight.session import RelightSession
 
-    photo = make_photo(tmp_path / "p.png", 32, 48)
-    np.save(tmp_path / "d.npy", np.full((32, 48), 2.0, np.float32))
-    (tmp_path / "k.json").write_text(json.dumps({"fx": 40.0, "fy": fy, "cx": 23.5, "cy": 15.5}))
+    h, w = size
+    photo = make_photo(tmp_path / "p.png", h, w)
+    np.save(tmp_path / "d.npy", np.full((h, w), 2.0, np.float32))
+    fx = 40.0 * w / 48
+    (tmp_path / "k.json").write_text(json.dumps({"fx": fx, "fy": fy, "cx": w / 2 - 0.5, "cy": h / 2 - 0.5}))
     assert cli("build", photo, "--depth", tmp_path / "d.npy", "--intrinsics", tmp_path / "k.json",
                "-o", tmp_path / "s")[0] == 0
     with RelightSession(tmp_path / "s" / "scene.usda", mode="render", max_side=max_side) as s:
