@@ -208,3 +208,17 @@ def test_a_photo_whose_icc_profile_is_not_srgb_is_warned(tmp_path, caplog):
             read_photo(tmp_path / name)
         warned = any("embeds the colour profile" in r.getMessage() for r in caplog.records)
         assert warned == (desc == "Display P3"), (name, caplog.text)
+
+
+def test_a_side_map_of_the_unrotated_photo_says_the_photo_is_read_upright(cli, tmp_path):
+    """A JPEG stored 20 x 16 with EXIF orientation 6 is read upright (16 x 20); a depth map made from the stored
+    pixels was refused as '20x16 but the photo is 16x20' without saying why."""
+    from PIL import Image
+
+    img = Image.fromarray((np.random.default_rng(0).random((16, 20, 3)) * 255).astype(np.uint8))
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    img.save(tmp_path / "p.jpg", exif=exif)
+    np.save(tmp_path / "d.npy", np.full((16, 20), 2.0, np.float32))
+    rc, _, err = cli("build", tmp_path / "p.jpg", "--depth", tmp_path / "d.npy", "-o", tmp_path / "o")
+    _one_error(rc, err, "is 20x16 but the photo is 16x20 (the photo is read upright, its EXIF orientation applied")

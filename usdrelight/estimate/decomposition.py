@@ -123,15 +123,11 @@ def estimate_decomposition(photo: Photo, *, albedo_file=None, shading_file=None,
     rgb = photo.rgb
     if albedo_file is not None:
         albedo = read_map(albedo_file, 3)
-        if albedo.shape[:2] != rgb.shape[:2]:
-            raise UsdRelightError(f"albedo {albedo_file} is {albedo.shape[1]}x{albedo.shape[0]} but the photo is "
-                                  f"{photo.width}x{photo.height}")
+        photo.check_size(albedo, "albedo", albedo_file)
         shading = None
         if shading_file is not None:
             shading = read_map(shading_file, 3)
-            if shading.shape[:2] != rgb.shape[:2]:
-                raise UsdRelightError(f"shading {shading_file} is {shading.shape[1]}x{shading.shape[0]} but the "
-                                      f"photo is {photo.width}x{photo.height}")
+            photo.check_size(shading, "shading", shading_file)
         for name, arr in (("albedo", albedo), ("shading", shading)):
             if arr is not None and not np.all(np.isfinite(arr)):
                 raise UsdRelightError(f"{name} map contains NaN or Inf values")

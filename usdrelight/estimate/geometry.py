@@ -42,9 +42,7 @@ FILM_DIAGONAL_MM = (36.0 ** 2 + 24.0 ** 2) ** 0.5
 
 
 def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
-    if arr.shape[:2] != (photo.height, photo.width):
-        raise UsdRelightError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]} but the photo is "
-                              f"{photo.width}x{photo.height}")
+    photo.check_size(arr, what, path)
 
 
 #: Depth (scene units) above which a pixel is invalid, like Inf: placeholder "sky" values such as 3e38 would

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import UsdRelightError
 from ..intrinsics import Intrinsics
 
 
@@ -27,6 +28,16 @@ class Photo:
     @property
     def width(self) -> int:
         return int(self.rgb.shape[1])
+
+    def check_size(self, arr: np.ndarray, what: str, path) -> None:
+        """UsdRelightError (one line) when the side file ``arr`` (H, W, ...) is not the photo's size; a map of the
+        photo's size turned a quarter says that the photo is read upright (its EXIF orientation applied)."""
+        if arr.shape[:2] == (self.height, self.width):
+            return
+        turned = " (the photo is read upright, its EXIF orientation applied: turn the map the same way)" \
+            if arr.shape[:2] == (self.width, self.height) else ""
+        raise UsdRelightError(f"{what} {path} is {arr.shape[1]}x{arr.shape[0]} but the photo is "
+                              f"{self.width}x{self.height}{turned}")
 
 
 @dataclass

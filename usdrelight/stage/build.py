@@ -113,8 +113,7 @@ def load_mask(path, photo: Photo) -> np.ndarray:
     """(H, W) bool: the mask image at ``path`` (the photo's size) non-zero (NaN is not kept; any value above 0,
     an 8-bit 1 or a soft edge's 0.01, is)."""
     m = read_map(path, 1)[..., 0]
-    if m.shape != (photo.height, photo.width):
-        raise UsdRelightError(f"mask {path} is {m.shape[1]}x{m.shape[0]} but the photo is {photo.width}x{photo.height}")
+    photo.check_size(m, "mask", path)
     return ~np.isnan(m) & (m != 0)
 
 
