@@ -173,11 +173,8 @@ def _switch_off(stage, path: str) -> None:
 def _user_path(b: dict, taken: set, kept: set) -> str:
     """Where a light the fit did not make goes: its own path when it is a light of ``lights_user.usda`` as
     written, else ``/Scene/Lights/User/<object name>``, made unique (``taken``, ``kept``: paths in use)."""
-    from pxr import Sdf
-
     path = b.get("usd_path")
-    if b.get("as_written") and _in_scope(path, USER_LIGHTS_SCOPE) and Sdf.Path.IsValidPathString(path) \
-            and path not in taken:
+    if b.get("as_written") and _in_scope(path, USER_LIGHTS_SCOPE) and path not in taken:
         taken.add(path)
         return path
     name = "".join(c if c.isalnum() else "_" for c in str(b.get("name", ""))) or "Light"

@@ -100,46 +100,51 @@ def gltf_files(doc: dict, path: Path, warnings: Counter) -> dict[str, bytes]:
     return out
 
 
-def emissive_strengths(doc: dict) -> dict[str, float]:
-    """Material name -> ``KHR_materials_emissive_strength.emissiveStrength`` (a name two materials share with
-    different strengths is left out: trimesh names materials, not indices)."""
-    out: dict[str, float] = {}
-    clash = set()
-    for mat in doc.get("materials", []) or []:
-        if not isinstance(mat, dict):
-            continue
-        ext = (mat.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}
-        strength = ext.get("emissiveStrength") if isinstance(ext, dict) else None
-        name = mat.get("name")
-        if isinstance(strength, (int, float)) and not isinstance(strength, bool) and isinstance(name, str) \
-                and math.isfinite(strength) and strength >= 0:  # (JSON's NaN, a negative one: not applied)
-            if name in out and out[name] != float(strength):
-                clash.add(name)
-            out[name] = float(strength)
-    return {k: v for k, v in out.items() if k not in clash}
-
-
-def base_color_factors(doc: dict) -> dict[str, np.ndarray]:
-    """Material name -> ``pbrMetallicRoughness.baseColorFactor`` (RGBA floats) as the file writes it: trimesh
-    keeps it in 8 bits (0.003 read as 0.0039, +31%); a name two materials share with different factors is left
-    out (trimesh names materials, not indices)."""
+def _per_material_name(doc: dict, value_of) -> dict:
+    """Material name -> ``value_of(material)`` (None: no value) over the file's materials; a name two materials
+    share with different values is left out (trimesh names materials, not indices)."""
     out: dict = {}
     clash = set()
     for mat in doc.get("materials", []) or []:
         if not isinstance(mat, dict) or not isinstance(mat.get("name"), str):
             continue
-        f = (mat.get("pbrMetallicRoughness") or {}).get("baseColorFactor") \
-            if isinstance(mat.get("pbrMetallicRoughness"), dict) else None
-        try:
-            rgba = np.asarray(f, np.float64).reshape(4) if f is not None else None
-        except (TypeError, ValueError):
-            rgba = None
-        if rgba is None or not np.all(np.isfinite(rgba)) or rgba.min() < 0:
+        value = value_of(mat)
+        if value is None:
             continue
-        if mat["name"] in out and not np.array_equal(out[mat["name"]], rgba):
+        if mat["name"] in out and not np.array_equal(out[mat["name"]], value):
             clash.add(mat["name"])
-        out[mat["name"]] = rgba
+        out[mat["name"]] = value
     return {k: v for k, v in out.items() if k not in clash}
+
+
+def _emissive_strength(mat: dict) -> float | None:
+    ext = (mat.get("extensions") or {}).get("KHR_materials_emissive_strength") or {}
+    strength = ext.get("emissiveStrength") if isinstance(ext, dict) else None
+    if isinstance(strength, (int, float)) and not isinstance(strength, bool) and math.isfinite(strength) \
+            and strength >= 0:  # (JSON's NaN, a negative one: not applied)
+        return float(strength)
+    return None
+
+
+def _base_color_factor(mat: dict) -> np.ndarray | None:
+    pbr = mat.get("pbrMetallicRoughness")
+    f = pbr.get("baseColorFactor") if isinstance(pbr, dict) else None
+    try:
+        rgba = np.asarray(f, np.float64).reshape(4) if f is not None else None
+    except (TypeError, ValueError):
+        return None
+    return rgba if rgba is not None and np.all(np.isfinite(rgba)) and rgba.min() >= 0 else None
+
+
+def emissive_strengths(doc: dict) -> dict[str, float]:
+    """Material name -> ``KHR_materials_emissive_strength.emissiveStrength`` (:func:`_per_material_name`)."""
+    return _per_material_name(doc, _emissive_strength)
+
+
+def base_color_factors(doc: dict) -> dict[str, np.ndarray]:
+    """Material name -> ``pbrMetallicRoughness.baseColorFactor`` (RGBA floats) as the file writes it: trimesh
+    keeps it in 8 bits (0.003 read as 0.0039, +31%) (:func:`_per_material_name`)."""
+    return _per_material_name(doc, _base_color_factor)
 
 
 def check_readable(doc: dict, name: str) -> None:

@@ -148,9 +148,8 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, bool]:
         raise UsdRelightError(f"cannot read image {path}: {_read_failure(oiio.geterror(), path)}")
     if pixels is None or getattr(pixels, "size", 0) == 0 or "premature" in problem.lower():
         raise UsdRelightError(f"cannot read image {path}: {_read_failure(problem or 'truncated', path)}")
-    for line in native.text.splitlines():  # a read that succeeded: what was printed meanwhile, through logging
-        if line.strip():
-            log.warning("%s", line.strip())
+    for line in native.lines():  # a read that succeeded: what was printed meanwhile, through logging
+        log.warning("%s", line)
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]

@@ -41,6 +41,10 @@ class Captured:
     def __init__(self):
         self.text = ""
 
+    def lines(self) -> list[str]:
+        """The captured text's non-empty lines, stripped (what callers pass on to logging)."""
+        return [line.strip() for line in self.text.splitlines() if line.strip()]
+
 
 @contextmanager
 def captured_stderr():

@@ -41,10 +41,6 @@ FILM_DIAGONAL_MM = (36.0 ** 2 + 24.0 ** 2) ** 0.5
 35 mm equivalent is defined by the field of view across the diagonal; ml-depth-pro reads EXIF the same way)."""
 
 
-def _check_size(arr: np.ndarray, photo: Photo, what: str, path) -> None:
-    photo.check_size(arr, what, path)
-
-
 #: Depth (scene units) above which a pixel is invalid, like Inf: placeholder "sky" values such as 3e38 would
 #: otherwise overflow the camera's clipping range (2 x the farthest depth) and float32 points.
 MAX_DEPTH = 1e15
@@ -156,13 +152,13 @@ def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrin
         geo.metric, geo.run = metric, run
     elif depth_file is not None:
         depth = read_metric_map(depth_file, 1, depth_scale, "depth map")[..., 0]
-        _check_size(depth, photo, "depth map", depth_file)
+        photo.check_size(depth, "depth map", depth_file)
         if intrinsics is None:
             intrinsics = fallback_intrinsics(photo)[0]
         geo = from_depth(depth, intrinsics, mask, source=f"depth:{Path(depth_file).name}")
     elif points_file is not None:
         pts = read_metric_map(points_file, 3, depth_scale, "point map")
-        _check_size(pts, photo, "point map", points_file)
+        photo.check_size(pts, "point map", points_file)
         geo = from_points(pts, intrinsics, mask, source=f"points:{Path(points_file).name}")
     elif model is not None:
         pts, ok, K = run_geometry_model(model, photo.rgb)

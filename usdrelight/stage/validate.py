@@ -65,9 +65,8 @@ def open_stage(path: str | Path):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise UsdRelightError(f"layer {used.GetDisplayName()} of {path.name} authors {key} {value}: it must be "
                                       f"finite and positive")
-    for line in native.text.splitlines():  # USD's own warnings while opening: through logging, like ours
-        if line.strip():
-            log.warning("USD: %s", line.strip())
+    for line in native.lines():  # USD's own warnings while opening: through logging, like ours
+        log.warning("USD: %s", line)
     return stage
 
 
@@ -89,9 +88,8 @@ def validate_stage(stage) -> list[Finding]:
     out = []
     with captured_stderr() as native:  # USD's own lines (an unresolvable asset, twice) repeat what a finding says
         errors = ctx.Validate(stage)
-    for line in native.text.splitlines():
-        if line.strip():
-            log.debug("%s", line.strip())
+    for line in native.lines():
+        log.debug("%s", line)
     for err in errors:
         if err.HasNoError():
             continue
