@@ -35,7 +35,7 @@ from .blender_materials import EMISSIVE_WARNING, material_spec
 from .blender_photo import photo_stage_payload, script_text
 from .blender_read import blender_lights, lights_layer
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
-from .blender_animation import light_keys, object_keys, scene_animation
+from .blender_animation import attribute_frames, light_keys, object_keys, scene_animation
 from .blender_units import Y_UP_TO_Z_UP, focal_length, light_to_blender, spot_blend
 from .blender_units import camera_lens as _lens
 from .report import ReadReport, WriteReport, check_options
@@ -120,8 +120,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1
         lens = stage.GetPrimAtPath(rec.camera.path)
-        codes = sorted({c for n in CAMERA_LENS_ATTRS for c in lens.GetAttribute(n).GetTimeSamples()}) \
-            if time is None and lens else []
+        codes = attribute_frames(lens, CAMERA_LENS_ATTRS) if time is None and lens else []
         if len(codes) > 1:  # a zoom: the lens keyed at the samples' time codes (linear, as USD interpolates)
             cam["lens_keys"] = [{"frame": float(c), **_lens(read_camera(stage, c),
                                                              focal_length(stage, rec.camera.path, c), rec.warnings)}

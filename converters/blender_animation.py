@@ -7,7 +7,10 @@ rotation (quaternion), and its data's energy (W), colour, spot size / blend, siz
 linear interpolation (USD's default); and at every whole frame between samples too when Blender's linear
 interpolation of those values is not USD's: a light that turns or scales (the quaternion vs USD's xform ops), or
 whose exposure (2^x), colorTemperature (a blackbody colour), colour, radius (power ~ r^2), cone or held values
-(enableColorTemperature, normalize, treatAsPoint, visibility) change. Where a held value that sets the emission
+(enableColorTemperature, normalize, treatAsPoint, visibility) change, or whose attribute holds a spline (USD's
+animation curves) that is not linear between its knots (Bezier / Hermite or held segments, extrapolation past
+its knots over the stage's range, loops: :func:`usdrelight.stage.timing.spline_motion`); a spline's knots count
+as its samples. Where a held value that sets the emission
 changes, the key before keeps the light's values (CONSTANT). A light invisible at a time code is ``hide_render``
 and ``hide_viewport`` there (held); the lights are read at every keyed time, so one invisible at the first frame
 is in the .blend too, hidden until it shows. An animated DomeLight keys the World: its colour x intensity (0 where
@@ -37,7 +40,8 @@ import numpy as np
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
-from usdrelight.stage.timing import light_time_codes, stage_fps, stage_time_range, xformable_ancestors
+from usdrelight.stage.timing import (light_time_codes, spline_motion, stage_fps, stage_time_range, value_times,
+                                    xformable_ancestors)
 
 from .blender_units import light_to_blender
 
@@ -131,16 +135,21 @@ def _light_motion(prim) -> tuple[bool, set[float], set[float]]:
     p = prim
     while p and not p.IsPseudoRoot():
         for attr in p.GetAttributes():
-            name, samples = attr.GetName(), attr.GetTimeSamples()
+            name, samples = attr.GetName(), value_times(attr)
             if len(samples) < 2 or name.startswith("xformOp:") or (p != prim and name != "visibility"):
                 continue
             if p != prim:
                 codes.update(samples)
+            alone += name in LINEAR_ALONE
+            spline = spline_motion(attr)
+            if spline is not None:  # a curve: every whole frame; a held segment: CONSTANT up to its next knot
+                steps.update(spline[1])
+                dense |= spline[0] or bool(spline[1]) or name not in LINEAR_ALONE
+                continue
             values = [attr.Get(t) for t in samples]
             held = held_stage or isinstance(values[0], (bool, int, str, Sdf.AssetPath))
             if held and name != "visibility":
                 steps.update(t for a, b, t in zip(values, values[1:], samples[1:]) if a != b)
-            alone += name in LINEAR_ALONE
             dense |= held or name not in LINEAR_ALONE
         p = p.GetParent()
     return dense or alone > 1, steps, codes
@@ -175,10 +184,22 @@ def _xform_codes(prim) -> tuple[set[float], bool]:
     curved = False
     for p in [prim] + xformable_ancestors(prim):
         for attr in p.GetAttributes():
-            if attr.GetName().startswith("xformOp:") and attr.GetNumTimeSamples():
-                codes.update(attr.GetTimeSamples())
-                curved |= not attr.GetName().startswith("xformOp:translate")
+            samples = value_times(attr) if attr.GetName().startswith("xformOp:") else ()
+            if samples:
+                codes.update(samples)
+                spline = spline_motion(attr)  # a spline (a single-axis op): linear only between linear knots
+                curved |= not attr.GetName().startswith("xformOp:translate") or \
+                    (spline is not None and (spline[0] or bool(spline[1])))
     return codes, curved
+
+
+def attribute_frames(prim, names) -> list[float]:
+    """The frames to key the attributes ``names`` of ``prim`` at (a camera's lens): their sample or knot times,
+    and every whole frame between them when one of them is a spline that is not linear between its knots."""
+    attrs = [prim.GetAttribute(n) for n in names if prim.GetAttribute(n)]
+    codes = sorted({c for a in attrs for c in value_times(a)})
+    curved = any((m := spline_motion(a)) is not None and (m[0] or bool(m[1])) for a in attrs)
+    return _key_frames(codes, curved)
 
 
 def _key_frames(codes: list[float], curved: bool) -> list[float]:

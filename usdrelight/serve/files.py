@@ -32,6 +32,7 @@ from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
+from ..stage.timing import spline_motion
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
 from .uploads import UPLOADS, hdri_label, store_upload  # noqa: F401 (store_upload: kept here too)
 
@@ -160,6 +161,8 @@ def _read_keys(prim, hdri_names: dict) -> dict | None:
     times = set()
     point = prim.GetTypeName() == "SphereLight" and prim.GetAttribute("treatAsPoint").Get()
     for attr in prim.GetAttributes():
+        if spline_motion(attr) is not None:
+            return None  # a spline (an animation curve): its keys are not the app's linear ones
         samples = attr.GetTimeSamples()
         if samples and (attr.GetName() not in KEYABLE or (attr.GetName() in SIZES and point)):
             return None  # an attribute the app does not write (a point light's radius: always 0 here)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..intrinsics import Intrinsics
-from .timing import xformable_ancestors
+from .timing import is_time_varying, xformable_ancestors
 
 SENSOR_WIDTH_MM = 36.0
 OPENCV_TO_USD = np.diag([1.0, -1.0, -1.0])
@@ -137,10 +137,10 @@ def cameras_left_out(stage, camera, still: bool, exposure_kept: bool = False) ->
     cam = stage.GetPrimAtPath(camera.path)
     if not cam:
         return out
-    if still and any(a.GetNumTimeSamples() > 1 for p in [cam] + xformable_ancestors(cam) for a in p.GetAttributes()):
+    if still and any(is_time_varying(a) for p in [cam] + xformable_ancestors(cam) for a in p.GetAttributes()):
         out["an animated camera (written at its first frame: give --time T or --frames A:B for others)"] = 1
     if not exposure_kept and camera.exposure_scale != 1.0:
         out[f"camera exposure (x{camera.exposure_scale:g} on radiance; not carried: the target has none)"] = 1
-    elif exposure_kept and any(cam.GetAttribute(n).GetNumTimeSamples() > 1 for n in EXPOSURE_ATTRS):
+    elif exposure_kept and any(is_time_varying(cam.GetAttribute(n)) for n in EXPOSURE_ATTRS):
         out["an animated camera exposure (the first frame's is kept)"] = 1
     return out

@@ -5,12 +5,17 @@ USD conventions (what usdview's timeline and Blender's, Houdini's USD exporters 
 * A light is animated by *time samples* on its attributes (``xformOp:*``, ``inputs:intensity``,
   ``inputs:exposure``, ``inputs:color``, ``inputs:colorTemperature``, ``inputs:radius``, ``inputs:angle``,
   ``inputs:shaping:cone:angle`` ...) and on ``visibility``; values between samples are interpolated (the stage's
-  interpolation type, linear by default).
+  interpolation type, linear by default). A scalar float attribute (``inputs:intensity``, ``inputs:exposure``,
+  ``inputs:radius``, ``xformOp:translateX`` ...) may instead hold a *spline* (USD 25.05 and later: knots with
+  held, linear or Bezier/Hermite segments and extrapolation beyond them, as animation packages export their
+  curves): ``Get(t)`` evaluates either, and :func:`value_times` / :func:`spline_motion` say where it changes.
 * The stage's ``startTimeCode`` / ``endTimeCode`` give the animation's range (time codes, inclusive) and
   ``framesPerSecond`` its playback rate; ``timeCodesPerSecond`` maps time codes to seconds.
 * A frame with no ``--time`` reads the stage's ``startTimeCode`` when the stage authors a time range (what
   usdview shows when it opens a stage), else ``Usd.TimeCode.EarliestTime()``: each attribute's first time sample
-  when it has any, its default value otherwise. A stage without time samples reads exactly as before.
+  when it has any, its default value otherwise (a stage holding splines: the earliest sample or knot time of
+  any attribute, which gives the same for samples and a spline's first knot value, where EarliestTime would
+  extrapolate it to infinity). A stage without time samples reads exactly as before.
 """
 from __future__ import annotations
 
@@ -102,7 +107,25 @@ def frame_time(stage, time: float | None = None):
     if time is not None:
         return Usd.TimeCode(check_time(time))
     rng = stage_time_range(stage)
-    return Usd.TimeCode(rng.start) if rng is not None else Usd.TimeCode.EarliestTime()
+    if rng is not None:
+        return Usd.TimeCode(rng.start)
+    first = _first_spline_time(stage)
+    return Usd.TimeCode.EarliestTime() if first is None else Usd.TimeCode(first)
+
+
+def _first_spline_time(stage) -> float | None:
+    """Where a stage without a range holds splines: the earliest sample or knot time of any attribute (read there,
+    a time-sampled attribute gives its first sample, as at EarliestTime, and a spline its first knot's value:
+    at EarliestTime a spline extrapolated before its first knot is infinite). None without splines."""
+    from pxr import Usd
+
+    times, spline = [], False
+    for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        for attr in prim.GetAttributes():
+            if attr.ValueMightBeTimeVarying():
+                spline |= _spline(attr) is not None
+                times.extend(value_times(attr)[:1])
+    return min(times) if spline and times else None
 
 
 def check_time(time) -> float:
@@ -172,9 +195,64 @@ def xformable_ancestors(prim) -> list:
     return out
 
 
+def _spline(attr):
+    """``attr``'s spline (a ``Ts.Spline`` with knots), or None when it holds none (or usd-core predates them)."""
+    if not attr or not getattr(attr, "HasSpline", lambda: False)():
+        return None
+    spline = attr.GetSpline()
+    return None if spline.IsEmpty() else spline
+
+
+def value_times(attr) -> list[float]:
+    """The time codes at which ``attr``'s value is authored, sorted: its time samples, or its spline's knot times;
+    a spline that changes beyond its knots (an extrapolation other than held, a loop) adds the ends of the
+    stage's authored range that lie beyond them."""
+    spline = _spline(attr)
+    if spline is None:
+        return list(attr.GetTimeSamples()) if attr else []
+    times = sorted(float(t) for t in spline.GetKnots().keys())
+    rng = stage_time_range(attr.GetStage(), sublayers=True)
+    if rng is not None and times:
+        if spline.HasLoops() or spline.GetPreExtrapolation().mode != _held():
+            times = sorted({min(rng.start, times[0])} | set(times))
+        if spline.HasLoops() or spline.GetPostExtrapolation().mode != _held():
+            times = sorted(set(times) | {max(rng.end, times[-1])})
+    return times
+
+
+def _held():
+    from pxr import Ts
+
+    return Ts.ExtrapHeld
+
+
+def spline_motion(attr) -> tuple[bool, set[float]] | None:
+    """How the spline on ``attr`` moves, for tools that key its values: (curved, steps). ``curved``: between or
+    beyond its knots it is not the linear interpolation of its knot values (a Bezier/Hermite or value-block
+    segment, a dual-valued knot, a loop, an extrapolation other than held); ``steps``: the knot times at which a
+    held segment's value changes. None when ``attr`` holds no spline."""
+    from pxr import Ts
+
+    spline = _spline(attr)
+    if spline is None:
+        return None
+    knots = [spline.GetKnots()[t] for t in sorted(spline.GetKnots().keys())]
+    steps = {float(b.GetTime()) for a, b in zip(knots, knots[1:]) if a.GetNextInterpolation() == Ts.InterpHeld}
+    curved = spline.HasLoops() or any(k.IsDualValued() for k in knots) or \
+        any(a.GetNextInterpolation() not in (Ts.InterpHeld, Ts.InterpLinear) for a in knots[:-1]) or \
+        (len(knots) > 1 and (spline.GetPreExtrapolation().mode != Ts.ExtrapHeld or
+                             spline.GetPostExtrapolation().mode != Ts.ExtrapHeld))
+    return bool(curved), steps
+
+
+def is_time_varying(attr) -> bool:
+    """Whether ``attr`` holds more than one time sample or a spline of more than one knot."""
+    return len(value_times(attr)) > 1
+
+
 def light_time_codes(stage) -> list[float]:
-    """Every time code at which any light attribute or transform of ``stage`` has a sample, sorted (for
-    tools that key what a stage authors, e.g. the Blender converter)."""
+    """Every time code at which any light attribute or transform of ``stage`` has a sample or a spline knot
+    (:func:`value_times`), sorted (for tools that key what a stage authors, e.g. the Blender converter)."""
     from pxr import UsdGeom, UsdLux
 
     codes: set[float] = set()
@@ -184,13 +262,27 @@ def light_time_codes(stage) -> list[float]:
             continue
         for p in [prim] + xformable_ancestors(prim):
             for attr in p.GetAttributes():
-                codes.update(attr.GetTimeSamples())
+                codes.update(value_times(attr))
         parent = prim.GetParent()  # a Scope above transforms nothing, but its visibility hides what is below
         while parent and not parent.IsPseudoRoot():
             if not parent.IsA(UsdGeom.Xformable) and parent.IsA(UsdGeom.Imageable):
                 codes.update(UsdGeom.Imageable(parent).GetVisibilityAttr().GetTimeSamples())
             parent = parent.GetParent()
     return sorted(codes)
+
+
+def _layer_has_spline(layer) -> bool:
+    """Whether any attribute spec of the Sdf ``layer`` holds a spline."""
+    found = []
+
+    def visit(path):
+        if not found and path.IsPropertyPath():
+            spec = layer.GetAttributeAtPath(path)
+            if spec is not None and getattr(spec, "HasSpline", lambda: False)():
+                found.append(path)
+
+    layer.Traverse("/", visit)
+    return bool(found)
 
 
 def rescaled_layers(stage) -> list[str]:
@@ -203,7 +295,7 @@ def rescaled_layers(stage) -> list[str]:
         # USD's effective rate of a layer: timeCodesPerSecond, else framesPerSecond, else 24
         own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else \
             layer.framesPerSecond if layer.HasFramesPerSecond() else 24.0
-        if float(own) != tcps and layer.ListAllTimeSamples():
+        if float(own) != tcps and (layer.ListAllTimeSamples() or _layer_has_spline(layer)):
             out.append(f"layer {layer.GetDisplayName()} has {own:g} time codes per second, the stage {tcps:g} "
                        f"(USD reads its time samples scaled by {tcps / own:g})")
     return out
