@@ -116,6 +116,9 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         cam = {"name": rec.camera.path.strip("/").replace("/", "_") or "Camera", "usd_path": rec.camera.path,
                **_lens(rec.camera, focal_length(stage, rec.camera.path, t0), rec.warnings),
                "matrix": (conv @ rec.camera.to_world).tolist()}
+        if rec.camera.aperture_radius > 0:  # Cycles' thin lens: radius = lens (mm) / 1000 / (2 f-number)
+            cam["dof"] = {"fstop": cam["lens"] * 1e-3 / (2.0 * rec.camera.aperture_radius),
+                          "focus_distance": rec.camera.focus_distance}
         k = rec.camera.intrinsics
         if abs(k.fx - k.fy) > 1e-6 * k.fx:
             rec.warnings["non-square pixels (Blender camera uses fx)"] += 1

@@ -1,7 +1,7 @@
 """Parsed Mitsuba objects -> a USD stage: shapes (meshes loaded by Mitsuba itself, so their conventions are
 Mitsuba's; ``flip_normals`` as reversed winding and negated normals), emitters as UsdLux lights (area emitters:
-:mod:`.area_lights`), perspective sensors as cameras, the first with RenderSettings (Mitsuba renders
-``scene.sensors()[0]``).
+:mod:`.area_lights`), perspective and thinlens sensors as cameras (a thin lens as fStop and focusDistance), the
+first with RenderSettings (Mitsuba renders ``scene.sensors()[0]``).
 
 Frames and units as in :mod:`usdrelight.mitsuba.scene_dict` (FLIP_Z, CAMERA_FLIP) and
 :mod:`usdrelight.stage.lux`. What USD cannot hold is named in one warning per kind and, where useful for a
@@ -249,7 +249,7 @@ class UsdBuilder(AreaLights):
     def sensor(self, p: Plugin) -> None:
         from pxr import UsdGeom
 
-        if p.type != "perspective":
+        if p.type not in ("perspective", "thinlens"):
             self.warnings[f"sensor type '{p.type}' (converted as perspective)"] += 1
         film = next((c for c in p.children if c.tag == "film"), None)
         fp = film.props if film else {}
@@ -266,8 +266,16 @@ class UsdBuilder(AreaLights):
             raise UsdRelightError(f"<film>: crop window {cw} x {ch} at ({ox}, {oy}) is not inside the {W} x {H} film")
         intr = Intrinsics(f, f, cx - ox, cy - oy, cw, ch)
         cam = UsdGeom.Camera.Define(self.stage, self.unique(ROOT, p.id or "Camera"))
-        author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), float(p.props.get("far_clip", 1e4)),
-                          focal_mm)
+        far = float(p.props.get("far_clip", 1e4))
+        params = author_usd_camera(cam, intr, float(p.props.get("near_clip", 0.01)), far, focal_mm)
+        if p.type == "thinlens":  # a thin lens of focalLength mm: fStop = focal length / aperture diameter
+            radius, focus = float(p.props.get("aperture_radius", 0.0)), float(p.props.get("focus_distance", far))
+            if not (math.isfinite(radius) and radius >= 0 and math.isfinite(focus) and focus > 0):
+                raise UsdRelightError(f"<sensor type=\"thinlens\">: aperture_radius must be >= 0 and focus_distance "
+                                      f"> 0, got {radius:g} and {focus:g}")
+            if radius > 0:
+                cam.CreateFStopAttr(float(params["focalLength"]) * 1e-3 / (2.0 * radius))
+                cam.CreateFocusDistanceAttr(focus)
         self.set_xform(cam.GetPrim(), p.props.get("to_world", np.eye(4)) @ CAMERA_FLIP)
         if self.settings is not None:  # Mitsuba renders the first <sensor> (scene.sensors()[0]): it keeps the settings
             self.warnings["more than one <sensor> (the first is the RenderSettings camera, as Mitsuba renders it; the "

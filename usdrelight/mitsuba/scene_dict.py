@@ -200,9 +200,16 @@ def sensor_dict(scene: SceneRecord, spp: int = 16, rfilter: str = "box", warning
     k = cam.intrinsics
     if abs(k.fx - k.fy) > 1e-6 * k.fx and warnings is not None:
         warnings["non-square pixels (Mitsuba renders square pixels; fx used)"] += 1
+    lens = {"type": "perspective", "principal_point_offset_x": 0.5 - k.cx / k.width,
+            "principal_point_offset_y": 0.5 - k.cy / k.height}
+    if cam.aperture_radius > 0:  # Mitsuba's thinlens has no principal point offset
+        if max(abs(k.cx - k.width / 2), abs(k.cy - k.height / 2)) <= 1e-4:
+            lens = {"type": "thinlens", "aperture_radius": cam.aperture_radius, "focus_distance": cam.focus_distance}
+        elif warnings is not None:
+            warnings["depth of field with an off-centre principal point (Mitsuba renders a pinhole: its thinlens "
+                     "has no principal point offset)"] += 1
     return {
-        "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
-        "principal_point_offset_x": 0.5 - k.cx / k.width, "principal_point_offset_y": 0.5 - k.cy / k.height,
+        **lens, "fov_axis": "x", "fov": math.degrees(2 * math.atan(k.width / (2 * k.fx))),
         "near_clip": cam.near, "far_clip": cam.far, "to_world": Matrix(_unscaled(cam.to_world) @ CAMERA_FLIP),
         "film": {"type": "hdrfilm", "width": k.width, "height": k.height, "rfilter": {"type": rfilter},
                  "pixel_format": "rgb"},

@@ -18,6 +18,8 @@ pixel aspect (no aperture conforming ever happens).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..errors import UsdRelightError
@@ -144,3 +146,29 @@ def cameras_left_out(stage, camera, still: bool, exposure_kept: bool = False) ->
     elif exposure_kept and any(is_time_varying(cam.GetAttribute(n)) for n in EXPOSURE_ATTRS):
         out["an animated camera exposure (the first frame's is kept)"] = 1
     return out
+
+
+#: Said where a camera's depth of field is read (Mitsuba's thinlens and Blender render it).
+DOF_WARNING = ("camera depth of field (fStop > 0): rendered by Mitsuba (render, XML) and Blender; the fast renderer "
+               "(fit, relight, serve) and glTF/PLY/OBJ keep a pinhole, all in focus")
+
+
+def depth_of_field(cam, t, mpu: float, warnings) -> tuple[float, float]:
+    """(aperture radius, focus distance), metres, of the ``UsdGeom.Camera`` ``cam`` at ``t``: a thin lens of
+    focalLength mm (millimetres, as Blender's, Houdini's and 3ds Max's exporters write it, whatever the stage's
+    unit; the schema's "tenths of a stage unit" agree in a centimetre stage) at f-number fStop, focused at
+    focusDistance (stage units). (0, 0) for fStop 0 (a pinhole, USD's fallback); also for an fStop without a
+    positive focusDistance (warned: USD gives no focus then)."""
+    f_stop = float(cam.GetFStopAttr().Get(t) or 0.0)
+    if f_stop == 0.0:
+        return 0.0, 0.0
+    focus = float(cam.GetFocusDistanceAttr().Get(t) or 0.0)
+    focal = float(cam.GetFocalLengthAttr().Get(t))
+    if not (math.isfinite(f_stop) and f_stop > 0):
+        raise UsdRelightError(f"camera {cam.GetPath()}: fStop must be 0 (no depth of field) or a finite positive "
+                              f"f-number, got {f_stop:g}")
+    if not (math.isfinite(focus) and focus > 0):
+        warnings["camera fStop > 0 without a positive focusDistance (rendered all in focus)"] += 1
+        return 0.0, 0.0
+    warnings[DOF_WARNING] += 1
+    return focal * 1e-3 / (2.0 * f_stop), focus * mpu

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import check_resolution
-from .camera import CONFORM_POLICIES, check_clipping, intrinsics_from_usd_camera
+from .camera import CONFORM_POLICIES, check_clipping, depth_of_field, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
 from .lux import uniform_scale
 from .read_lux import read_light
@@ -154,8 +154,6 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
     cam = UsdGeom.Camera(cam_prim)
     if cam.GetProjectionAttr().Get(t) != UsdGeom.Tokens.perspective:
         warnings["orthographic camera (rendered as perspective)"] += 1
-    if float(cam.GetFStopAttr().Get(t) or 0.0) > 0.0:
-        warnings["camera fStop > 0: depth of field (rendered as a pinhole, all in focus)"] += 1
     if len(cam.GetClippingPlanesAttr().Get(t) or ()):
         warnings["camera clippingPlanes (not applied: only the near/far clipping range is)"] += 1
     ha, va = float(cam.GetHorizontalApertureAttr().Get(t)), float(cam.GetVerticalApertureAttr().Get(t))
@@ -184,7 +182,8 @@ def _read_camera(cam_prim, resolution, xcache, t, warnings, mpu: float = 1.0,
     if not (math.isfinite(exposure) and exposure > 0):
         raise UsdRelightError(f"camera {cam_prim.GetPath()}: its exposure attributes must give a finite, positive "
                               f"scale (got {exposure:g})")
-    return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far), exposure), resolution
+    lens = depth_of_field(cam, t, mpu, warnings)
+    return CameraRecord(str(cam_prim.GetPath()), intr, xf, float(near), float(far), exposure, *lens), resolution
 
 
 def _camera_frame(xf: np.ndarray, path: str) -> np.ndarray:

@@ -206,6 +206,12 @@ class CameraRecord:
     """The camera's exposure as a linear factor on radiance (``UsdGeom.Camera.ComputeLinearExposureScale``:
     2^exposure x exposure:time x exposure:iso / 100 / exposure:fStop^2 x exposure:responsivity; 1 by default), as
     a USD renderer applies it to the colour it writes."""
+    aperture_radius: float = 0.0
+    """Radius of the thin lens's aperture, metres: USD focalLength (read as millimetres, as DCC exporters write
+    it) / 1000 / (2 fStop); 0 for a pinhole (fStop 0, USD's fallback: no depth of field)."""
+    focus_distance: float = 0.0
+    """Distance from the camera to the plane in focus, metres (USD focusDistance x metersPerUnit); used only where
+    ``aperture_radius`` > 0."""
 
     def limited(self, max_side: int | None) -> "CameraRecord":
         """The same camera rendering at most ``max_side`` pixels on the longer side (see Intrinsics.limited)."""
