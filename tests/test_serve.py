@@ -32,7 +32,8 @@ from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.read import read_scene
 from usdrelight.stage.records import FitProvenance, PointLightValue
 from usdrelight.stage.validate import open_stage
-from usdrelight.serve.files import read_user_states, store_upload, write_user_layer
+from usdrelight.serve.files import read_user_states, store_upload
+from usdrelight.serve.saving import write_user_layer
 from usdrelight.serve.state import (LightState, color_from_picker, from_record, picker_from_color,
                                     quat_pointing_along, to_record)
 

@@ -30,7 +30,8 @@ from websockets.http11 import Request  # noqa: E402
 from test_serve import CHROMIUM, SIDE, _hdri, base_stage, stage  # noqa: E402,F401 (fixtures)
 from usdrelight.errors import UsdRelightError  # noqa: E402
 from usdrelight.serve.app import ServeApp  # noqa: E402
-from usdrelight.serve.files import read_user_states, store_upload, write_user_layer  # noqa: E402
+from usdrelight.serve.files import read_user_states, store_upload  # noqa: E402
+from usdrelight.serve.saving import write_user_layer  # noqa: E402
 from usdrelight.serve.guard import UPLOAD_PART, UPLOAD_START, Guard, guarded  # noqa: E402
 from usdrelight.serve.state import LightState  # noqa: E402
 from usdrelight.serve import uploads  # noqa: E402

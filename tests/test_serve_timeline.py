@@ -15,7 +15,9 @@ from test_serve import SIDE, app_page, base_stage, position_inputs, stage  # noq
 from usdrelight.stage.layout import USER_LIGHTS
 from usdrelight.stage.read import read_lights
 from usdrelight.stage.validate import open_stage
-from usdrelight.serve.files import read_user_states, write_user_layer
+from usdrelight.errors import UsdRelightError
+from usdrelight.serve.files import read_user_states
+from usdrelight.serve.saving import write_user_layer
 from usdrelight.serve.live import LiveRelight
 from usdrelight.serve.state import LightState, quat_pointing_along
 from usdrelight.serve.timeline import DEFAULT_RANGE, Timeline
@@ -274,6 +276,10 @@ def test_app_adds_keys_and_saves_an_area_light(stage):
         fields = app.gui._fields
         fields["height"].value = 1e9  # beyond the slider: clamped to its top
         assert app.states[name].height == pytest.approx(app.gui._ranges["height"][1][1])
+        with pytest.raises(UsdRelightError, match=f"{name} changed at frame 6 without a key"):
+            app.save()  # Save writes a keyed light from its keys: the new height would be lost, and nothing is
+        assert "RectLight" not in (stage.parent / USER_LIGHTS).read_text()  # written
+        tg.frame.value = 1.0  # another frame drops the change
         app.save()
     layer = (stage.parent / USER_LIGHTS).read_text()
     assert "RectLight" in layer and "float inputs:width.timeSamples" in layer

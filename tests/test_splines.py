@@ -148,7 +148,8 @@ def test_relight_follows_the_curve_and_the_web_app_keeps_it(spline_stage, tmp_pa
     the web app lists the light as one it does not edit and its Save writes the spline back unchanged."""
     from pxr import Sdf
 
-    from usdrelight.serve.files import read_user_states, write_user_layer
+    from usdrelight.serve.files import read_user_states
+    from usdrelight.serve.saving import write_user_layer
 
     res = cli.json("relight", spline_stage, "--frames", "1:7:3", "--mode", "render", "--max-side", "64",
                    "-o", tmp_path / "frames")

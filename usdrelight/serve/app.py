@@ -32,7 +32,8 @@ from ..errors import UsdRelightError
 from ..stage.light_syntax import MAX_SIZE, MIN_SIZE
 from ..stage.usdz import refuse_usdz
 from ..stage.validate import open_stage
-from .files import export_relit, read_user_states, user_layer_names, write_user_layer
+from .files import export_relit, read_user_states, user_layer_names, user_spec_texts
+from .saving import SAVE_WAIT, baseline_of, save_lights  # noqa: F401 (SAVE_WAIT: this module's API)
 from .guard import Guard, guarded
 from .gui import DIMMER, DISPLAY_EXPOSURE, SPLIT, Gui, clamp, finite
 from .live import APP_MODES, FrameLoop, LightSet, LiveRelight, check_servable, split_view, to_display
@@ -44,9 +45,6 @@ from .uploads import MAX_UPLOAD_BYTES, UploadGate, store_upload
 log = logging.getLogger(__name__)
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
-SAVE_WAIT = 10.0
-"""Seconds a save waits for another writer of the stage (another process holding its lock)."""
-
 
 def _import_viser():
     try:
@@ -105,6 +103,8 @@ class ServeApp:
         names = {str(p): n for n, p in self.hdris.items()}
         keys = {}
         states, others = read_user_states(stage, names, keys)
+        self.baseline = baseline_of(states, keys)  # what Save compares with (saving.changed_names)
+        self.on_disk = user_spec_texts(self.stage_dir, self.baseline)  # the file's specs as read
         for path, label in names.items():
             if label not in self.hdris:
                 self.hdris[label] = Path(path)
@@ -322,18 +322,9 @@ class ServeApp:
 
     # ---- files ---------------------------------------------------------------------------------
     def save(self) -> Path:
-        """Write the editable lights to lights_user.usda (only that file, atomically). Saves of this app run
-        one at a time; one waits up to :data:`SAVE_WAIT` s for another process writing the stage."""
-        with self._save_lock:
-            with self._lock:
-                states, managed = list(self.states.values()), set(self.managed)
-            if clash := ({s.name for s in states} - managed) & user_layer_names(self.stage_dir):  # a user's, meanwhile
-                raise UsdRelightError(f"lights_user.usda gained {', '.join(sorted(clash))} while the app ran: rename")
-            path = write_user_layer(self.stage_dir, states, managed, self.hdris, wait=SAVE_WAIT,
-                                    keys=self.timeline.snapshot(), timing=self.timeline.timing())
-            with self._lock:
-                self.managed = managed | {s.name for s in states}
-            return path
+        """Write the lights changed since the app read or saved them to lights_user.usda (:mod:`.saving`)."""
+        with self._save_lock:  # saves from several tabs run one after the other
+            return save_lights(self, self._lock)
 
     def export(self) -> tuple[Path, Path]:
         """The relit photo at full resolution -> STAGE_DIR/serve/export/relit.exr + relit.png."""

@@ -19,20 +19,18 @@ gives the keys again: one per time code at which any of the light's attributes h
 """
 from __future__ import annotations
 
-import contextlib
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
 
-from ..atomic import LOCK_NAME, stage_lock, write_text_atomic
 from ..errors import UsdRelightError, one_line
 from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
 from ..stage.timing import spline_motion
+from .opinions import only_app_opinions, spec_texts
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
 from .uploads import UPLOADS, hdri_label, store_upload  # noqa: F401 (store_upload: kept here too)
 
@@ -199,6 +197,10 @@ def read_user_states(stage, hdri_names: dict, keys: dict | None = None) -> tuple
                 keys[state.name] = animation
         elif animation is not None:
             state = read_state(prim, hdri_names)
+        if state is not None and not only_app_opinions(prim):
+            state = None  # Save would drop what the app does not write: kept as it is
+            if keys is not None:
+                keys.pop(prim.GetName(), None)
         (states.append(state) if state is not None else others.append(str(prim.GetPath())))
     return states, others
 
@@ -295,6 +297,11 @@ def _user_layer(stage_dir):
     return layer
 
 
+def user_spec_texts(stage_dir, names) -> dict[str, str | None]:
+    """:func:`.opinions.spec_texts` of the lights ``names`` in ``STAGE_DIR/lights_user.usda`` as it is now."""
+    return spec_texts(_user_layer(stage_dir), USER_LIGHTS_SCOPE, names)
+
+
 def user_layer_names(stage_dir, strict: bool = True) -> set[str]:
     """Names of the prims under /Scene/Lights/User in ``STAGE_DIR/lights_user.usda`` as the file is now (a file
     that does not parse: UsdRelightError, or none with ``strict`` False)."""
@@ -309,16 +316,32 @@ def user_layer_names(stage_dir, strict: bool = True) -> set[str]:
 
 
 def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = None, keys: dict | None = None,
-                    timing: dict | None = None) -> str:
+                    timing: dict | None = None, expected: dict | None = None) -> str:
     """The new text of ``STAGE_DIR/lights_user.usda``: the current layer with the prims named in ``managed``
     and ``states`` under /Scene/Lights/User replaced by ``states`` (animated by ``keys``: {name: {time code:
-    state}}). ``timing`` ({"start", "end", "fps", "tcps"}) sets the layer's startTimeCode/endTimeCode,
-    framesPerSecond and timeCodesPerSecond (the stage's, so USD does not rescale the layer's time samples)."""
+    state}}, stage time codes). ``timing`` ({"start", "end", "fps", "tcps", "edited"}: the stage's time codes and
+    rates) sets the layer's startTimeCode/endTimeCode (where it has none, or ``edited``), framesPerSecond and
+    timeCodesPerSecond (the stage's, so USD does not rescale the layer's time samples; a layer that authors
+    another rate keeps it, the range and keys written in its own time codes). ``expected`` ({name: spec text or
+    None}, :func:`.opinions.spec_texts`): what the file held of those lights when the app read or saved them;
+    one that differs now (another app or tool wrote it) is an error, and nothing is written."""
     from pxr import Sdf, Usd, UsdGeom
 
     stage_dir = Path(stage_dir).resolve()
     path = stage_dir / USER_LIGHTS
     layer = _user_layer(stage_dir)
+    if expected:
+        now = spec_texts(layer, USER_LIGHTS_SCOPE, expected)
+        moved = sorted(n for n in expected if now[n] != expected[n])
+        if moved:
+            raise UsdRelightError(f"{USER_LIGHTS} changed {', '.join(moved)} on disk while the app ran (another app "
+                                  f"or tool saved it): restart the app to edit the file as it is now")
+    scale = 1.0
+    if timing and (layer.HasTimeCodesPerSecond() or layer.HasFramesPerSecond()):
+        own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else layer.framesPerSecond
+        scale = float(own) / float(timing["tcps"])  # stage time code -> this layer's (USD maps the other way)
+    if scale != 1.0:
+        keys = {n: {t * scale: k for t, k in ks.items()} for n, ks in (keys or {}).items()}
     if not layer.documentation:
         layer.documentation = "Your own lights: put them under /Scene/Lights/User."
     edit = Sdf.BatchNamespaceEdit()
@@ -337,50 +360,11 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
         UsdGeom.Scope.Define(stage, USER_LIGHTS_SCOPE)
     for s in states:
         author_light(stage, s, stage_dir, hdri_paths or {}, (keys or {}).get(s.name))
-    if timing:
-        layer.startTimeCode, layer.endTimeCode = timing["start"], timing["end"]
+    if timing and (timing.get("edited") or not (layer.HasStartTimeCode() and layer.HasEndTimeCode())):
+        layer.startTimeCode, layer.endTimeCode = timing["start"] * scale, timing["end"] * scale
+    if timing and scale == 1.0:
         layer.timeCodesPerSecond, layer.framesPerSecond = timing["tcps"], timing["fps"]
     root = layer.GetPrimAtPath(ROOT)
     if not had_root_def:
         root.specifier = Sdf.SpecifierOver  # /Scene is defined by scene.usda; this layer only adds to it
     return layer.ExportToString()
-
-
-@contextlib.contextmanager
-def _locked(folder: Path, wait: float):
-    """:func:`usdrelight.atomic.stage_lock` of ``folder``, retried for up to ``wait`` seconds while another
-    writer (a process, or another thread of this one) holds it."""
-    end, misses = time.monotonic() + wait, 0
-    with contextlib.ExitStack() as stack:
-        while True:
-            try:
-                stack.enter_context(stage_lock(folder))
-                break
-            except UsdRelightError:
-                if time.monotonic() >= end:
-                    raise
-                if not (folder / LOCK_NAME).exists():  # released meanwhile, or not a lock at all (permissions)
-                    misses += 1
-                    if misses > 3:
-                        raise
-                    continue
-                misses = 0
-            time.sleep(0.05)
-        yield
-
-
-def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None, wait: float = 0.0,
-                     keys: dict | None = None, timing: dict | None = None) -> Path:
-    """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`user_layer_text`); only that file. The
-    stage lock is taken first (every stage writer holds it), waiting up to ``wait`` seconds for another
-    writer ("stage ... is being written by PID N" after that)."""
-    target = Path(stage_dir).resolve() / USER_LIGHTS
-    from pxr import Sdf
-
-    with _locked(target.parent, wait):  # read, edit and replace under the lock: no other writer's change is lost
-        write_text_atomic(target, user_layer_text(stage_dir, states, managed, hdri_paths, keys, timing))
-        cached = Sdf.Layer.Find(str(target))
-        if cached is not None:  # a stage open in this process sees the new file
-            cached.Reload(force=True)
-    log.info("saved %d light(s) to %s", len(states), target)
-    return target

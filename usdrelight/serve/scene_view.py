@@ -182,6 +182,6 @@ class SceneView:
     def remove_light(self, name: str) -> None:
         h = self.handles.pop(name, None)
         if h:
-            for node in h.values():
+            for node in reversed(list(h.values())):  # the markers before their gizmo, which removes its children
                 if hasattr(node, "remove"):
                     node.remove()

@@ -9,8 +9,9 @@ key) and read back at that time (:func:`.files.read_state`), so the app shows th
 ``usdrelight relight --frames`` and every other USD tool compute (linear; slerp for the rotation; on/off and the
 HDRI held from the key before). Changing a keyed light without "Set key" lasts until the frame changes.
 
-Range at start: ``lights_user.usda``'s own startTimeCode/endTimeCode (what the app saved last), else the stage's,
-else :data:`DEFAULT_RANGE`; the playback rate is the stage's framesPerSecond. Save writes the range into
+Range at start: ``lights_user.usda``'s own startTimeCode/endTimeCode (what the app saved last) or those of a layer
+sublayered into it, mapped to the stage's time codes by their timeCodesPerSecond as USD maps their samples (and
+rounded to whole frames), else the stage's, else :data:`DEFAULT_RANGE`; the playback rate is the stage's framesPerSecond. Save writes the range into
 ``lights_user.usda`` (once a light is keyed or the range was edited) with the stage's framesPerSecond and
 timeCodesPerSecond: USD uses a sublayer's start/end only when that layer is opened alone (the composed stage
 takes its root layer's), and a sublayer whose timeCodesPerSecond differs from the stage's would have its samples
@@ -32,7 +33,7 @@ from pathlib import Path
 from ..errors import UsdRelightError
 from ..relight.video import Mp4Writer
 from ..stage.layout import USER_LIGHTS
-from ..stage.timing import MAX_FRAMES, stage_fps, stage_time_range
+from ..stage.timing import MAX_FRAMES, layer_range, stage_fps, stage_time_range
 from .files import author_light, read_state, video_path
 from .gui import finite
 
@@ -62,8 +63,9 @@ def start_range(stage, stage_dir) -> tuple[float, float]:
     path = Path(stage_dir) / USER_LIGHTS
     layer = Sdf.Layer.FindOrOpen(str(path)) if path.is_file() else None
     try:
-        if layer is not None and layer.HasStartTimeCode() and layer.HasEndTimeCode():
-            return check_range(layer.startTimeCode, layer.endTimeCode)
+        found = layer_range(stage, layer) if layer is not None else None
+        if found is not None:  # its own or a sublayer's, in the stage's time codes (as USD maps its samples)
+            return check_range(*found)
         rng = stage_time_range(stage)
         if rng is not None:
             return check_range(rng.start, rng.end)
@@ -167,7 +169,7 @@ class Timeline:
         """What Save writes as the layer's time metadata (None: nothing, no light keyed and the range as read)."""
         if not (self.snapshot() or self.range_edited):
             return None
-        return {"start": self.start, "end": self.end, "fps": self.fps, "tcps": self.tcps}
+        return {"start": self.start, "end": self.end, "fps": self.fps, "tcps": self.tcps, "edited": self.range_edited}
 
 
 def render_video(app, progress=None) -> Path:

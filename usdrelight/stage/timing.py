@@ -20,6 +20,7 @@ USD conventions (what usdview's timeline and Blender's, Houdini's USD exporters 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 from ..errors import UsdRelightError
@@ -72,6 +73,39 @@ def _sublayer_range(parent, parent_tcps: float, shift: float, scale: float, seen
         if layer.HasStartTimeCode() and layer.HasEndTimeCode():
             return d + s * float(layer.startTimeCode), d + s * float(layer.endTimeCode)
         found = _sublayer_range(layer, tcps, d, s, seen)
+        if found is not None:
+            return found
+    return None
+
+
+def layer_range(stage, layer) -> tuple[float, float] | None:
+    """(start, end) in ``stage``'s time codes of the Sdf ``layer`` (a layer of its root layer stack, at any depth)
+    or, where it authors none, of the strongest layer sublayered into it that does; None when neither does."""
+    found = _find_layer(stage.GetRootLayer(), os.path.realpath(layer.realPath), float(stage.GetTimeCodesPerSecond()),
+                        0.0, 1.0, set())
+    if found is None:
+        return None
+    tcps, shift, scale = found
+    if layer.HasStartTimeCode() and layer.HasEndTimeCode():
+        return shift + scale * float(layer.startTimeCode), shift + scale * float(layer.endTimeCode)
+    return _sublayer_range(layer, tcps, shift, scale, set())
+
+
+def _find_layer(parent, real: str, parent_tcps: float, shift: float, scale: float, seen: set):
+    """(timeCodesPerSecond, shift, scale) of the layer at the real path ``real`` under ``parent`` (as :func:`_sublayer_range`
+    maps a sublayer's time codes to the stage's), or None."""
+    from pxr import Sdf
+
+    for path, offset in zip(parent.subLayerPaths, parent.subLayerOffsets):
+        layer = Sdf.Layer.FindOrOpenRelativeToLayer(parent, path)
+        if layer is None or layer.identifier in seen:
+            continue
+        seen.add(layer.identifier)
+        tcps = float(layer.timeCodesPerSecond)
+        s, d = scale * offset.scale * parent_tcps / tcps, shift + scale * offset.offset
+        if layer.realPath and os.path.realpath(layer.realPath) == real:
+            return tcps, d, s
+        found = _find_layer(layer, real, tcps, d, s, seen)
         if found is not None:
             return found
     return None
