@@ -63,9 +63,7 @@ def _lux_warnings(light, warnings) -> None:
         warnings["SphereLight under a non-uniform scale (Cycles: a sphere of the geometric-mean radius)"] += 1
     if light.kind == "rect" and light.texture is not None:
         warnings["RectLight texture (Cycles: a uniform area light of the texture's mean radiance, same power)"] += 1
-    if light.cone_angle_deg is not None and light.kind != "sphere":
-        warnings["ShapingAPI on a disk, rect, distant, dome or mesh light in the Blender converter (ignored)"] += 1
-    elif light.cone_angle_deg is not None and light.cone_softness > 0.5 and \
+    if light.cone_angle_deg is not None and light.kind == "sphere" and light.cone_softness > 0.5 and \
             spot_blend(math.radians(min(light.cone_angle_deg, 90.0)), light.cone_softness) > 1 - 1e-6:
         warnings["ShapingAPI coneSoftness above what Cycles' softest spot_blend (1) sends (0.61 for a 20 deg cone, "
                  "0.67 at 80 deg): more light than UsdLux's fade, up to 1.6x at softness 1"] += 1

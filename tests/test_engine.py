@@ -411,3 +411,24 @@ def test_relight_area_samples_option_is_the_renderers_count(cli, procedural, tmp
         rc, _, err = cli("relight", procedural, "--light", spec, *bad, "-o", out)
         assert rc == 2 and len(err.strip().splitlines()) == 1 and words in err, (bad, err)
         assert not out.exists()
+
+
+def test_a_rect_rounded_to_float32_renders_as_the_rect(proc_renderer):
+    """A rect light's frame as a float32 rotation carries it (a DCC export, a .blend round trip): its axes are
+    orthogonal to 1e-8, not 1e-9, and the renderer left its solid-angle sampler for area sampling (3.5% darker
+    at 16 rays, up to 9% at a pixel); a real shear still goes to area sampling."""
+    from dataclasses import replace as _replace
+
+    from usdrelight.engine.lights import SHEAR_TOL
+
+    _, fr = proc_renderer
+    light = AREA_RECORDS["rect"]
+    rounded = light.to_world.copy()
+    ax, ay = rounded[:3, 0].copy(), rounded[:3, 1]
+    rounded[:3, 0] += 3e-8 * np.linalg.norm(ax) * ay / np.linalg.norm(ay)  # cos between the axes 3e-8
+    a, b = fr.render([light]).beauty, fr.render([_replace(light, to_world=rounded)]).beauty
+    assert np.abs(a - b).max() < 1e-4 * a.max(), np.abs(a - b).max() / a.max()
+    sheared = light.to_world.copy()
+    sheared[:3, 1] += 10 * SHEAR_TOL * np.linalg.norm(sheared[:3, 1]) * sheared[:3, 0] / np.linalg.norm(sheared[:3, 0])
+    c = fr.render([_replace(light, to_world=sheared)]).beauty
+    assert np.abs(c - a).max() > 10 * np.abs(a - b).max()  # the other sampler: another pattern

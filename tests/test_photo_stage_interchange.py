@@ -150,3 +150,57 @@ def test_mitsuba_user_gets_the_relit_photo_from_a_render_of_the_xml(photo_stage)
     print(f"Mitsuba ratio vs relight --mode ratio: mean {got.mean() / ref.mean():.4f}, PSNR {psnr(got, ref):.1f} dB")
     assert got.mean() == pytest.approx(ref.mean(), rel=0.03)
     assert psnr(got, ref) >= 35
+
+
+def test_a_shot_layer_and_the_xml_round_trip_keep_emitters_hidden(photo_stage, tmp_path, cli):
+    """A shot layer that sublayers scene.usda carries no renderSettingsPrimPath (USD reads stage metadata from
+    the root layer only): its RenderSettings, the one every reader takes, still hides emitters (before: the
+    setting was read only through the metadata, so render and .blend showed the lights while relight hid them);
+    scene.xml read back into USD keeps it (before: only in customData, so the stage rendered its emitters)."""
+    shot = photo_stage["stage"].parent / "shot.usda"  # beside scene.usda, as a TD's shot layer sits
+    shot.write_text('#usda 1.0\n(\n    subLayers = [@./scene.usda@]\n)\n')
+    assert hides_emitters(open_stage(shot))
+    cli.json("convert", shot, tmp_path / "shot.xml")
+    assert '<boolean name="hide_emitters" value="true" />' in (tmp_path / "shot.xml").read_text()
+    cli.json("convert", photo_stage["dir"] / "xml" / "scene.xml", tmp_path / "back.usda")
+    assert hides_emitters(open_stage(tmp_path / "back.usda"))
+
+
+def test_cycles_hides_a_mesh_lights_emission_from_the_camera(tmp_path, cli):
+    """A MeshLightAPI panel facing the camera on a stage that hides emitters: Cycles shows the panel black, as
+    Mitsuba does (before: its emission, 2.5x the image mean); the floor it lights keeps its light."""
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    metersPerUnit = 1
+    upAxis = "Y"
+    renderSettingsPrimPath = "/Render"
+)
+def Camera "Cam" {
+    float focalLength = 20
+    float horizontalAperture = 36
+    float verticalAperture = 27
+}
+def RenderSettings "Render" {
+    rel camera = </Cam>
+    int2 resolution = (32, 24)
+    uniform bool usdrelight:hideEmitters = 1
+}
+def Mesh "Panel" (prepend apiSchemas = ["MeshLightAPI"]) {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(-0.5, -0.3, -2), (0.5, -0.3, -2), (0.5, 0.3, -2), (-0.5, 0.3, -2)]
+    float inputs:intensity = 10
+    color3f[] primvars:displayColor = [(0, 0, 0)]
+}
+def Mesh "Floor" {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 3, 2, 1]
+    point3f[] points = [(-3, -1, 0), (3, -1, 0), (3, -1, -6), (-3, -1, -6)]
+    color3f[] primvars:displayColor = [(0.5, 0.5, 0.5)]
+}
+''')
+    cli.json("convert", tmp_path / "s.usda", tmp_path / "s.blend")
+    img = read_map(render_blend(tmp_path / "s.blend", tmp_path / "c.exr", spp=16), 3)
+    panel = img[10:14, 12:20].mean()  # the panel spans x 8-24, y 7-17 of the 32 x 24 image
+    floor = img[20:, :].mean()
+    assert panel < 0.05 and floor > 0.05, (panel, floor)

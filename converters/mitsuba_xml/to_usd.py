@@ -24,6 +24,7 @@ from usdrelight.mitsuba.runtime import load_mitsuba
 from usdrelight.mitsuba.scene_dict import CAMERA_FLIP, FLIP_Z
 from usdrelight.stage.aovs import AOVS
 from usdrelight.stage.camera import author_usd_camera
+from usdrelight.stage.backplate import author_hide_emitters
 from usdrelight.stage.create import author_render_settings, create_stage
 from usdrelight.stage.lux import frame_pointing_along
 from usdrelight.stage.validate import check_finite
@@ -332,6 +333,8 @@ def build_stage(text: str, source: str, here: Path, usd_path) -> tuple:
                                   f"wrong type or shape ({type(exc).__name__})") from None
     if b.settings is not None:  # (Mitsuba 3.9 has no default integrator: the XML writer then writes its own)
         kept = {**({"integrator": integrator} if integrator is not None else {}), **b.sampling}
+        if integrator is not None and integrator.get("hide_emitters") is True:  # what every target reads
+            author_hide_emitters(stage, str(b.settings.GetPath()))
         b.settings.GetPrim().SetCustomDataByKey("mitsuba", json.dumps(kept, sort_keys=True))
     check_finite(stage, source)  # e.g. a float64 beyond float32 would be written as Inf
     return stage, warnings

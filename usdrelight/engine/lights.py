@@ -195,18 +195,27 @@ def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, text
     return out
 
 
+SHEAR_TOL = 1e-5
+"""Largest |cos| between a rect light's world axes that :func:`panel_light` samples by solid angle (a shear of
+0.0006 degrees; its axes then made orthogonal)."""
+
+
 def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None) -> np.ndarray:
     """Rect light by solid-angle sampling (:class:`~usdrelight.engine.solid_angle.SphericalRect`, Urena, Fajardo
     and King 2013): each pixel draws its points uniformly in the solid angle S the rectangle subtends there,
     E / pi ~ S / (pi n) sum cos(theta) V, so a large or near panel is as smooth as a small far one (area sampling
     lit a 100 m panel 10x too dark at 16 samples, and a sample next to a surface overshot the physical bound). The
     stratified (u1, u2) are shared by all pixels (deterministic, no per-pixel noise); a texture weights each point
-    by its texel. A sheared or degenerate frame falls back to area sampling (:func:`planar_light`)."""
+    by its texel. A sheared or degenerate frame falls back to area sampling (:func:`planar_light`); a frame
+    orthogonal up to :data:`SHEAR_TOL` (the rounding of a float32 rotation: 1e-8) is made orthogonal (a tolerance
+    of 1e-9 sent such frames to area sampling, 3.5% darker at 16 samples than the same panel unrounded)."""
     ax, ay = light.to_world[:3, 0], light.to_world[:3, 1]
     sx, sy = float(np.linalg.norm(ax)), float(np.linalg.norm(ay))
-    if sx * sy * light.width * light.height <= 0 or abs(float(ax @ ay)) > 1e-9 * sx * sy:
+    if sx * sy * light.width * light.height <= 0 or abs(float(ax @ ay)) > SHEAR_TOL * sx * sy:
         return planar_light(tr, light, samples, rng, textures)
-    ex, ey = ax / sx, ay / sy
+    ex = ax / sx
+    ey = ay - (ay @ ex) * ex
+    ey = ey / np.linalg.norm(ey)
     w, h = light.width * sx, light.height * sy
     centre = light.to_world[:3, 3]
     front = (tr.origins - centre) @ light_direction(light) > 0  # one-sided: the side the panel lights

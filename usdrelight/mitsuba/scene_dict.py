@@ -241,8 +241,6 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
     if light.cone_angle_deg is not None and light.kind == "sphere":
         warnings["ShapingAPI on a SphereLight of radius > 0 (Mitsuba: an emitting sphere, its cone ignored; the "
                  "fast renderer and Cycles draw the cone)"] += 1
-    elif light.cone_angle_deg is not None:
-        warnings["ShapingAPI on a disk, rect, distant or dome light (ignored)"] += 1
     if light.kind == "mesh":
         return {}  # an area emitter on the light's own mesh (scene_dict)
     emitter = {"type": "area", "radiance": rgb_value(L)}

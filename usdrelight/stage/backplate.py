@@ -24,11 +24,16 @@ HIDE_EMITTERS = "usdrelight:hideEmitters"
 
 
 def settings_prim(stage):
-    """The RenderSettings prim ``renderSettingsPrimPath`` names, or None."""
-    path = stage.GetMetadata("renderSettingsPrimPath") if stage.HasAuthoredMetadata("renderSettingsPrimPath") \
-        else ""
+    """The stage's RenderSettings prim: the one ``renderSettingsPrimPath`` names, else the first one found (as
+    every reader of the stage takes it: a shot layer that sublayers ``scene.usda`` does not carry its stage
+    metadata), or None."""
+    from pxr import UsdRender
+
+    path = stage.GetMetadata("renderSettingsPrimPath")
     prim = stage.GetPrimAtPath(path) if path else None
-    return prim if prim and prim.IsValid() else None
+    if prim and prim.IsA(UsdRender.Settings):
+        return prim
+    return next((p for p in stage.Traverse() if p.IsA(UsdRender.Settings)), None)
 
 
 def author_hide_emitters(stage, path: str = RENDER_SETTINGS, hide: bool = True) -> None:

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import UsdRelightError
 from ..imageio import check_resolution
+from .backplate import settings_prim
 from .camera import CONFORM_POLICIES, check_clipping, depth_of_field, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
 from .lux import uniform_scale
@@ -75,10 +76,9 @@ def _settings_prim(stage, warnings):
     from pxr import UsdRender
 
     path = stage.GetMetadata("renderSettingsPrimPath")
-    if path:
-        prim = stage.GetPrimAtPath(path)
-        if prim and prim.IsA(UsdRender.Settings):
-            return UsdRender.Settings(prim)
+    prim = settings_prim(stage)
+    if prim is None or (path and prim.GetPath() == path):
+        return UsdRender.Settings(prim) if prim is not None else None
     found = [p for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
     if found and path:
         warnings[f"renderSettingsPrimPath {path} names no RenderSettings ({found[0].GetPath()} used)"] += 1

@@ -87,6 +87,9 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         if angle < 180.0:
             common["cone_angle_deg"] = angle
             common["cone_softness"] = float(lux_get(sh.GetShapingConeSoftnessAttr(), t, warnings))
+            if prim.GetTypeName() != "SphereLight":
+                warnings["ShapingAPI on a disk, rect, distant, dome or mesh light (ignored by every renderer and "
+                         "converter here)"] += 1
         if float(lux_get(sh.GetShapingFocusAttr(), t, warnings) or 0.0) != 0.0:
             warnings["ShapingAPI focus (ignored)"] += 1
         ies = lux_get(sh.GetShapingIesFileAttr(), t, warnings)
