@@ -64,6 +64,28 @@ def test_backslashed_names_and_unread_sidecar_types_are_refused(tmp_path):
     assert "depth sidecar is read from .exr, .npy, .pfm only (not .png)" in why["a.depth.png"]
 
 
+def test_every_photo_type_build_reads_is_a_photo_and_other_files_are_reported(tmp_path):
+    """WebP, BMP and Radiance HDR photos were passed over in silence (build reads them; the summary counted the
+    others only); a file of another type is reported; sidecars, the manifest and hidden files are not."""
+    from usdrelight.imageio import read_photo
+
+    for name in ("a.webp", "b.bmp", "c.png"):
+        make_photo(tmp_path / name)
+    import shutil
+
+    shutil.copy(tmp_path / "c.png", tmp_path / "d.hdr")  # a wrong suffix: found, and build says what it is
+    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "c.intrinsics.json").write_text("{}")
+    (tmp_path / "c.scene.json").write_text("{}")  # a photo's companion (the training generator's scene)
+    (tmp_path / "manifest.jsonl").write_text("")
+    (tmp_path / ".DS_Store").write_bytes(b"")
+    refused = []
+    got = list_photos(tmp_path, refused)
+    assert [p.name for p in got] == ["a.webp", "b.bmp", "c.png", "d.hdr"]
+    assert [(p.name, "not a photo file" in r) for p, r in refused] == [("notes.txt", True)]
+    assert read_photo(tmp_path / "a.webp").shape[:2] == read_photo(tmp_path / "b.bmp").shape[:2]
+
+
 def test_a_photo_folder_missing_its_stage_or_pair_is_redone(tmp_path):
     """A folder with batch.json (and pair.json) but without scene.usda or the renders was skipped as complete."""
     photos, out = tmp_path / "photos", tmp_path / "out"
@@ -317,3 +339,31 @@ def test_folders_of_photos_no_longer_there_are_named(tmp_path, caplog):
     assert second.skipped == 1 and second.orphaned == ["b"]
     assert (out / "b").is_dir() and sorted(read_manifest(out)) == ["a"]
     assert "1 folder(s) in" in caplog.text and "no longer in" in caplog.text
+    third = run_batch(photos, out, BatchOptions(workers=1, **FAST))  # named while the folder is there (before:
+    assert third.orphaned == ["b"]  # once, then forgotten with the manifest's row)
+
+
+def test_a_photo_that_finishes_after_the_batch_was_stopped_is_not_published(tmp_path):
+    """SIGTERM while a photo runs: the batch unwinds (exit 143), and the photo, let go to finish while the
+    cluster shuts down, publishes nothing (before: its folder appeared in OUT after the batch said it was
+    terminated, and no manifest row named it)."""
+    photos, out = tmp_path / "photos", tmp_path / "out"
+    _good(photos, "hold", 23)
+    env = dict(os.environ, **{TEST_HOLD_ENV: "hold", "PYTHONUNBUFFERED": "1"})
+    batch = subprocess.Popen([sys.executable, "-m", "usdrelight", "batch", str(photos), "-o", str(out), "--workers",
+                              "1", "--max-side", "64", "--lights", "2", "--iterations", "6", "--no-dashboard"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / ".test-hold-hold").exists():
+            assert batch.poll() is None and time.monotonic() < deadline, batch.stderr.read()
+            time.sleep(0.2)
+        batch.send_signal(signal.SIGTERM)
+        (out / ".test-go-hold").write_text("")
+        _, err = batch.communicate(timeout=120)
+    finally:
+        if batch.poll() is None:
+            batch.kill()
+    time.sleep(3)  # a worker outliving the batch would publish by now
+    assert batch.returncode == 143, err
+    assert not (out / "hold").exists(), sorted(p.name for p in out.iterdir())

@@ -150,6 +150,21 @@ def test_a_black_photo_an_albedo_above_one_and_a_nan_grazing_angle_are_said(cli,
     _one_error(rc, err, "max_grazing_deg (--max-grazing-deg) must be in (0, 90] degrees, got 120")
 
 
+def test_a_photo_too_bright_for_float32_is_one_line_about_the_photo(cli, tmp_path):
+    """A float photo x 3e38 ended in 'refusing to write non-finite pixels to .../versions/.<tmp>/estimates/
+    diffuse.exr' (a temporary path, and not about the photo); a 1e6 x photo still builds."""
+    from usdrelight.imageio import write_image
+
+    photo = np.random.default_rng(0).uniform(0.1, 1.0, (16, 20, 3)).astype(np.float32)
+    write_image(tmp_path / "huge.exr", photo * np.float32(3e38), "float")
+    rc, _, err = cli("build", tmp_path / "huge.exr", "-o", tmp_path / "a")
+    _one_error(rc, err, "holds values up to 3e+38: at most 1e+30")
+    assert not (tmp_path / "a").exists() and "versions" not in err
+    write_image(tmp_path / "bright.exr", photo * np.float32(1e6), "float")
+    rc, _, err = cli("build", tmp_path / "bright.exr", "-o", tmp_path / "b")
+    assert rc == 0, err
+
+
 def test_a_beauty_beside_aov_layers_and_a_depth_z_beside_a_preview(tmp_path):
     """R, G, B, A beside diffuse.R/G/B (an Arnold or Nuke EXR) reads the beauty (it was refused as 'several
     colour layers'); a depth EXR of R, G, B (a preview) and Z reads its Z (it was refused, and before that read R)."""

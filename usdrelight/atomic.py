@@ -232,6 +232,17 @@ def lock_token(folder: str | os.PathLike) -> str | None:
     return f"{_lock_pid(lock)}:{st.st_ino}:{st.st_mtime_ns}"
 
 
+def revoke_lock_token(folder: str | os.PathLike) -> None:
+    """Change the token of the lock held on ``folder`` (its time, by a nanosecond) without releasing it: work
+    handed out under the old token (:func:`lock_token`) sees that its holder moved on and publishes nothing."""
+    lock = Path(folder) / LOCK_NAME
+    try:
+        st = os.stat(lock, follow_symlinks=False)
+        os.utime(lock, ns=(st.st_atime_ns, st.st_mtime_ns + 1), follow_symlinks=False)
+    except OSError:
+        pass
+
+
 def _acquire(lock: Path, folder: Path) -> None:
     if lock.is_symlink():  # usdrelight's locks are plain files: a link there was put by someone else
         raise UsdRelightError(f"{lock} is a symbolic link, not a lock usdrelight made: remove it and run again")

@@ -20,11 +20,11 @@ from contextlib import contextmanager
 from concurrent.futures import CancelledError
 from pathlib import Path
 
-from ..atomic import lock_token
+from ..atomic import lock_token, revoke_lock_token
 from ..errors import UsdRelightError, one_line
 from ..neural.pairs import MANIFEST, list_photos
 from .guard import LOOPBACK, check_path_text, loopback_dashboard, output_lock, resolve_workers
-from .manifest import make_job, read_manifest, remove_leftovers, reusable, write_manifest
+from .manifest import RECORD, make_job, read_manifest, remove_leftovers, reusable, write_manifest
 from .records import REFUSED, BatchOptions, BatchSummary, PhotoJob, PhotoRecord
 from .task import process_photo
 
@@ -171,7 +171,8 @@ def _locked(photos, refused, out, options, workers, progress, on_cluster, on_ref
                            seconds=0.0, cluster_seconds=0.0, scheduler=None, dashboard=None, workers=0,
                            refused=len(refused), per_photo=per_photo)
     here = {p.stem for p in photos} | {p.stem for p, _ in refused}
-    summary.orphaned = sorted(n for n in previous if n not in here and (out / n).is_dir())
+    made = {d.name for d in out.iterdir() if not d.name.startswith(".") and (d / RECORD).is_file()}
+    summary.orphaned = sorted(n for n in set(previous) | made if n not in here and (out / n).is_dir())
     if summary.orphaned:
         log.warning("batch: %d folder(s) in %s were made for photos no longer in %s (kept, left out of the manifest): "
                     "%s", len(summary.orphaned), out, photos[0].parent if photos else "the photo folder",
@@ -278,6 +279,9 @@ def _run_quietly(todo, options, workers, rows, summary, out, progress, on_cluste
             if progress is not None:
                 progress(n, total, rec)
             submit_more()
+    except BaseException:  # Ctrl-C, SIGTERM, a lost scheduler: photos still running publish nothing into OUT
+        revoke_lock_token(out)  # while the cluster shuts down (before: published, and left out of the manifest)
+        raise
     finally:
         client.close()
         if cluster is not None:

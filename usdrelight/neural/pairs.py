@@ -28,7 +28,9 @@ from ..safe_paths import check_read
 from ..stage.build import BuildOptions, build
 
 log = logging.getLogger(__name__)
-PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".webp", ".bmp", ".hdr")
+"""The photo files a training or ``batch`` folder holds (what ``build`` reads; a file of another type beside
+them is reported by :func:`list_photos`, not passed over)."""
 MANIFEST = "manifest.jsonl"
 """A ``usdrelight batch`` output folder lists its photos here (one JSON object per line)."""
 
@@ -102,11 +104,14 @@ def list_photos(data_dir, refused: list | None = None) -> list[Path]:
     d = Path(data_dir)
     if not d.is_dir():
         raise UsdRelightError(f"training folder not found: {d}")
-    out, bad, sidecars, stems = [], [], [], set()
+    out, bad, sidecars, stems, other = [], [], [], set(), []
     for p in sorted(d.iterdir()):
-        if p.suffix.lower() not in PHOTO_SUFFIXES:
-            continue
         head, _, kind = p.stem.rpartition(".")
+        if p.suffix.lower() not in PHOTO_SUFFIXES:
+            if not (head and kind in SIDECAR_KINDS) and p.name != MANIFEST and not p.name.startswith(".") \
+                    and not p.is_dir():
+                other.append(p)
+            continue
         if head and kind in SIDECAR_KINDS:
             sidecars.append((p, head, kind))
             continue
@@ -116,6 +121,8 @@ def list_photos(data_dir, refused: list | None = None) -> list[Path]:
             bad.append((p, reason))
         else:
             out.append(p)
+    bad += [(p, f"not a photo file (read: {', '.join(PHOTO_SUFFIXES)})") for p in other
+            if not any(p.name.startswith(f"{stem}.") for stem in stems)]  # NAME.scene.json: a photo's companion
     bad += [(p, f"named like the {kind} sidecar of a photo {head!r} that is not in the folder")
             for p, head, kind in sidecars if head not in stems]
     bad += [(p, f"a {kind} sidecar is read from {', '.join(SIDECAR_SUFFIXES[kind])} only (not {p.suffix}): photo "

@@ -100,6 +100,11 @@ class BuildResult:
     size in bytes, for every file the stage reads."""
 
 
+MAX_PHOTO_VALUE = 1e30
+"""Largest pixel value a photo may hold (float EXR/HDR): products with albedo, shading and light of a brighter
+one overflow float32 (3.4e38) further on."""
+
+
 @contextmanager
 def _timed(seconds: dict, name: str, progress=None):
     t = time.perf_counter()
@@ -158,7 +163,10 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
     with _timed(sec, "read", progress):
         photo = Photo(Path(photo_path), read_photo(photo_path))
         if photo.width < 2 or photo.height < 2:
-            raise UsdRelightError(f"photo {photo_path} is too small ({photo.width}x{photo.height})")
+            raise UsdRelightError(f"photo {photo_path} is too small ({photo.width}x{photo.height}; at least 2x2)")
+        if float(photo.rgb.max()) > MAX_PHOTO_VALUE:  # a float32 product of it overflows further on
+            raise UsdRelightError(f"photo {photo_path} holds values up to {float(photo.rgb.max()):.3g}: at most "
+                                  f"{MAX_PHOTO_VALUE:g} (scale it down; its light is fitted in its own units)")
         if float(photo.rgb.max()) <= 0:
             log.warning("the photo %s is black (every pixel 0 or below): its albedo and light come out 0, and a "
                         "relight of it stays black", Path(photo_path).name)
