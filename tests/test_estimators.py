@@ -153,3 +153,20 @@ def test_prior_fallback_runs_with_only_a_photo(cli, tmp_path):
     res = cli.json("build", photo, "-o", tmp_path / "o")
     assert res["geometry"] == "prior:box-room" and res["albedo"] == "retinex" and res["vertex_fraction"] > 0.9
     assert res["intrinsics_opencv"]["fx"] == pytest.approx(20 / np.tan(np.radians(30)))
+
+
+def test_the_box_room_prior_turns_from_floor_to_wall_smoothly():
+    """The floor met the wall in a crease (a 90 degree turn between two rows): every relight of a photo-only
+    stage drew a line across the photo there. The cove turns it over many rows, depth continuous; the floor
+    and the wall away from it are where they were (1.6 m below the camera, 6 m away)."""
+    from usdrelight.estimate.geometry import box_room_prior
+    from usdrelight.intrinsics import Intrinsics
+
+    k = Intrinsics.from_fov_x(60.0, 64, 480)
+    z = box_room_prior(k)[:, 32].astype(np.float64)
+    p = z[:, None] * k.pixel_rays()[:, 32]
+    t = np.diff(p, axis=0)
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    turn = np.degrees(np.arccos(np.clip((t[1:] * t[:-1]).sum(1), -1, 1)))
+    assert turn.max() < 12.0 and turn.sum() == pytest.approx(90.0, abs=1.0)  # one quarter turn, spread out
+    assert np.all(np.isfinite(z)) and z[0] == pytest.approx(6.0) and p[-1, 1] == pytest.approx(1.6, rel=1e-5)

@@ -7,8 +7,8 @@
    pixels, as MoGe's ``infer()`` returns it.
 2. An ONNX model following the geometry contract in :mod:`usdrelight.onnx_models`.
 3. A built-in prior that needs no weights (:func:`box_room_prior`). It is a *rough guess*: a
-   camera 1.6 m above a flat floor facing a wall 6 m away. It lets ``build`` run with only a
-   photo, but the geometry has nothing to do with the photo's content.
+   camera 1.6 m above a flat floor facing a wall 6 m away, joined by a 1 m cove. It lets ``build`` run with
+   only a photo, but the geometry has nothing to do with the photo's content.
 
 Intrinsics, when a source needs them and none is given (``--intrinsics``/``--fov-x``) nor predicted: the EXIF
 35 mm equivalent focal length (:func:`exif_intrinsics`), else a 60 degree horizontal field of view.
@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 
 PRIOR_CAMERA_HEIGHT_M = 1.6
 PRIOR_WALL_DISTANCE_M = 6.0
+PRIOR_COVE_RADIUS_M = 1.0
+"""Radius of the box-room prior's cove: floor and wall meet in a quarter cylinder (a photo studio's cyclorama),
+so that the shading of a relight turns smoothly there (a sharp crease drew a line across the relit photo)."""
 FILM_DIAGONAL_MM = (36.0 ** 2 + 24.0 ** 2) ** 0.5
 """The 35 mm frame's diagonal: an equivalent focal length maps to pixels over the photo's diagonal (as the
 35 mm equivalent is defined by the field of view across the diagonal; ml-depth-pro reads EXIF the same way)."""
@@ -75,12 +78,19 @@ def from_points(points: np.ndarray, intrinsics: Intrinsics | None, valid: np.nda
 
 
 def box_room_prior(intrinsics: Intrinsics) -> np.ndarray:
-    """Rough z-depth prior: floor ``PRIOR_CAMERA_HEIGHT_M`` below a level camera, wall at 6 m."""
+    """Rough z-depth prior: floor ``PRIOR_CAMERA_HEIGHT_M`` below a level camera, wall at
+    ``PRIOR_WALL_DISTANCE_M``, joined by a cove of ``PRIOR_COVE_RADIUS_M`` (continuous depth and normals)."""
+    h, wall, r = PRIOR_CAMERA_HEIGHT_M, PRIOR_WALL_DISTANCE_M, PRIOR_COVE_RADIUS_M
     rays = intrinsics.pixel_rays()
-    down = rays[..., 1]  # OpenCV +Y is down
+    down = rays[..., 1].astype(np.float64)  # OpenCV +Y is down; a ray is (x, y, 1): its point at z-depth z is z ray
     with np.errstate(divide="ignore"):
-        floor_z = np.where(down > 1e-6, PRIOR_CAMERA_HEIGHT_M / np.maximum(down, 1e-6), np.inf)
-    return np.minimum(floor_z, PRIOR_WALL_DISTANCE_M).astype(np.float32)
+        floor_z = np.where(down > 1e-6, h / np.maximum(down, 1e-6), np.inf)
+    z = np.minimum(floor_z, wall)
+    cy, cz = h - r, wall - r  # the cove's axis (along x), in (y, z)
+    cove = (z * down > cy) & (z > cz)  # the flat room's point lies in the corner the cove rounds off
+    a, b, c = down ** 2 + 1.0, down * cy + cz, cy ** 2 + cz ** 2 - r ** 2
+    far = (b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a  # where the ray leaves the cove's circle
+    return np.where(cove, far, z).astype(np.float32)
 
 
 def resolve_intrinsics(photo: Photo, intrinsics_file=None, fov_x: float | None = None) -> Intrinsics | None:
