@@ -137,6 +137,9 @@ def test_a_black_photo_an_albedo_above_one_and_a_nan_grazing_angle_are_said(cli,
     write_image(tmp_path / "black.exr", np.zeros((16, 20, 3), np.float32), "float")
     rc, _, err = cli("build", tmp_path / "black.exr", "-o", tmp_path / "a")
     assert rc == 0 and "is black (every pixel 0 or below)" in err, err
+    # its fit kept two lights of 3e-9 and a dome, at "22.4 dB": now none, exactly (99 dB, what renders black)
+    res = cli.json("fit", tmp_path / "a" / "scene.usda", "--max-side", "16", "--lights", "2", "--verify-spp", "0")
+    assert (res["lights_kept"], res["environment_kept"], res["psnr_db"]) == (0, False, 99.0), res
     photo = make_photo(tmp_path / "p.png", 16, 20)
     albedo = np.full((16, 20, 3), 0.5, np.float32)
     albedo[:4] = 2.0  # a quarter of the pixels
@@ -163,6 +166,12 @@ def test_a_photo_too_bright_for_float32_is_one_line_about_the_photo(cli, tmp_pat
     write_image(tmp_path / "bright.exr", photo * np.float32(1e6), "float")
     rc, _, err = cli("build", tmp_path / "bright.exr", "-o", tmp_path / "b")
     assert rc == 0, err
+
+
+def test_an_empty_photo_file_says_it_is_empty(cli, tmp_path):
+    (tmp_path / "empty.jpg").write_bytes(b"")  # was 'not a valid JPG file (damaged, or another format)'
+    rc, _, err = cli("build", tmp_path / "empty.jpg", "-o", tmp_path / "a")
+    _one_error(rc, err, "empty.jpg: empty file (0 bytes)")
 
 
 def test_a_beauty_beside_aov_layers_and_a_depth_z_beside_a_preview(tmp_path):

@@ -83,6 +83,8 @@ def _read_failure(message: str, path: Path) -> str:
     """Why OpenImageIO could not read ``path``, in words that never quote the file: its messages can carry
     the first bytes (an EXR's "magic 0x..." is the file's first 8 bytes in hex)."""
     text = (message or "").lower()
+    if path.is_file() and path.stat().st_size == 0:  # (is_file: a file of this name, readable above)
+        return "empty file (0 bytes)"
     if "could not find a format reader" in text:
         return "not an image format OpenImageIO reads"
     if "end of file" in text or "truncat" in text or "premature" in text:

@@ -196,6 +196,9 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
         res = prune_by_contribution(prob, res)
     else:
         raise UsdRelightError(f"unknown --method {method!r} (adam or fast)")
+    if float(prob.target.max()) <= 0:  # a black photo: no light explains it, and every light found is noise
+        log.warning("the photo's diffuse target is black: no light fitted (a relight adds only the lights you give)")
+        res = replace(res, lights=(), env=None, mse=0.0, psnr_db=psnr(0.0, 0.0))
     for light in res.lights:
         if not (np.all(np.isfinite(light.position)) and np.all(np.isfinite(light.rgb))):
             raise UsdRelightError("the fit diverged (non-finite light); nothing was written")

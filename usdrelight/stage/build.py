@@ -180,6 +180,8 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
         dec = estimate_decomposition(photo, albedo_file=opts.albedo, shading_file=opts.shading,
                                      model=opts.albedo_model, estimator=opts.albedo_from,
                                      model_paths=model_paths, device=opts.device)
+        if float(photo.rgb.max()) <= 0:  # I = 0 = A S + R exactly: no light (a prior's shading of 1e-13 was fitted)
+            dec.shading, dec.residual = np.zeros_like(dec.shading), np.zeros_like(dec.residual)
     k = geo.intrinsics
     if abs(k.fx - k.fy) > 1e-6 * k.fx:
         log.warning("non-square pixels (fy / fx = %.4g): the stage's camera, the fast renderer, fit and relight "
