@@ -58,6 +58,8 @@ USER_OFF = ("light of lights_user.usda deleted or hidden from render in Blender 
 DEGENERATE = ("Blender light of zero size or zero scale, or of negative power (left out: Cycles renders nothing "
               "or takes light away; UsdLux has no such light)")
 HIDDEN = "Blender light hidden from render (not read)"
+UNINSTANCED = ("prim above a light authored instanceable = false (should it be an instance in the stage, such as a "
+               "lamp asset's, USD would ignore the light's edit below it)")
 WORLD_EDITED = ("Blender World edited since usdrelight wrote it (not read: the stage's dome lights stay as they "
                 "are; edit them in lights_user.usda)")
 WORLD_UNREAD = ("Blender World of an environment texture or a node setup (not read: only a plain colour World "
@@ -296,6 +298,25 @@ def lights_layer(lights: BlenderLights, name: str, usd_path=None) -> ReadReport:
                 warnings[what] += 1
     if any(b.get("keys") for b in lights):
         author_time_range(stage, getattr(lights, "animation", None), meta)
+    uninstanced = _uninstance(stage)
+    if uninstanced:
+        warnings[UNINSTANCED] += uninstanced
     stage.GetPrimAtPath(ROOT).ClearTypeName()  # a typeless def: read alone or sublayered over /Scene's Xform
     check_finite(stage, name)
     return ReadReport(stage, dict(warnings))
+
+
+def _uninstance(stage) -> int:
+    """``instanceable = false`` on every prim of the layer strictly between a light scope and a light (a lamp
+    asset's bulb, ``/Scene/Lights/User/Lamp0/Bulb``): in the stage the layer composes with, that prim may be an
+    instance, whose descendants take no opinion from this layer (the edit would be lost). How many."""
+    from pxr import Usd, UsdLux
+
+    n = 0
+    for scope in (USER_LIGHTS_SCOPE, FITTED_LIGHTS_SCOPE):
+        top = stage.GetPrimAtPath(scope)
+        for prim in (Usd.PrimRange(top, Usd.PrimAllPrimsPredicate) if top else ()):
+            if prim != top and not prim.HasAPI(UsdLux.LightAPI) and prim.GetAllChildren():
+                prim.SetInstanceable(False)
+                n += 1
+    return n

@@ -269,3 +269,65 @@ def test_a_blend_of_the_writer_before_keeps_its_unchanged_fitted_lights_out(edit
     report = convert(d / "old.blend", d / "old.usda")
     assert sum(v for k, v in report.read_warnings.items() if k.startswith("fitted light of the stage, unchanged")) == 4
     assert "Fitted" not in (d / "old.usda").read_text()
+
+
+LAMP = '''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+def Xform "Lamp" {
+    def SphereLight "Bulb" {
+        float inputs:intensity = 3
+        bool treatAsPoint = 1
+        double3 xformOp:translate = (0, 0.5, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+}
+'''
+INSTANCED = '''#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+)
+over "Scene" {
+    def Scope "Lights" {
+        def Scope "User" {
+            def Xform "Lamp0" (
+                instanceable = true
+                prepend references = @./lamp.usda@</Lamp>
+            ) {
+                double3 xformOp:translate = (-1, 0, -2)
+                uniform token[] xformOpOrder = ["xformOp:translate"]
+            }
+        }
+    }
+}
+'''
+MOVE_BULB = r'''
+import bpy, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+bulb = next(o for o in bpy.context.scene.objects if o.get("usd_path") == "/Scene/Lights/User/Lamp0/Bulb")
+bulb.location.z += 0.5  # Blender's Z: USD's Y, up
+bpy.ops.wm.save_as_mainfile(filepath=args[1])
+'''
+
+
+def test_a_light_inside_an_instance_edited_in_blender_comes_back_moved(tmp_path):
+    """A lamp asset referenced instanceable into lights_user.usda, its bulb moved 0.5 m up in Blender: read
+    back and sublayered over lights_user.usda, the bulb stayed where it was (USD ignores opinions below an
+    instance); its parent is now authored instanceable = false in the layer, so the move applies."""
+    d = tmp_path
+    (d / "lamp.usda").write_text(LAMP)
+    (d / "lights_user.usda").write_text(INSTANCED)
+    (d / "scene.usda").write_text(SCENE % "@./lights_user.usda@")
+    assert [l.to_world[1, 3] for l in read_lights(open_stage(d / "scene.usda"))] == [pytest.approx(0.5)]
+    convert(d / "scene.usda", d / "s.blend")
+    (d / "move.py").write_text(MOVE_BULB)
+    run_blender(d / "move.py", str(d / "s.blend"), str(d / "moved.blend"))
+    convert(d / "moved.blend", d / "back.usda")
+    for layers in ("@./back.usda@, @./lights_user.usda@", "@./back.usda@"):
+        (bulb,) = read_lights(_composed(d, layers))
+        assert bulb.path == "/Scene/Lights/User/Lamp0/Bulb"
+        np.testing.assert_allclose(bulb.to_world[:3, 3], [-1.0, 1.0, -2.0], atol=1e-5)
