@@ -28,7 +28,7 @@ from usdrelight.stage.lux import emitted_radiance
 from usdrelight.stage.camera import cameras_left_out
 from usdrelight.stage.read import read_camera, read_scene
 from usdrelight.stage.read_geometry import OPACITY_WARNING
-from usdrelight.stage.shapes import shape_mesh
+from usdrelight.stage.shapes import cylinder_light_mesh, shape_mesh
 from usdrelight.stage.timing import frame_time, light_time_codes
 
 from .blender_materials import EMISSIVE_WARNING, material_spec
@@ -51,6 +51,8 @@ ANIMATED = True
 
 
 #: UsdGeom.Camera attributes whose time samples become keyframes of the .blend's camera lens (:func:`_lens`).
+CYLINDER_MESH = ("CylinderLight as an emissive mesh of its side in Blender (Blender has no cylinder light; its "
+                 "emission keyed nowhere, its transform as a mesh's)")
 CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
                      "verticalApertureOffset", "clippingRange")
 
@@ -78,8 +80,11 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
     mats, meshes = {}, []
-    all_meshes = list(rec.meshes) + [shape_mesh(sh) for sh in rec.shapes]
-    mesh_lights = {l.path: l for l in rec.lights if l.kind == "mesh"}
+    tubes = [l for l in rec.lights if l.kind == "cylinder"]  # Blender has no cylinder light: an emissive mesh
+    if tubes:
+        rec.warnings[CYLINDER_MESH] += len(tubes)
+    all_meshes = list(rec.meshes) + [shape_mesh(sh) for sh in rec.shapes] + [cylinder_light_mesh(l) for l in tubes]
+    mesh_lights = {l.path: l for l in rec.lights if l.kind in ("mesh", "cylinder")}
     emitting = set()
     for i, m in enumerate(all_meshes):
         # a mesh without a bound material: its displayColor (or the grey default), one Blender material per colour
@@ -126,7 +131,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
             cam["lens_keys"] = [{"frame": float(c), **_lens(read_camera(stage, c),
                                                              focal_length(stage, rec.camera.path, c), rec.warnings)}
                                 for c in codes]
-    lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind != "mesh"]
+    lights = [light_to_blender(l, rec.up_axis) for l in rec.lights if l.kind not in ("mesh", "cylinder")]
     late = []  # lights invisible at the default frame, shown later (keyed hidden until then)
     animation = light_keys(stage, lights, rec.up_axis, rec.warnings, late) if time is None else None
     if time is None:  # the camera and rigid meshes follow their transforms' samples

@@ -66,7 +66,7 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings, found: list | 
         return None
     by_path = {d["usd_path"]: d for d in lights}
     frames = {p: _key_frames(codes, motion.get(p, (False,))[0]) for p in list(by_path) + list(motion)}
-    reads = {t: {l.path: l for l in read_lights(stage, t) if l.kind != "mesh"}
+    reads = {t: {l.path: l for l in read_lights(stage, t) if l.kind not in ("mesh", "cylinder")}
              for t in sorted(set().union(*frames.values()))}
     for path in motion:  # lights not seen at the default frame: from their first visible time
         first = next((reads[t][path] for t in frames[path] if path in reads[t]), None)
@@ -114,7 +114,7 @@ def _light_prims(stage) -> list:
 
     return [p for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
             if (p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
-            and not p.IsA(UsdGeom.Mesh)]
+            and not p.IsA(UsdGeom.Mesh) and p.GetTypeName() != "CylinderLight"]  # those two: Blender meshes
 
 
 def _light_motion(prim) -> tuple[bool, set[float], set[float]]:

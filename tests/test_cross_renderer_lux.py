@@ -164,8 +164,16 @@ def mesh(stage, k=1.0):
     mesh_panel(stage, "/World/Lights/Panel", (0.0, 1.4, 0.3), 0.35, 1.5 * k, normalize=True)
 
 
+def cylinder(stage, k=1.0):
+    rig(stage)  # a 1 m tube of radius 6 cm in the world, turned 30 degrees, over the box and the ball
+    l = _light(stage, UsdLux.CylinderLight, "/World/Lights/Rig/Tube", 3.0 * k, normalize=True, color=(1.0, 0.9, 0.8))
+    l.CreateRadiusAttr(0.03)
+    l.CreateLengthAttr(0.5)
+    _place(l.GetPrim(), (0.1, 0.45, 0.0), (0, 30, 0))
+
+
 SCENES = {"point": point, "spot": spot, "sphere": sphere, "disk": disk, "rect": rect, "distant": distant,
-          "dome": dome, "mesh": mesh}
+          "dome": dome, "mesh": mesh, "cylinder": cylinder}
 
 
 def render_both(cli, usda):
@@ -223,7 +231,7 @@ def test_every_light_on_a_z_up_stage_in_centimetres(cli, tmp_path):
     from usdrelight.stage.validate import open_stage
 
     rec = read_scene(open_stage(tmp_path / "all.usda"))
-    assert rec.up_axis == "Z" and rec.meters_per_unit == pytest.approx(0.01) and len(rec.lights) == 8
+    assert rec.up_axis == "Z" and rec.meters_per_unit == pytest.approx(0.01) and len(rec.lights) == 9
     np.testing.assert_allclose(rec.camera.to_world[:3, 3], [0, -3.2, 2.2], atol=1e-9)  # metres, Z-up
     m, c, _, _ = render_both(cli, tmp_path / "all.usda")
     assert_agree(m, c, "all lights, Z-up, cm")
@@ -263,8 +271,9 @@ def test_unrepresented_usdlux_attributes_are_warned(cli, tmp_path):
     stage.GetRootLayer().Save()
     wx = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.xml")["write_warnings"]
     wb = cli.json("convert", tmp_path / "odd.usda", tmp_path / "odd.blend")["write_warnings"]
-    both = ("ShapingAPI focus", "ShapingAPI IES", "CylinderLight", "ShadowAPI", "light/shadow linking",
-            "diffuse/specular multipliers")
+    both = ("ShapingAPI focus", "ShapingAPI IES", "ShadowAPI", "light/shadow linking", "diffuse/specular multipliers")
+    assert not any("CylinderLight" in k for k in wx), wx  # a Mitsuba cylinder emitter now
+    assert [v for k, v in wb.items() if "CylinderLight as an emissive mesh" in k] == [1], wb
     for key in both:
         for name, w in (("xml", wx), ("blend", wb)):
             assert [v for k, v in w.items() if key in k] == [1], (name, key, w)

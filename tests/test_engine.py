@@ -110,6 +110,8 @@ SCENE_LIGHTS = {
     "sphere": ["sphere:-0.5,1.0,-2.0:20,20,20:0.15"],
     "rect": ["rect:0.3,1.6,-3.0:0,-1,0.2:6,6,6:0.8,0.5"],
     "disk": ["disk:-0.6,1.5,-2.5:0.3,-1,0:6,6,6:0.3"],
+    # a UsdLux CylinderLight (no --light spec): a 0.8 m tube of radius 5 cm along X, 1.4 m up over the floor
+    "cylinder": [LightRecord("/cyl", "cylinder", _at([0.2, 1.4, -2.6]), np.full(3, 8.0), radius=0.05, length=0.8)],
 }
 AREA_RECORDS = {
     "sphere": LightRecord("/sp", "sphere", _at([-0.5, 1.0, -2.0]), np.full(3, 20.0), radius=0.15),

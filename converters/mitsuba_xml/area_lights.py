@@ -131,7 +131,8 @@ class AreaLights:
         return tex
 
     def area_light(self, p: Plugin, emitter: Plugin, M):
-        """A rectangle, disk or sphere with an ``area`` emitter as a RectLight, DiskLight or SphereLight (radiance
+        """A rectangle, disk, sphere or cylinder with an ``area`` emitter as a RectLight, DiskLight, SphereLight or
+        CylinderLight (radiance
         as intensity x colour, normalize off; frames, ``flip_normals`` and textures as in the module doc)."""
         from pxr import Sdf, UsdLux
 
@@ -153,6 +154,9 @@ class AreaLights:
                                   "colour space: decoded as sRGB by most renderers)"] += 1
             self.set_xform(light.GetPrim(), R @ (FLIPPED_TEXTURED_RECT if tex is not None else np.eye(4)) if flip
                            else R @ FLIP_Z)
+        elif p.type == "cylinder":
+            light = UsdLux.CylinderLight.Define(self.stage, path)
+            self._cylinder(light, p, M, flip)
         elif p.type == "disk":
             light = UsdLux.DiskLight.Define(self.stage, path)
             light.CreateRadiusAttr(float(np.sqrt(s[0] * s[1])))  # an ellipse: the disk of its area, its power
@@ -176,6 +180,35 @@ class AreaLights:
             rgb, extra[AREA_TEXTURE_KEY] = self._kept_texture(path, tex, p.type, rgb)
         light.CreateNormalizeAttr(False)
         self._light_common(light, rgb, extra or None)
+
+    def _cylinder(self, light, p: Plugin, M, flip: bool) -> None:
+        """Mitsuba's cylinder from ``p0`` to ``p1`` (defaults (0, 0, 0), (0, 0, 1)) of ``radius`` (1) under ``M``
+        as the CylinderLight on that axis (its local X), centred between them; its radius the geometric mean of
+        what ``M`` makes of it across the axis (an elliptic one: warned)."""
+        p0 = np.asarray(p.props.get("p0", (0.0, 0.0, 0.0)), np.float64)
+        p1 = np.asarray(p.props.get("p1", (0.0, 0.0, 1.0)), np.float64)
+        ends = [(M @ np.r_[q, 1.0])[:3] for q in (p0, p1)]
+        axis = ends[1] - ends[0]
+        if np.linalg.norm(p1 - p0) <= 0 or np.linalg.norm(axis) <= 0:
+            raise UsdRelightError(f"cylinder emitter {light.GetPath().name}: p0 and p1 are the same point")
+        x = axis / np.linalg.norm(axis)
+        d = (p1 - p0) / np.linalg.norm(p1 - p0)
+        u = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        across = [np.linalg.norm(M[:3, :3] @ w) for w in (u, np.cross(d, u))]
+        if abs(across[0] - across[1]) > 1e-6 * max(across):
+            self.warnings["elliptic cylinder emitter (the round cylinder of the same side area)"] += 1
+        y = np.cross([0.0, 0.0, 1.0] if abs(x[2]) < 0.9 else [1.0, 0.0, 0.0], x)
+        y /= np.linalg.norm(y)
+        frame = np.eye(4)
+        frame[:3, :3] = np.stack([x, y, np.cross(x, y)], 1)
+        frame[:3, 3] = (ends[0] + ends[1]) / 2
+        light.CreateLengthAttr(float(np.linalg.norm(axis)))
+        light.CreateRadiusAttr(float(p.props.get("radius", 1.0)) * float(np.sqrt(across[0] * across[1])))
+        self.set_xform(light.GetPrim(), frame)
+        if flip:
+            self.warnings[f"flip_normals on the cylinder emitter {light.GetPath()} (a CylinderLight emits "
+                          "outwards)"] += 1
 
     def mesh_light(self, prim, emitter: Plugin) -> None:
         """UsdLux MeshLightAPI on an emitting mesh: its radiance as intensity * color, not normalized, emission

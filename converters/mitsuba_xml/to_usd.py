@@ -80,7 +80,7 @@ class UsdBuilder(AreaLights):
             if c.tag == "medium":  # USD has no participating media: the surface is converted without it
                 self.warnings[f"<medium type='{c.type}'> on a shape (participating media: not converted)"] += 1
         if emitter is not None:
-            if p.type in ("rectangle", "sphere", "disk"):
+            if p.type in ("rectangle", "sphere", "disk", "cylinder"):
                 self.area_light(p, emitter, M)
                 return
             if p.type not in MESH_TYPES:

@@ -32,7 +32,7 @@ from ..stage.light_syntax import MAX_AREA_SAMPLES
 from ..stage.records import LightRecord, SceneRecord, TextureRecord
 from ..transport.cache import TransportCache, TransportSettings, prepare_transport
 from .aovs import Aovs, nonnegative
-from .lights import disk_light, distant_light, dome_light, panel_light, point_light, sphere_light
+from .lights import disk_light, distant_light, dome_light, panel_light, planar_light, point_light, sphere_light
 
 
 PREVIEW_TERMS = 8
@@ -92,8 +92,8 @@ def light_key(light: LightRecord) -> bytes:
     """Everything but the radiance that decides a light's direct term, as bytes (a cache key): its path too, which
     seeds a sampling light's pattern."""
     tex = light.texture
-    values = (light.path, light.kind, light.normalize, light.radius, light.width, light.height, light.angle_deg,
-              light.treat_as_point, light.cone_angle_deg, light.cone_softness,
+    values = (light.path, light.kind, light.normalize, light.radius, light.length, light.width, light.height,
+              light.angle_deg, light.treat_as_point, light.cone_angle_deg, light.cone_softness,
               None if tex is None else (tex.path, tex.color_space, tex.scale, tex.bias, tex.channel))
     return repr(values).encode() + np.asarray(light.to_world, np.float64).tobytes()
 
@@ -103,7 +103,7 @@ def samples_light(light: LightRecord) -> bool:
     angular diameter); point, spot and dome lights are exact whatever the count."""
     if light.kind == "sphere":
         return not light.treat_as_point
-    return light.kind in ("disk", "rect") or (light.kind == "distant" and light.angle_deg > 0)
+    return light.kind in ("disk", "rect", "cylinder") or (light.kind == "distant" and light.angle_deg > 0)
 
 
 def term_key(light: LightRecord, samples: int, default: int) -> bytes:
@@ -192,6 +192,8 @@ class FastRenderer:
             return panel_light(tr, light, s, rng, self.textures)
         if light.kind == "disk":
             return disk_light(tr, light, s, rng, self.textures)
+        if light.kind == "cylinder":
+            return planar_light(tr, light, s, rng)
         if light.kind == "distant":
             return distant_light(tr, light, s, rng)
         if light.kind == "dome":

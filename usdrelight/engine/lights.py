@@ -16,6 +16,8 @@ fast renderer converges to Mitsuba's path tracer (max_depth 2 for these terms):
   emitting towards the light's -Z, and capped at the physical bound (E / pi <= L); a RectLight's texture
   weights each sample by its texel (UsdLux: the file's top-left texel at the light's local (+X, +Y) corner,
   bottom-right at (-X, -Y); bilinear, wrapping and decoded as the Mitsuba scene's bitmap);
+* cylinder: stratified area sampling of its side (:func:`planar_light`): along its length shared by every pixel,
+  around it over the half that faces the pixel;
 * distant: irradiance L along the light's -Z, sharp (angle 0) or spread over the cone of its angular diameter;
 * dome: through the cached environment basis (cell radiances: the latlong texture averaged over each world
   cell, with the dome's rotation), so unoccluded cosine-weighted visibility is exact per cell.
@@ -148,33 +150,51 @@ def _bound(light: LightRecord, textures: dict) -> float:
 
 
 class _AreaPoints:
-    """Area sampling in :func:`_solid_angle_estimate`'s terms: ``sample(u1, u2)`` is one point of the disk or rect
-    (stratified in its area, the same for every pixel) and the weight that turns the estimator's
+    """Area sampling in :func:`_solid_angle_estimate`'s terms: ``sample(u1, u2)`` is one point of the disk, rect or
+    cylinder side (stratified in its area, the same for every pixel) and the weight that turns the estimator's
     1 / (pi n) sum cos(theta) weight V into area sampling's A / (pi n) sum cos(theta) cos(theta_l) / d^2 V."""
 
     def __init__(self, light: LightRecord, origins: np.ndarray):
         self.light, self.origins = light, origins
         self.area, self.n_l = world_area(light), light_direction(light)
+        m = light.to_world[:3, :3]
+        self.normals = np.linalg.inv(m).T  # local normals -> world (a scaled frame too)
+        if light.kind == "cylinder":  # each pixel samples the half of the side that faces it (around its axis)
+            local = (origins - light.to_world[:3, 3]) @ self.normals
+            self.facing = np.arctan2(local[:, 2], local[:, 1])
 
-    def local(self, u1: float, u2: float) -> np.ndarray:
-        """The point (u1, u2) in the light's own frame (before ``to_world``)."""
+    def local(self, u1: float, u2: float) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """The point (u1, u2) in the light's own frame (before ``to_world``; (N, 3), one per pixel, for a
+        cylinder), its local normal where that is not the light's -Z (a cylinder's side: outward from its X axis,
+        on the half that faces the pixel), and 1 / its density per unit area."""
         light = self.light
+        if light.kind == "cylinder":  # the angle from the pixel's side drawn with density cos / 2 (as it lights it):
+            alpha = math.asin(min(max(2.0 * u2 - 1.0, -1.0), 1.0))  # 1 / density = 2 r l / cos = A / (pi cos)
+            phi = self.facing + alpha
+            n = np.stack([np.zeros_like(phi), np.cos(phi), np.sin(phi)], 1)
+            point = np.array([(u1 - 0.5) * light.length, 0.0, 0.0]) + light.radius * n
+            return point, n, self.area / (math.pi * max(math.cos(alpha), 1e-6))
         if light.kind == "disk":
             r, phi = light.radius * math.sqrt(u1), 2 * math.pi * u2
-            return np.array([r * math.cos(phi), r * math.sin(phi), 0.0])
-        return np.array([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, 0.0])
+            return np.array([r * math.cos(phi), r * math.sin(phi), 0.0]), None, self.area
+        return np.array([(u1 - 0.5) * light.width, (u2 - 0.5) * light.height, 0.0]), None, self.area
 
     def sample(self, u1: float, u2: float):
-        y = self.light.to_world[:3, :3] @ self.local(u1, u2) + self.light.to_world[:3, 3]
-        v = y[None] - self.origins
+        p, n, area = self.local(u1, u2)
+        y = p @ self.light.to_world[:3, :3].T + self.light.to_world[:3, 3]
+        n_l = self.n_l if n is None else n @ self.normals.T
+        if n is not None:
+            n_l = n_l / np.maximum(np.linalg.norm(n_l, axis=1), 1e-300)[:, None]
+        v = y - self.origins
         dist = np.linalg.norm(v, axis=1)
-        cos_l = np.maximum(-(v @ self.n_l) / np.maximum(dist, 1e-300), 0.0)
-        return v, self.area * cos_l / np.maximum(dist, 1e-12) ** 2
+        cos_l = np.maximum(-np.einsum("ij,ij->i", v, np.broadcast_to(n_l, v.shape)) / np.maximum(dist, 1e-300), 0.0)
+        return v, area * cos_l / np.maximum(dist, 1e-12) ** 2
 
 
 def planar_light(tr: LightTransport, light: LightRecord, samples: int, rng, textures: dict | None = None,
                  pixels: np.ndarray | None = None) -> np.ndarray:
-    """Disk or rect light by area sampling: stratified points on the shape (in the light's frame, mapped by
+    """Disk, rect or cylinder light by area sampling (a cylinder's side: uniform along its length and around it,
+    emitting outward; its caps do not emit): stratified points on the shape (in the light's frame, mapped by
     ``to_world``), shared by every pixel; a rect's texture weights each point by its texel
     (:func:`rect_texture_at`; texels read once into ``textures``). ``pixels``: the indices of the valid pixels to
     compute (the others 0); None: all."""

@@ -9,6 +9,9 @@ The table (also in the README, "Light and camera units"), following the UsdLux s
   (Mitsuba ``point``; Blender's USD importer with Cycles and hdMitsuba agree).
 * SphereLight/DiskLight/RectLight: an area light of radiance L on the shape's (front) surface;
   Disk and Rect emit towards their local -Z.
+* CylinderLight: radiance L outward from the side of a cylinder of ``length`` along its local X and
+  ``radius`` (the end caps do not emit; ``normalize`` divides by the side's area 2 pi r l); Mitsuba's
+  ``cylinder`` shape with an ``area`` emitter.
 * A Mesh with MeshLightAPI: radiance L on the mesh's front side (where its normals point), or L / (its
   world-space area) with ``normalize`` (Mitsuba: the mesh with an ``area`` emitter).
 * DistantLight with angle 0: irradiance E = L [W/m^2] on a surface facing it, travelling along
@@ -48,6 +51,8 @@ def world_area(light: LightRecord) -> float:
         return np.pi * light.radius ** 2 * sx * sy
     if light.kind == "rect":
         return light.width * light.height * sx * sy
+    if light.kind == "cylinder":  # its side (the caps do not emit): 2 pi r l
+        return 2.0 * np.pi * light.radius * float(np.sqrt(sy * sz)) * light.length * sx
     if light.kind == "mesh":
         return light.area
     return 1.0
@@ -55,7 +60,7 @@ def world_area(light: LightRecord) -> float:
 
 def emitted_radiance(light: LightRecord) -> np.ndarray:
     """L after ``normalize`` for area lights; L itself for point, distant and dome lights."""
-    if light.normalize and light.kind in ("sphere", "disk", "rect", "mesh") and not light.treat_as_point:
+    if light.normalize and light.kind in ("sphere", "disk", "rect", "cylinder", "mesh") and not light.treat_as_point:
         area = world_area(light)
         if area > 0:
             return light.radiance / area

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import UsdRelightError
 from ..imageio import stores_floats
 from ..safe_paths import check_read, stage_folder
-from .lux import uniform_scale
+from .lux import uniform_scale, world_scale
 from .records import LightRecord, TextureRecord
 
 
@@ -68,8 +68,8 @@ def read_light(prim, xf: np.ndarray, warnings, area: float = 0.0, t=None) -> Lig
 
     rec = _light_record(prim, xf, warnings, area, Usd.TimeCode.Default() if t is None else t)
     if rec is not None:
-        sizes = [v for v in (rec.radius, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg, rec.area)
-                 if v is not None]
+        sizes = [v for v in (rec.radius, rec.length, rec.width, rec.height, rec.angle_deg, rec.cone_angle_deg,
+                             rec.area) if v is not None]
         if not all(np.isfinite(sizes)) or any(v < 0 for v in sizes):
             raise UsdRelightError(f"light {prim.GetPath()} has a negative or non-finite size or angle")
     return rec
@@ -117,6 +117,16 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         return LightRecord(kind="rect", width=float(lux_get(r.GetWidthAttr(), t, warnings)),
                            height=float(lux_get(r.GetHeightAttr(), t, warnings)), texture=tex,
                            **common)
+    if typ == "CylinderLight":
+        c = UsdLux.CylinderLight(prim)
+        if bool(lux_get(c.GetTreatAsLineAttr(), t, warnings)):
+            warnings["CylinderLight treatAsLine (rendered as the cylinder of its radius)"] += 1
+        sx, sy, sz = world_scale(xf)
+        if abs(sy - sz) > 1e-6 * max(sy, sz):
+            warnings["CylinderLight under a non-uniform scale across its axis (rendered round, of the geometric-mean "
+                     "radius)"] += 1
+        return LightRecord(kind="cylinder", radius=float(lux_get(c.GetRadiusAttr(), t, warnings)),
+                           length=float(lux_get(c.GetLengthAttr(), t, warnings)), **common)
     if typ == "DistantLight":
         angle = float(lux_get(UsdLux.DistantLight(prim).GetAngleAttr(), t, warnings))
         return LightRecord(kind="distant", angle_deg=angle, **common)

@@ -160,8 +160,8 @@ class LightRecord:
     path: str
     """Prim path."""
     kind: str
-    """sphere | disk | rect | distant | dome | mesh (a Mesh with UsdLux MeshLightAPI: its geometry is the
-    :class:`MeshRecord` (or records, one per GeomSubset) at ``path`` in ``SceneRecord.meshes``)."""
+    """sphere | disk | rect | cylinder | distant | dome | mesh (a Mesh with UsdLux MeshLightAPI: its geometry is
+    the :class:`MeshRecord` (or records, one per GeomSubset) at ``path`` in ``SceneRecord.meshes``)."""
     to_world: np.ndarray
     """4x4 light frame -> world (may scale the sizes below)."""
     radiance: np.ndarray
@@ -169,7 +169,9 @@ class LightRecord:
     normalize: bool = False
     """UsdLux ``normalize``: divide L by the world-space emitting area (area lights only)."""
     radius: float = 0.0
-    """Sphere/disk radius in the light's frame."""
+    """Sphere/disk/cylinder radius in the light's frame."""
+    length: float = 0.0
+    """Cylinder length along the light's local X axis, in its frame (centred on its origin)."""
     width: float = 0.0
     """Rect width (local X) in the light's frame."""
     height: float = 0.0

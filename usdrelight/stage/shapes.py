@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .read import ellipsoid_mesh
-from .records import MeshRecord, ShapeRecord
+from .records import LightRecord, MaterialRecord, MeshRecord, ShapeRecord
 
 
 def shape_mesh(shape: ShapeRecord) -> MeshRecord:
@@ -33,3 +33,27 @@ def shape_mesh(shape: ShapeRecord) -> MeshRecord:
     if np.linalg.det(m[:3, :3]) < 0:
         faces = faces[:, ::-1]
     return MeshRecord(shape.path, pts, np.asarray(faces, np.int64), None, None, shape.material)
+
+
+#: The surface of an emitter made a mesh: it reflects nothing (as Mitsuba's black BSDF of an area emitter).
+BLACK = MaterialRecord(diffuse=(0.0, 0.0, 0.0), use_specular_workflow=True, specular=(0.0, 0.0, 0.0))
+
+
+def cylinder_light_mesh(light: LightRecord, segments: int = 64) -> MeshRecord:
+    """A CylinderLight's emitting side (no caps) as a world-space triangle mesh of ``segments`` facets around,
+    its faces and smooth normals pointing outward, black (for a format whose lights hold no cylinder: an emissive
+    mesh in a .blend). The polygon's perimeter is the circle's, so its area is the cylinder's side 2 pi r l."""
+    phi = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    r = light.radius * (np.pi / segments) / np.sin(np.pi / segments)  # the polygon's perimeter is 2 pi radius
+    ring = np.stack([np.zeros_like(phi), np.cos(phi), np.sin(phi)], 1)
+    unit = np.concatenate([ring * r + [-light.length / 2, 0, 0], ring * r + [light.length / 2, 0, 0]])
+    i = np.arange(segments)
+    j = (i + 1) % segments
+    faces = np.concatenate([np.stack([i, j, j + segments], 1), np.stack([i, j + segments, i + segments], 1)])
+    m = light.to_world
+    pts = unit @ m[:3, :3].T + m[:3, 3]
+    normals = np.concatenate([ring, ring]) @ np.linalg.inv(m[:3, :3])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    if np.linalg.det(m[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return MeshRecord(light.path, pts, np.asarray(faces, np.int64), normals, None, BLACK)
