@@ -26,6 +26,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
+from usdrelight.checks import path_arg
 from usdrelight.errors import UsdRelightError
 
 from .report import ReadReport, WriteReport, check_options
@@ -38,10 +39,14 @@ __all__ = ["REGISTRY", "USD_SUFFIXES", "ReadReport", "WriteReport", "check_optio
 
 
 def converter_for(path: str | Path):
-    """The converter module for ``path``'s suffix; UsdRelightError names the supported ones."""
-    suffix = Path(path).suffix.lower()
+    """The converter module for ``path``'s suffix; UsdRelightError names the supported ones (a USD suffix has
+    none: USD is what every converter reads or writes, and ``convert`` copies USD to USD itself)."""
+    suffix = path_arg(path, "path").suffix.lower()
     name = REGISTRY.get(suffix)
     if name is None:
+        if suffix in USD_SUFFIXES:
+            raise UsdRelightError(f"'{suffix}' is USD, the side every converter reads or writes: convert() copies "
+                                  f"USD to USD itself (converters: {', '.join(sorted(REGISTRY))})")
         known = ", ".join(sorted(REGISTRY) + list(USD_SUFFIXES))
         raise UsdRelightError(f"no converter for '{suffix or Path(path).name}' files (supported: {known})")
     return importlib.import_module(f"{__name__}.{name}")

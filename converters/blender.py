@@ -38,7 +38,7 @@ from .blender_run import blender_command, render_blend, run_blender  # noqa: F40
 from .blender_animation import attribute_frames, light_keys, object_keys, scene_animation
 from .blender_units import Y_UP_TO_Z_UP, focal_length, light_to_blender, spot_blend
 from .blender_units import camera_lens as _lens
-from .report import ReadReport, WriteReport, check_options
+from .report import ReadReport, WriteReport, check_options, checked_io
 
 NAME = "Blender"
 SUFFIXES = (".blend", ".py")
@@ -172,7 +172,8 @@ def write_script(stage, path, spp: int = 64, max_depth: int = 3, time=None) -> W
 def write_to_file(stage, path, **options) -> WriteReport:
     """A .blend built by Blender, or (``.py``) the script that builds it. Options: :data:`WRITE_OPTIONS`."""
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
-    path = Path(path).absolute()
+    stage, path = checked_io(stage, path)
+    path = path.absolute()
     if path.suffix.lower() == ".py":
         return write_script(stage, path, opts["spp"], opts["max_depth"], opts["time"])
     # the .blend is saved beside its final name (so paths made relative by Blender stay valid), then renamed
@@ -203,4 +204,5 @@ def read_from_file(path, **options) -> ReadReport:
     (:func:`usdrelight.converters.blender_read.lights_layer` says what comes back and how). Options:
     :data:`READ_OPTIONS` (the layer at ``usd_path``, or in memory)."""
     usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
-    return lights_layer(blender_lights(path), Path(path).name, usd_path)
+    _, path = checked_io(None, path)
+    return lights_layer(blender_lights(path), path.name, usd_path)

@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from usdrelight.checks import path_arg
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
 from usdrelight.native_io import captured_stderr
@@ -66,13 +67,16 @@ def convert(src, dst, frames=None, **options) -> ConvertReport:
     animation (Mitsuba XML, mesh files): one file per time code, ``DST_STEM_NNNN.SUFFIX`` (NNNN: the frame's
     index). UsdRelightError (one line) for a missing or unknown file kind, or an option the writer does not know,
     before anything is read."""
-    src, dst = Path(src), Path(dst)
+    src, dst = path_arg(src, "src"), path_arg(dst, "dst")
     if frames is not None:
         return _convert_frames(src, dst, frames, options)
     if not src.exists():
         raise UsdRelightError(f"file not found: {src}")
     if src.resolve() == dst.resolve():
         raise UsdRelightError("source and destination are the same file")
+    if src.suffix.lower() == ".py":
+        raise UsdRelightError(f"{src.name}: a .py file is a Blender script usdrelight writes (convert STAGE X.py), "
+                              "not read: convert the .blend it makes")
     reader = None if _is_usd(src) else converter_for(src)  # fail early on unknown suffixes
     writer = None if _is_usd(dst) else converter_for(dst)
     if writer is None:

@@ -50,7 +50,7 @@ from .gltf_extras import (base_color_factors, check_readable, emissive_strengths
 from .gltf_lights import add_lights_and_camera, author_lights_and_cameras
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
-from .report import ReadReport, WriteReport, check_options
+from .report import ReadReport, WriteReport, check_options, checked_io
 
 NAME = "mesh files"
 SUFFIXES = (".glb", ".gltf", ".ply", ".obj")
@@ -117,8 +117,9 @@ def write_to_file(stage, path, **options) -> WriteReport:
     """Write the stage's meshes to ``path`` (.glb, .gltf with its buffers and textures embedded, .ply or .obj) in metres, Y up (a Z-up stage rotated by
     :data:`Z_UP_TO_Y_UP`); the report names what the format cannot hold."""
     opts = check_options(f"{NAME} writer", options, WRITE_OPTIONS)
+    stage, path = checked_io(stage, path)
     trimesh = _trimesh()
-    path = Path(path).absolute()
+    path = path.absolute()
     rec = read_scene(stage, frame_time(stage, opts["time"]))
     warnings = Counter(rec.warnings)
     meshes = list(rec.meshes) + [shape_mesh(sh) for sh in rec.shapes]  # gprims as meshes (a sphere: an icosphere)
@@ -173,7 +174,7 @@ def read_from_file(path, **options) -> ReadReport:
     usd_path = check_options(f"{NAME} reader", options, READ_OPTIONS)["usd_path"]
 
     trimesh = _trimesh()
-    path = Path(path)
+    _, path = checked_io(None, path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     warnings: Counter = Counter()

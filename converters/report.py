@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from numbers import Integral
 from typing import Any
 
+from usdrelight.checks import path_arg
 from usdrelight.errors import UsdRelightError
 
 
@@ -56,3 +57,14 @@ def check_options(where: str, given: dict, known: dict) -> dict:
                 raise UsdRelightError(f"{where}: option {name} must be an integer >= 1, got {value!r}")
             out[name] = int(value)
     return out
+
+
+def checked_io(stage, path, what: str = "path"):
+    """(``stage``, ``path`` as a Path) of a writer's call, or of a reader's (``stage`` None): a Usd.Stage and a
+    str/Path, each refused in one line naming it (a path string as the stage, an open file as the path)."""
+    from pxr import Usd
+
+    if stage is not None and not isinstance(stage, Usd.Stage):
+        raise UsdRelightError(f"stage must be a Usd.Stage (usdrelight.stage.validate.open_stage(path) opens one), "
+                              f"got {type(stage).__name__}")
+    return stage, path_arg(path, what)

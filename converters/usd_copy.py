@@ -26,8 +26,11 @@ ASSETS = "textures"
 
 
 def _copied_name(path: Path) -> str:
+    """``<stem>_<sha8><suffix>``: the digest of the file's bytes; a name that ends with it already (a copy of a
+    copy, a .usdz made by this module read back) keeps it, so a round trip does not grow the name."""
     digest = hashlib.sha256(path.read_bytes()).hexdigest()[:8]
-    return f"{path.stem}_{digest}{path.suffix.lower()}"
+    stem = path.stem[:-9] if path.stem.endswith(f"_{digest}") else path.stem
+    return f"{stem}_{digest}{path.suffix.lower()}"
 
 
 def localize_assets(layer, beside: Path, under: tuple[Path, ...] | None = None, root: Path | None = None,

@@ -14,6 +14,9 @@ import pytest
 
 import usdrelight
 from usdrelight.imageio import read_raw
+from usdrelight.errors import UsdRelightError
+
+from conftest import EXAMPLES
 
 
 def test_import_and_help_load_no_renderer():
@@ -166,3 +169,60 @@ def test_values_that_worked_before_the_checks_still_do(api_stage):
         assert max(s.engine.resolution) == 32
     rep = usdrelight.fit(api_stage, usdrelight.FitSettings(lights=1, max_side=32.0, iterations=0, verify_spp=0))
     assert rep.lights_kept <= 1
+
+
+def test_a_library_users_wrong_types_are_one_error_naming_the_parameter(api_stage, tmp_path):
+    """None, an int, bytes or an open file where a path goes, a path string where a stage goes, "no" for a flag,
+    a string field of BuildOptions: each raised a raw TypeError/ValueError/AttributeError from deep inside
+    (pathlib, timing.py), or was taken ("60" as 60 degrees, True as 1 degree, "no" as True)."""
+    import io
+
+    from usdrelight.converters import converter_for, mitsuba_xml
+    from usdrelight.converters.convert import convert
+
+    ex = EXAMPLES / "procedural"
+    cases = [
+        (lambda: usdrelight.build(None, tmp_path / "a"), "photo_path must be a path (str or Path), got NoneType"),
+        (lambda: usdrelight.build(ex / "photo.exr", 5), "outdir must be a path (str or Path), got int"),
+        (lambda: usdrelight.fit(None), "stage_path must be a path"),
+        (lambda: usdrelight.relight(5), "stage_path must be a path"),
+        (lambda: usdrelight.RelightSession(None), "stage_path must be a path"),
+        (lambda: usdrelight.RelightSession(api_stage, with_fitted="no"), "with_fitted (--with-fitted) must be True"),
+        (lambda: convert(api_stage, io.BytesIO()), "dst must be a path (str or Path), got BytesIO"),
+        (lambda: convert(bytes(str(api_stage), "utf-8"), tmp_path / "b.glb"), "src must be a path"),
+        (lambda: converter_for(None), "path must be a path"),
+        (lambda: converter_for("a.usda"), "'.usda' is USD"),
+        (lambda: mitsuba_xml.write_to_file(str(api_stage), tmp_path / "c.xml"), "stage must be a Usd.Stage"),
+        (lambda: mitsuba_xml.read_from_file(io.StringIO("<scene/>")), "path must be a path"),
+    ] + [(lambda o=o: usdrelight.build(ex / "photo.exr", tmp_path / "d", usdrelight.BuildOptions(**o)), msg)
+         for o, msg in ((dict(fov_x="60"), "fov_x (--fov-x) must be a finite number"),
+                        (dict(fov_x=True), "fov_x (--fov-x) must be a finite number"),
+                        (dict(fov_x=200.0), "fov_x (--fov-x) must be in (0, 180)"),
+                        (dict(depth_scale=0.0), "depth_scale (--depth-scale) must be > 0"),
+                        (dict(device="tpu"), "device (--device) must be None or one of"))]
+    for call, message in cases:
+        with pytest.raises(UsdRelightError, match=re.escape(message)):
+            call()
+    (tmp_path / "s.py").write_text("print('hi')")
+    with pytest.raises(UsdRelightError, match="a .py file is a Blender script usdrelight writes"):
+        convert(tmp_path / "s.py", tmp_path / "e.usda")  # was: Blender started, then 'File format is not supported'
+    assert not (tmp_path / "a").exists() and not (tmp_path / "d").exists()
+
+
+def test_a_usdz_round_trip_does_not_grow_the_texture_names(api_stage, tmp_path):
+    """stage -> .usdz -> .usda: the textures came back as albedo_76f5b688_76f5b688.exr (one more hash each trip)."""
+    from usdrelight.converters.convert import convert
+
+    convert(api_stage, tmp_path / "s.usdz")
+    convert(tmp_path / "s.usdz", tmp_path / "back" / "s.usda")
+    names = sorted(p.name for p in (tmp_path / "back" / "textures").iterdir())
+    assert names and all(re.fullmatch(r"[a-z_]+?_[0-9a-f]{8}\.\w+", n) for n in names), names
+
+
+def test_relight_reports_progress_to_a_callable_instead_of_a_bar(api_stage, tmp_path):
+    seen = []
+    usdrelight.relight(api_stage, ["point:0,1,-2:2,2,2"], tmp_path / "r", frames="1:3", max_side=32,
+                       progress=lambda done, total: seen.append((done, total)))
+    assert seen == [(1, 3), (2, 3), (3, 3)]
+    with pytest.raises(UsdRelightError, match="progress must be None, True, False or a callable"):
+        usdrelight.relight(api_stage, out=tmp_path / "s", progress="yes")

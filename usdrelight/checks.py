@@ -4,7 +4,9 @@ the parameter as Python spells it and, where it differs, the CLI flag (``max_sid
 from __future__ import annotations
 
 import math
+import os
 from numbers import Integral, Real
+from pathlib import Path
 
 from .errors import UsdRelightError
 
@@ -56,3 +58,18 @@ def names(value, name: str) -> list[str]:
     if not all(isinstance(v, str) for v in out):
         raise UsdRelightError(f"{_name(name)} must be a string or a list of strings, got {value!r}")
     return out
+
+
+def path_arg(value, name: str) -> Path:
+    """``value`` as a Path: a str or os.PathLike naming a file or folder (not empty); None, numbers, bytes and
+    open files are refused, naming the parameter (a library user's slip, never a TypeError from deep inside)."""
+    if isinstance(value, (str, os.PathLike)) and not isinstance(value, bytes) and str(value):
+        return Path(value)
+    raise UsdRelightError(f"{name} must be a path (str or Path), got {type(value).__name__} {value!r}"[:200])
+
+
+def flag(value, name: str) -> bool:
+    """``value`` as a bool: True or False only (``"no"`` is not False)."""
+    if isinstance(value, bool):
+        return value
+    raise UsdRelightError(f"{_name(name)} must be True or False, got {value!r}")

@@ -120,8 +120,8 @@ def check_read(path: str | os.PathLike, root: str | os.PathLike | None, what: st
     for folder in (Path(root).resolve(),) + _ALLOWED.get():
         if _inside(real, folder):
             return Path(path)
-    raise UsdRelightError(f"{what} {os.fspath(path)} is outside the scene's folder {root}; "
-                          f"pass --allow-path DIR to allow reading from DIR")
+    raise UsdRelightError(f"{what} {os.fspath(path)} is outside the scene's folder {root}; pass --allow-path DIR to "
+                          f"allow reading from DIR (in Python: with usdrelight.safe_paths.allow_paths([DIR]))")
 
 
 def stage_folder(stage) -> Path | None:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from usdrelight.errors import UsdRelightError
 
-from ..report import ReadReport, check_options
+from ..report import ReadReport, check_options, checked_io
 from .parse import parse_scene, read_scene_file
 from .to_usd import build_stage
 from .write import WRITE_OPTIONS, write_to_file, write_to_string
@@ -55,7 +55,7 @@ def read_from_string(text: str, base_dir, **options) -> ReadReport:
 def read_from_file(path, **options) -> ReadReport:
     """Parse a Mitsuba scene file into a Usd.Stage (at the ``usd_path`` option when given, else in memory)."""
     opts = check_options(f"{NAME} reader", options, READ_OPTIONS)
-    path = Path(path)
+    _, path = checked_io(None, path)
     if not path.is_file():
         raise UsdRelightError(f"file not found: {path}")
     text = read_scene_file(path)

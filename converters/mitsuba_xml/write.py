@@ -34,7 +34,7 @@ from usdrelight.stage.read import read_scene
 from usdrelight.stage.timing import frame_time
 from usdrelight.stage.records import TextureRecord
 
-from ..report import WriteReport, check_options
+from ..report import WriteReport, check_options, checked_io
 from .common import AREA_TEXTURE_KEY, FLIP_NORMALS_KEY, TAG_OF, UP_AXIS_Z_COMMENT, VECTOR_KEYS, kept_extra, rel_path
 
 #: Writer options -> defaults: ``spp``, samples per pixel (the sampler's sample_count); ``max_depth``, the
@@ -159,7 +159,8 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
     """The XML in the report's ``text``; meshes (and copied or baked textures) go under ``base_dir``, listed in
     ``files``. Options: :data:`WRITE_OPTIONS`."""
     opts = check_options("Mitsuba XML writer", options, WRITE_OPTIONS)
-    base = Path(base_dir).absolute()
+    stage, base = checked_io(stage, base_dir, "base_dir")
+    base = base.absolute()
     rec = read_scene(stage, frame_time(stage, opts["time"]))  # lights' time samples at ``time``
     integrator = None
     settings_extra = _custom_mitsuba(stage, rec)
@@ -197,7 +198,8 @@ def write_to_string(stage, base_dir, **options) -> WriteReport:
 
 def write_to_file(stage, path, **options) -> WriteReport:
     """Write the stage as Mitsuba XML at ``path`` (meshes and textures beside it). Options: :data:`WRITE_OPTIONS`."""
-    path = Path(path).absolute()
+    stage, path = checked_io(stage, path)
+    path = path.absolute()
     res = write_to_string(stage, path.parent, **options)
     write_text_atomic(path, res.text)
     return WriteReport([str(path)] + res.files, res.warnings)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import stage_lock
-from ..checks import MAX_SEED, whole, whole_or_none
+from ..checks import MAX_SEED, path_arg, whole, whole_or_none
 from ..errors import UsdRelightError
 from ..imageio import write_image
 from ..mitsuba.render import MAX_SPP, render_record
@@ -136,7 +136,7 @@ class FitSettings:
     """Environment latlong cells ``"HxW"`` or (H, W); ``"0x0"``: no environment; None: 8x16 (fast), 128x256
     (adam)."""
     iterations: int | None = None
-    """Position iterations; None: 40 (fast), 200 (adam)."""
+    """Position iterations; None (or 0, as the API took it before its checks): 40 (fast), 200 (adam)."""
     max_side: int = 512
     """Longer side of the fit resolution, pixels (the target D is box-filtered down to it)."""
     verify_spp: int = 128
@@ -155,8 +155,8 @@ def fit(stage_path, settings: FitSettings | None = None, *, report_dir=None, pro
     fit fails with "being written by PID N" instead of interleaving). ``report_dir``: also write
     fit_report.json and a plot of error against run time there. ``progress(i, n, mse)`` is called per step.
     Returns the :class:`~usdrelight.fit.result.FitReport` (MSE and PSNR in the linear units of D, seconds)."""
+    path = stage_path = path_arg(stage_path, "stage_path")
     refuse_usdz(stage_path, "fit")
-    path = Path(stage_path)
     if path.is_file() and (path.name != SCENE or not is_stage_folder(path.absolute().parent)):
         raise UsdRelightError(f"{stage_path} is not the scene.usda of a stage `usdrelight build` made: fit writes "
                               f"its fitted lights into such a stage's own layers (nothing was written)")

@@ -19,7 +19,7 @@ from rich.progress import track
 
 from ..atomic import result_group
 from ..engine.fast import EngineSettings, check_area_samples
-from ..checks import number
+from ..checks import flag, number, path_arg
 from ..errors import UsdRelightError
 from ..imageio import display_exposure, write_image
 from ..neural.model import write_relit
@@ -160,7 +160,8 @@ def _area_settings(area_samples: int | None, renderer: str) -> EngineSettings | 
 def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool = False, spp: int = 32,
             max_depth: int = 3, max_side: int | None = None, renderer: str = "fast", sequence=None,
             mode: str = DEFAULT_MODE, fitted_scale: float | None = None, contact_sheet: bool = False, time=None,
-            frames=None, video=None, save_lights=None, area_samples: int | None = None) -> RelightResult:
+            frames=None, video=None, save_lights=None, area_samples: int | None = None,
+            progress=None) -> RelightResult:
     """``usdrelight relight``: write relit.exr/.png + render_diffuse.exr, or for several frames relit_NNNN.* and
     render_diffuse_NNNN.exr (NNNN: the frame's index in the run), one frame per entry of ``sequence`` (a
     LIGHTS.json path) or per USD time code of ``frames`` (``"START:END[:STEP]"``; ``""``: the stage's own
@@ -172,10 +173,15 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     second; a ``sequence``: framesPerSecond); ``save_lights`` (with ``sequence``)
     also writes the sequence as a new time-sampled UsdLux layer (:mod:`usdrelight.stage.animated_lights`);
     ``area_samples``: the fast renderer's shadow rays per pixel for sphere, disk, rect and wide sun lights (None:
-    :class:`usdrelight.engine.EngineSettings`' 16)."""
+    :class:`usdrelight.engine.EngineSettings`' 16); ``progress``: None (or True), a bar on stderr when it is a
+    terminal and there are several frames (the CLI's); False, none; a callable, ``progress(done, total)`` after
+    each frame instead of the bar."""
     from pxr import UsdGeom
 
     t0 = time_module.perf_counter()
+    stage_path, with_fitted = path_arg(stage_path, "stage_path"), flag(with_fitted, "with_fitted")
+    if not (progress is None or isinstance(progress, bool) or callable(progress)):
+        raise UsdRelightError(f"progress must be None, True, False or a callable, got {type(progress).__name__}")
     if sequence is not None and frames is not None:
         raise UsdRelightError("--sequence and --frames both choose the frames: give one")
     if save_lights is not None and sequence is None:
@@ -213,7 +219,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
             if save_lights is not None else None
         try:
             return _run(session, stage_path, out, common, plan, len(plan) > 1 or seq is not None or
-                        times is not None, contact_sheet, video, fps, layer, t0)
+                        times is not None, contact_sheet, video, fps, layer, t0, progress)
         except BaseException:
             if layer is not None:
                 layer.unlink(missing_ok=True)  # nothing of a failed run stays
@@ -221,7 +227,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
 
 
 def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool, contact_sheet: bool, video,
-         fps: float | None, layer, t0: float) -> RelightResult:
+         fps: float | None, layer, t0: float, progress=None) -> RelightResult:
     out_dir = Path(out) if out else confined_path(Path(stage_path).resolve().parent, "relit", "the relit folder")
     written = []
     sheet = None
@@ -236,7 +242,7 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         pending: deque = deque()
         console = Console(stderr=True)  # progress on stderr, only on a terminal and for several frames
         steps = track(plan, description="relight", console=console, transient=True,
-                      disable=len(plan) < 2 or not console.is_terminal)
+                      disable=progress is False or callable(progress) or len(plan) < 2 or not console.is_terminal)
         first, lit = None, False  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
             frame = session.render(common + extra, time_code=t, allow_dark=len(plan) > 1)  # a dark frame of a clip
@@ -245,6 +251,8 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
             lit = lit or frame.lights > 0
             pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4,
                                          exposure))
+            if callable(progress):
+                progress(i + 1, len(plan))
             while len(pending) > WRITE_QUEUE:
                 written.append(pending.popleft().result())
         written += [f.result() for f in pending]  # a failed write raises here: the group publishes nothing

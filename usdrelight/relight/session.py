@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import number, whole_or_none
+from ..checks import flag, number, path_arg, whole_or_none
 from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..engine.fast import content_key
 from ..errors import UsdRelightError
@@ -121,7 +121,8 @@ class RelightSession:
     stage's full resolution); ``renderer`` (``fast`` or ``mitsuba``); ``with_fitted`` (render the fitted lights,
     the photo's own lighting, scaled by ``fitted_scale`` in [0, 1e6]); ``stage_lights`` (False: render only the
     lights passed to :meth:`render`, for callers that own the whole light list; the fitted lights still define
-    the ``ratio`` reference); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
+    the ``ratio`` reference, and ``with_fitted`` then says whether the lights passed include the photo's own, as
+    ``auto`` reads it: True picks ``add``, the photo plus those lights); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
     ``max_depth`` (Mitsuba's samples per pixel and path length; the fast renderer's bounce depth);
     ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto`` or one of
     :data:`usdrelight.relight.composite.MODES`); ``cache`` (the transport cache; default ``STAGE_DIR/cache``);
@@ -134,6 +135,8 @@ class RelightSession:
                  stage_lights: bool = True, model_path=None, spp: int = 32, max_depth: int = 3,
                  settings: EngineSettings | None = None, mode: str = DEFAULT_MODE, fitted_scale: float = 1.0,
                  cache: TransportCache | None = None, time: float | None = None):
+        stage_path = path_arg(stage_path, "stage_path")
+        with_fitted, stage_lights = flag(with_fitted, "with_fitted"), flag(stage_lights, "stage_lights")
         check_renderer_options(renderer, spp, max_depth)  # before the stage is read
         max_side = whole_or_none(max_side, "max_side", 0)  # 0 (as None): the stage's full resolution
         if number(fitted_scale, "fitted_scale") > 1e6:

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import number, whole
+from ..checks import number, path_arg, whole
 from ..errors import UsdRelightError
 from ..estimate.decomposition import estimate_decomposition
 from ..estimate.geometry import estimate_geometry, resolve_intrinsics
 from ..estimate.hub import prepare as prepare_models
-from ..estimate.names import ALBEDO, GEOMETRY, is_learned
+from ..estimate.names import ALBEDO, DEVICES, GEOMETRY, is_learned
 from ..estimate.records import Photo, PhotoEstimates
 from ..imageio import read_map, read_photo
 from ..mesh import DEFAULT_MAX_GRAZING_DEG, triangulate
@@ -142,12 +142,20 @@ def check_user_layer(outdir) -> None:
 
 def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -> BuildResult:
     """Build ``outdir/scene.usda`` from a photograph. ``progress(step_name)`` is called after each step."""
+    photo_path, outdir = path_arg(photo_path, "photo_path"), path_arg(outdir, "outdir")
     opts = BuildOptions() if opts is None else opts
     if not isinstance(opts, BuildOptions):
         raise UsdRelightError(f"opts must be a BuildOptions, got {type(opts).__name__}")
     grazing = number(opts.max_grazing_deg, "max_grazing_deg")
     if not 0 < grazing <= 90:
         raise UsdRelightError(f"max_grazing_deg (--max-grazing-deg) must be in (0, 90] degrees, got {grazing:g}")
+    if opts.fov_x is not None and not 0 < number(opts.fov_x, "fov_x") < 180:
+        raise UsdRelightError(f"fov_x (--fov-x) must be in (0, 180) degrees, got {opts.fov_x!r}")
+    if opts.depth_scale is not None and not number(opts.depth_scale, "depth_scale") > 0:
+        raise UsdRelightError(f"depth_scale (--depth-scale) must be > 0 (metres per stored unit), got "
+                              f"{opts.depth_scale!r}")
+    if opts.device is not None and opts.device not in DEVICES:
+        raise UsdRelightError(f"device (--device) must be None or one of {', '.join(DEVICES)}, got {opts.device!r}")
     opts = replace(opts, stride=whole(opts.stride, "stride", 1, flag="--decimate"), max_grazing_deg=grazing,
                    geometry=None if opts.geometry is None else str(opts.geometry),
                    albedo_from=None if opts.albedo_from is None else str(opts.albedo_from))
