@@ -157,3 +157,64 @@ def test_shipped_model_is_monotone_when_a_light_is_added(tmp_path):
     darker = (more.image @ lum) < (base.image @ lum) * 0.98
     assert darker.mean() <= 0.005, f"{100 * darker.mean():.2f}% of pixels darker by > 2% after adding a light"
     assert np.all(more.diffuse >= base.diffuse - 1e-6)  # the render itself only gains light
+
+
+def _unary_model(path, op: str, out_name="output", channels=(7, 3), **attrs):
+    """A one-node model: ``op`` (Div by 0 -> NaN, MaxPool 2x2 -> half the size, ...) of the input's first channels,
+    or a constant ``log_gain`` when ``out_name`` is that (a residual network of 20 channels in)."""
+    cin, cout = channels
+    nodes = [helper.make_node("Slice", ["input", "starts", "ends", "axes"], ["x3"])]
+    inits = [numpy_helper.from_array(np.array([0], np.int64), "starts"),
+             numpy_helper.from_array(np.array([cout], np.int64), "ends"),
+             numpy_helper.from_array(np.array([1], np.int64), "axes")]
+    if op == "nan":
+        nodes.append(helper.make_node("Div", ["x3", "zero"], ["y"]))
+        nodes.append(helper.make_node("Mul", ["y", "zero"], [out_name]))  # x / 0 * 0 = NaN
+        inits.append(numpy_helper.from_array(np.array(0.0, np.float32), "zero"))
+    elif op == "half":
+        nodes.append(helper.make_node("MaxPool", ["x3"], [out_name], kernel_shape=[2, 2], strides=[2, 2]))
+    else:  # a constant gain: 0 * x + c
+        nodes.append(helper.make_node("Mul", ["x3", "zero"], ["z"]))
+        nodes.append(helper.make_node("Add", ["z", "c"], [out_name]))
+        inits += [numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
+                  numpy_helper.from_array(np.array(float(op), np.float32), "c")]
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("input", TensorProto.FLOAT,
+                                                                         [1, cin, "H", "W"])],
+                              [helper.make_tensor_value_info(out_name, TensorProto.FLOAT, [1, cout, None, None])],
+                              initializer=inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9), path)
+    return path
+
+
+def test_a_model_of_another_size_or_nan_output_is_an_error_not_a_black_or_small_image(tmp_path):
+    """A model returning half the size was accepted (a 32x24 relit beside a 64x48 render; past 1024 px a broadcast
+    error); one returning NaN gave an all-black image. Both are one error naming the model."""
+    x = np.random.default_rng(1).random((7, 48, 64)).astype(np.float32)
+    with pytest.raises(UsdRelightError, match=r"output shape \[1, 3, 24, 32\] for the input \[1, 7, 48, 64\]"):
+        RelightModel(_unary_model(tmp_path / "half.onnx", "half"))(x)
+    with pytest.raises(UsdRelightError, match="output 9216 non-finite values"):
+        RelightModel(_unary_model(tmp_path / "nan.onnx", "nan"))(x)
+
+
+def test_relight_model_goes_to_the_mode_its_contract_serves(cli, tmp_path):
+    """--model with --mode residual was ignored (the bundled residual network ran whatever the file: a missing
+    one, a text file, a relight network): a residual network (output log_gain) now runs there, a constant gain
+    of 0.5 giving e^0.5 = 1.65 x the bundled-free transfer picture; a missing model is an error."""
+    from conftest import build_procedural
+    from usdrelight.neural.residual import CHANNELS
+    from usdrelight.stage.lights_layer import write_fitted_lights
+    from usdrelight.stage.records import FitProvenance, PointLightValue
+
+    stage = build_procedural(tmp_path / "st", stride=4)
+    write_fitted_lights(tmp_path / "st", [PointLightValue(np.array([0.5, 1.0, -1.5]), np.array([3.0, 3.0, 3.0]))],
+                        None, FitProvenance("fast", 0.0, 0.0, 0.0, 0))
+    gain = _unary_model(tmp_path / "g.onnx", "0.5", out_name="log_gain", channels=(CHANNELS, 3))
+    zero = _unary_model(tmp_path / "z.onnx", "0.0", out_name="log_gain", channels=(CHANNELS, 3))
+    args = ["--light", "point:0,1,-1:20,20,20", "--mode", "residual", "--max-side", "64"]
+    a = cli.json("relight", stage, *args, "--model", gain, "-o", tmp_path / "a")
+    b = cli.json("relight", stage, *args, "--model", zero, "-o", tmp_path / "b")
+    ia, ib = read_map(a["exr"], 3), read_map(b["exr"], 3)
+    lit = ib > 1e-3 * ib.max()
+    assert np.median(ia[lit] / ib[lit]) == pytest.approx(np.exp(0.5), rel=0.02)
+    rc, _, err = cli("relight", stage, *args, "--model", tmp_path / "none.onnx", "-o", tmp_path / "c")
+    assert rc == 2 and "none.onnx" in err, err

@@ -164,12 +164,12 @@ def test_a_frame_whose_lights_are_all_invisible_is_dark_not_the_end_of_the_clip(
 
 
 def test_a_light_relight_cannot_draw_is_named(cli, fitted, tmp_path):
-    """A CylinderLight was dropped by relight without a word (render warned)."""
+    """A PortalLight (a CylinderLight before it was drawn) was dropped by relight without a word (render warned)."""
     stage_dir = fitted.parent
-    with user_lights(stage_dir, '  def Scope "User" {\n   def CylinderLight "Tube" {\n    float inputs:intensity = 5\n'
+    with user_lights(stage_dir, '  def Scope "User" {\n   def PortalLight "Window" {\n    float inputs:intensity = 5\n'
                                 '   }\n  }'):
         rc, _, err = cli("relight", fitted, "--with-fitted", "--max-side", "48", "-o", tmp_path / "o")
-        assert rc == 0 and "light type CylinderLight (not converted)" in err, err
+        assert rc == 0 and "light type PortalLight (not converted)" in err, err
 
 
 def test_a_relight_keeps_a_renders_aovs_in_its_folder_and_replaces_its_own_frames(cli, fitted, tmp_path):

@@ -78,14 +78,15 @@ def is_temp_file_of(path: str | os.PathLike, target_name: str) -> bool:
 
 @contextmanager
 def atomic_path(target: str | os.PathLike):
-    """Yield a temporary path beside ``target``; on a clean exit it is fsynced and renamed onto ``target``.
-
-    On an exception the temporary file is removed and ``target`` is left as it was. The caller (or the
-    library it hands the path to) creates the file at the yielded path.
-    """
+    """Yield a temporary path beside ``target``; on a clean exit it is fsynced and renamed onto ``target``. On an
+    exception the temporary file is removed and ``target`` is left as it was. The caller (or the library it hands
+    the path to) creates the file at the yielded path; a place no file can be made is one UsdRelightError."""
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{TEMP_FILE_TAG}", suffix=target.suffix, dir=target.parent)
+    try:  # a folder that cannot hold files (/proc, a read-only mount, a file in the way)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}{TEMP_FILE_TAG}", suffix=target.suffix, dir=target.parent)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write {target}: {exc.strerror or exc}") from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:

@@ -136,6 +136,13 @@ def open_frame_session(path: Path):
     return open_session(path, {"session.intra_op.allow_spinning": "0"}, threads)
 
 
+def is_residual_model(path) -> bool:
+    """Whether the ONNX file at ``path`` is a residual network (an output ``log_gain``:
+    :mod:`usdrelight.neural.residual`), not a relight network (``output``); one error line for a file onnxruntime
+    cannot open."""
+    return any(o.name == "log_gain" for o in open_session(Path(path)).get_outputs())
+
+
 class RelightModel:
     """An onnxruntime session checked against the model contract."""
 
@@ -161,9 +168,13 @@ class RelightModel:
             y = self.session.run(["output"], {"input": xp})[0]
         except Exception as exc:
             raise UsdRelightError(f"model {self.path.name} failed: {first_line(exc)}") from None
-        if y.ndim != 4 or y.shape[1] != 3:
-            raise UsdRelightError(f"model {self.path.name} breaks the contract: output shape {y.shape}, "
-                                  f"expected [1, 3, H, W]")
+        if y.ndim != 4 or y.shape[1] != 3 or y.shape[2:] != xp.shape[2:]:
+            raise UsdRelightError(f"model {self.path.name} breaks the contract: output shape {list(y.shape)} for "
+                                  f"the input {list(xp.shape)}, expected [1, 3, H, W] of the input's H, W")
+        bad = int(np.count_nonzero(~np.isfinite(y[0, :, :h, :w])))
+        if bad:  # a broken network, not pixels to paint black (a few NaN: the same answer, a clear error)
+            raise UsdRelightError(f"model {self.path.name} output {bad} non-finite values (NaN/Inf) of "
+                                  f"{3 * h * w}")
         return y[0, :, :h, :w]
 
     def __call__(self, x: np.ndarray) -> np.ndarray:

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, write_text_atomic
+from ..checks import path_arg
+from ..safe_paths import writable_parent
 from ..errors import UsdRelightError
 from .model import build_input
 from .pairs import prepare_pairs
@@ -215,8 +217,18 @@ class TrainResult:
 
 
 def train_folder(data_dir, out_onnx, work_dir=None, steps: int = 1500, progress=None, **kw) -> TrainResult:
-    """The `usdrelight train` job: pairs from a training folder, training, ONNX export, a JSON log."""
+    """The `usdrelight train` job: pairs from a training folder, training, ONNX export, a JSON log. The output
+    (an ``.onnx`` file whose folder can be made) is checked before any work."""
+    out_onnx = writable_parent(path_arg(out_onnx, "out_onnx"), "the model")
+    if out_onnx.suffix.lower() != ".onnx" or out_onnx.is_dir():
+        raise UsdRelightError(f"-o {out_onnx}: the model is an .onnx file (its log goes beside it, .json)")
     work = Path(work_dir) if work_dir else Path(out_onnx).with_suffix("").with_name(Path(out_onnx).stem + "_work")
+    try:  # (the model's folder too: made before the work, not found unwritable after it)
+        work.mkdir(parents=True, exist_ok=True)
+        out_onnx.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsdRelightError(f"cannot write {work if not work.is_dir() else out_onnx.parent}: "
+                              f"{exc.strerror or exc}") from None
     t0 = time.perf_counter()
     pairs = prepare_pairs(data_dir, work)
     t_pairs = time.perf_counter() - t0

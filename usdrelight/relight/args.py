@@ -46,7 +46,9 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
                          "network on the render")
     rl.add_argument("--contact-sheet", action="store_true",
                     help="also write contact_sheet.png: photo, diffuse render and every mode's result")
-    rl.add_argument("--model", type=_path)
+    rl.add_argument("--model", type=_path,
+                    help="ONNX network: a relight one (output 'output') for --mode neural, a residual one (output "
+                         "'log_gain') for residual; the other mode keeps the shipped one")
     rl.add_argument("-o", "--output", type=_path)
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
     rl.add_argument("--area-samples", type=int, metavar="N",

@@ -200,6 +200,9 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
     with_fitted = with_fitted or fitted_scale is not None  # any scale given, 1 too, keeps the fitted lights
     fitted_scale = 1.0 if fitted_scale is None else number(fitted_scale, "fitted_scale")
+    if mode == "add" and fitted_scale != 1.0:  # the photo, as it is, plus the new lights: it cannot dim
+        log.warning("--mode add keeps the photo's own light as it is: --fitted-scale %g is not applied (transfer, "
+                    "ratio or auto dim it)", fitted_scale)
     settings = _area_settings(area_samples, renderer)
     session = RelightSession(stage_path, mode=mode, max_side=max_side, renderer=renderer, with_fitted=with_fitted,
                              model_path=model_path, spp=spp, max_depth=max_depth, fitted_scale=fitted_scale,

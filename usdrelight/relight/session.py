@@ -30,7 +30,7 @@ from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..engine.fast import content_key
 from ..errors import UsdRelightError
 from ..imageio import read_photo, resize_image
-from ..neural.model import RelightModel, build_input, hole_fill
+from ..neural.model import RelightModel, build_input, hole_fill, is_residual_model
 from ..neural.residual import DEFAULT_RESIDUAL, ResidualModel, apply_gain, residual_input
 from ..safe_paths import check_read, stage_folder
 from ..stage.layout import FITTED_LIGHTS_SCOPE
@@ -122,7 +122,9 @@ class RelightSession:
     the photo's own lighting, scaled by ``fitted_scale`` in [0, 1e6]); ``stage_lights`` (False: render only the
     lights passed to :meth:`render`, for callers that own the whole light list; the fitted lights still define
     the ``ratio`` reference, and ``with_fitted`` then says whether the lights passed include the photo's own, as
-    ``auto`` reads it: True picks ``add``, the photo plus those lights); ``model_path`` (an ONNX relight network, default the bundled one); ``spp`` and
+    ``auto`` reads it: True picks ``add``, the photo plus those lights); ``model_path`` (an ONNX network: a
+    relight one for ``neural``, a residual one, output ``log_gain``, for ``residual``; the other mode keeps its
+    bundled one); ``spp`` and
     ``max_depth`` (Mitsuba's samples per pixel and path length; the fast renderer's bounce depth);
     ``settings`` (:class:`usdrelight.engine.EngineSettings`); ``mode`` (``auto`` or one of
     :data:`usdrelight.relight.composite.MODES`); ``cache`` (the transport cache; default ``STAGE_DIR/cache``);
@@ -165,7 +167,10 @@ class RelightSession:
         mode = resolve_mode(mode, bool(fitted) and with_fitted and fitted_scale > 0, self._source_photo != "",
                             fitted_scale != 1.0, bool(fitted))
         self.max_depth, self.mode = max_depth, mode
-        self._model_path = model_path
+        # --model is the network of the mode its contract serves: a residual one (output log_gain) for residual
+        # (it was ignored there: the bundled one always ran), a relight one for neural; the other, the bundled one
+        residual = model_path is not None and is_residual_model(path_arg(model_path, "model_path"))
+        self._model_path, self._residual_path = (None, model_path) if residual else (model_path, None)
         self.model = self.photo = self.residual_model = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
         self._transfer_reference = None  # the photo's residual over the fitted render, split: once
@@ -234,7 +239,7 @@ class RelightSession:
             raise UsdRelightError(f"mode {mode} needs the fitted lights: run `usdrelight fit` first, "
                                   "or choose --mode render or --mode add")
         if mode == "residual" and self.residual_model is None:
-            self.residual_model = ResidualModel()
+            self.residual_model = ResidualModel(self._residual_path)
         if mode in ("ratio", "add", "transfer", "residual") and self.photo is None:
             self.photo = self._photo()
 
