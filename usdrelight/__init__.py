@@ -25,7 +25,7 @@ __version__ = "0.1.0"
 #: The names :mod:`usdrelight.api` exports, offered here without importing it until one is used.
 API = ("build", "BuildOptions", "BuildResult", "fit", "FitSettings", "FitReport", "render", "RenderResult",
        "RelightSession", "RelitFrame", "relight", "RelightResult", "convert", "ConvertReport", "read_scene",
-       "SceneRecord", "validate", "Finding")
+       "SceneRecord", "validate", "Finding", "allow_paths")
 __all__ = ["UsdRelightError", "__version__", *API]
 
 

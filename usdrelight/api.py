@@ -20,6 +20,7 @@ from .fit.run import FitSettings, fit
 from .mitsuba.render import RenderResult, render_stage as render
 from .relight.run import RelightResult, relight
 from .relight.session import RelightSession, RelitFrame
+from .safe_paths import allow_paths
 from .stage.build import BuildOptions, BuildResult, build
 from .stage.read import read_scene
 from .stage.records import SceneRecord
@@ -27,4 +28,4 @@ from .stage.validate import Finding, validate
 
 __all__ = ["build", "BuildOptions", "BuildResult", "fit", "FitSettings", "FitReport", "render", "RenderResult",
            "RelightSession", "RelitFrame", "relight", "RelightResult", "convert", "ConvertReport", "read_scene",
-           "SceneRecord", "validate", "Finding", "UsdRelightError"]
+           "SceneRecord", "validate", "Finding", "UsdRelightError", "allow_paths"]

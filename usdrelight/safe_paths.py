@@ -16,7 +16,7 @@ import os
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path, PurePosixPath
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from .errors import UsdRelightError
 
@@ -92,8 +92,9 @@ _ALLOWED: ContextVar[tuple[Path, ...]] = ContextVar("usdrelight_allowed_paths", 
 
 
 @contextmanager
-def allow_paths(dirs: Iterable[str | os.PathLike]):
-    """Within the block, scene files may also read files under each of ``dirs`` (``--allow-path``)."""
+def allow_paths(dirs: Iterable[str | os.PathLike]) -> Iterator[None]:
+    """Within the ``with`` block, scene files may also read files under each of the folders ``dirs`` (the
+    command line's ``--allow-path``); a stage otherwise reads only inside its own folder."""
     token = _ALLOWED.set(_ALLOWED.get() + tuple(Path(d).resolve() for d in dirs))
     try:
         yield
@@ -121,7 +122,7 @@ def check_read(path: str | os.PathLike, root: str | os.PathLike | None, what: st
         if _inside(real, folder):
             return Path(path)
     raise UsdRelightError(f"{what} {os.fspath(path)} is outside the scene's folder {root}; pass --allow-path DIR to "
-                          f"allow reading from DIR (in Python: with usdrelight.safe_paths.allow_paths([DIR]))")
+                          f"allow reading from DIR (in Python: with usdrelight.allow_paths([DIR]))")
 
 
 def stage_folder(stage) -> Path | None:
