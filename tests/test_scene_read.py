@@ -53,11 +53,11 @@ def test_invisible_guides_and_unsupported_prims_are_named(tmp_path):
     g = UsdGeom.Cube.Define(stage, "/World/Guide")
     g.CreatePurposeAttr("guide")
     UsdGeom.Cylinder.Define(stage, "/World/Cyl")
-    UsdLux.CylinderLight.Define(stage, "/World/Tube")
+    UsdLux.PortalLight.Define(stage, "/World/Window")
     rec = read_scene(stage)
     assert rec.shapes == () and rec.meshes == () and rec.lights == ()
     assert rec.warnings["gprim type Cylinder (not converted)"] == 1
-    assert rec.warnings["light type CylinderLight (not converted)"] == 1
+    assert rec.warnings["light type PortalLight (not converted)"] == 1
 
 
 @pytest.mark.parametrize("light", ["point", "dome", "distant"])

@@ -93,7 +93,7 @@ def test_wheel_in_a_fresh_venv_builds_fits_and_relights_from_outside_the_checkou
     assert not any("editable" in h.lower() for h in info["hooks"]), info["hooks"]
     assert set(info["names"]) == {"build", "BuildOptions", "BuildResult", "fit", "FitSettings", "FitReport", "render",
                                   "RenderResult", "RelightSession", "RelitFrame", "relight", "RelightResult", "convert",
-                                  "ConvertReport", "read_scene", "SceneRecord", "validate", "Finding"}
+                                  "ConvertReport", "read_scene", "SceneRecord", "validate", "Finding", "allow_paths"}
     assert info["fallback"] == -1.0  # the schema plugin registered from the installed package
 
     ex = ROOT / "examples" / "procedural"
