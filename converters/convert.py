@@ -37,13 +37,17 @@ class ConvertReport:
     """What :func:`convert` wrote, and what each direction could not carry."""
 
     files: list[str] = field(default_factory=list)
-    """Paths written: DST first, then what the writer put beside it (meshes, textures, a script's data folder)."""
+    """Absolute paths written: DST first, then what the writer put beside it (meshes, textures, a script's data
+    folder)."""
     read_warnings: dict[str, int] = field(default_factory=dict)
     """What USD cannot hold of SRC (the reader's), ``{kind: count}`` in the order first met; empty when SRC is
     USD."""
     write_warnings: dict[str, int] = field(default_factory=dict)
     """What DST's format cannot represent of the stage (the writer's), ``{kind: count}``; empty when DST is
     USD."""
+
+    def __post_init__(self):  # one form whatever the writer returns (relative DST: some gave it as passed)
+        object.__setattr__(self, "files", [str(Path(f).absolute()) for f in self.files])
 
     def to_dict(self) -> dict:
         """The report as JSON-ready plain data: ``{"files", "read_warnings", "write_warnings"}``."""

@@ -209,3 +209,12 @@ def test_blender_and_mesh_readers_return_their_warnings(cli, monkeypatch, tmp_pa
     assert res.warnings == {"embedded texture in an in-memory stage (its mean colour used)": 1}
     res = mesh_files.read_from_file(tmp_path / "box.glb", usd_path=tmp_path / "box.usda")  # beside it: no warning
     assert res.warnings == {} and (tmp_path / "textures").is_dir()
+
+
+def test_convert_report_files_are_absolute_for_every_writer(usd_scene, tmp_path, monkeypatch):
+    """A relative DST: the XML, glTF and Blender writers reported absolute paths, USD -> USD and .usdz the path as
+    passed (conv2/s.usdz)."""
+    monkeypatch.chdir(tmp_path)
+    for name in ("out/s.usda", "out/s.usdz", "out/s.xml", "out/s.glb"):
+        files = convert(usd_scene, name).files
+        assert files[0] == str(tmp_path / name) and all(f.startswith("/") for f in files), files

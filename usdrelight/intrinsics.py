@@ -55,7 +55,7 @@ class Intrinsics:
     def from_fov_x(cls, fov_x_deg: float, width: int, height: int) -> "Intrinsics":
         """Square pixels, principal point at the image centre, horizontal field of view in degrees."""
         if not (math.isfinite(fov_x_deg) and 0.0 < fov_x_deg < 180.0):
-            raise UsdRelightError(f"--fov-x must be in (0, 180) degrees, got {fov_x_deg}")
+            raise UsdRelightError(f"fov_x (--fov-x) must be in (0, 180) degrees, got {fov_x_deg}")
         f = 0.5 * width / math.tan(math.radians(fov_x_deg) / 2.0)
         return cls(f, f, width / 2.0, height / 2.0, width, height)
 

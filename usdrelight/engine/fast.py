@@ -84,7 +84,8 @@ def check_area_samples(n) -> int:
     except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
-        raise UsdRelightError(f"area_samples must be a whole number in [1, {MAX_AREA_SAMPLES}], got {n!r}")
+        raise UsdRelightError(f"area_samples (--area-samples) must be a whole number in [1, {MAX_AREA_SAMPLES}], "
+                              f"got {n!r}")
     return int(n)
 
 

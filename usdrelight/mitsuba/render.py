@@ -212,7 +212,7 @@ PASS_SAMPLES = 1 << 25
 (Mitsuba's wavefront would otherwise hold every sample of the image in memory at once)."""
 
 
-def check_spp(spp: int, what: str = "--spp") -> int:
+def check_spp(spp: int, what: str = "spp (--spp)") -> int:
     """``spp`` when 1 <= spp <= :data:`MAX_SPP`; UsdRelightError (one line) otherwise."""
     if not isinstance(spp, (int, np.integer)) or isinstance(spp, bool) or not 1 <= spp <= MAX_SPP:
         raise UsdRelightError(f"{what} must be an integer in [1, {MAX_SPP}], got {spp!r}")
