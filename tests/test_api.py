@@ -226,3 +226,12 @@ def test_relight_reports_progress_to_a_callable_instead_of_a_bar(api_stage, tmp_
     assert seen == [(1, 3), (2, 3), (3, 3)]
     with pytest.raises(UsdRelightError, match="progress must be None, True, False or a callable"):
         usdrelight.relight(api_stage, out=tmp_path / "s", progress="yes")
+
+
+def test_a_closed_session_renders_nothing(api_stage):
+    s = usdrelight.RelightSession(api_stage, max_side=32, mode="render")
+    s.render(["point:0,1,-2:2,2,2"])
+    s.close()
+    s.close()  # twice is fine
+    with pytest.raises(UsdRelightError, match="this RelightSession is closed"):
+        s.render(["point:0,1,-2:2,2,2"])  # it rendered on, through a renderer that had let its cache go

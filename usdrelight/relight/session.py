@@ -215,8 +215,10 @@ class RelightSession:
         self.close()
 
     def close(self) -> None:
-        """Release the renderer's hold on its transport cache entry."""
+        """Release the renderer's hold on its transport cache entry; the session renders nothing after (an error
+        says so). Closing twice is fine."""
         self.engine.close()
+        self._closed = True
 
     @property
     def usd_stage(self):
@@ -311,6 +313,8 @@ class RelightSession:
         preview while a light moves; None: the settings'); the fitted render the composites divide by keeps the
         settings' count. Refused with the Mitsuba renderer. No light at all is an error unless ``allow_dark``
         (a frame of a clip at which every light is invisible: rendered without light)."""
+        if getattr(self, "_closed", False):
+            raise UsdRelightError("this RelightSession is closed: open another to render")
         t0 = perf_counter()
         if time_code is not None:
             self.set_time(time_code)
