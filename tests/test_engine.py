@@ -434,3 +434,17 @@ def test_a_rect_rounded_to_float32_renders_as_the_rect(proc_renderer):
     sheared[:3, 1] += 10 * SHEAR_TOL * np.linalg.norm(sheared[:3, 1]) * sheared[:3, 0] / np.linalg.norm(sheared[:3, 0])
     c = fr.render([_replace(light, to_world=sheared)]).beauty
     assert np.abs(c - a).max() > 10 * np.abs(a - b).max()  # the other sampler: another pattern
+
+
+def test_a_singular_disk_or_rect_frame_still_renders(proc_renderer):
+    """A disk whose frame has two equal rows (a degenerate transform a user can author) went to area sampling and
+    rendered; the cylinder's normal transform made every planar light invert its frame: LinAlgError."""
+    from dataclasses import replace as _replace
+
+    _, fr = proc_renderer
+    for kind in ("disk", "rect"):
+        light = AREA_RECORDS[kind]
+        m = light.to_world.copy()
+        m[1, :3] = m[0, :3]
+        img = fr.render([_replace(light, to_world=m)]).beauty
+        assert np.all(np.isfinite(img)) and img.min() >= 0

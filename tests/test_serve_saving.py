@@ -179,3 +179,47 @@ def test_save_removes_what_a_killed_save_left(stage):
         app.add_light("point")
         app.save()
     assert not stale.exists() and other.exists()
+
+
+def test_a_save_with_nothing_changed_writes_nothing(stage):
+    """The file (a comment, 3.50) stayed as it was only in its opinions: Save re-exported it anyway."""
+    folder = stage.parent
+    text = HAND.replace('float inputs:intensity = 30', 'float inputs:intensity = 3.50   # tuned')
+    (folder / USER_LIGHTS).write_text(text)
+    with _app(stage) as app:
+        app.save()
+    assert (folder / USER_LIGHTS).read_text() == text
+
+
+def test_a_lights_layer_without_a_rate_keeps_its_samples_in_time(stage):
+    """A layer that authors no rate is read by USD at 24 time codes per second; in a 30-codes stage its samples at
+    24 and 48 are the stage's 30 and 60. Save wrote the stage's rate into it, moving the untouched light's keys to
+    24 and 48 of the stage."""
+    from pxr import Sdf
+
+    folder = stage.parent
+    root = Sdf.Layer.FindOrOpen(str(stage))
+    root.timeCodesPerSecond = 30
+    root.Save()
+    _layer(folder, '''    def Scope "Lights" {
+        def Scope "User" {
+            def SphereLight "Hand" {
+                float inputs:intensity.timeSamples = { 24: 1, 48: 5 }
+                bool treatAsPoint = 1
+                double3 xformOp:translate = (0, 1, -2)
+                uniform token[] xformOpOrder = ["xformOp:translate"]
+            }
+        }
+    }''')
+
+    def hand(t):
+        return [l for l in read_lights(open_stage(stage), t) if l.path.endswith("Hand")][0].radiance[0]
+
+    before = [hand(t) for t in (30.0, 45.0, 60.0)]
+    assert before == pytest.approx([1.0, 3.0, 5.0])
+    with _app(stage) as app:
+        name = app.add_light("point")
+        app.set_light(name, intensity=2.0)
+        app.timeline_gui.set_key.value = True  # a key: Save writes timing
+        app.save()
+    assert [hand(t) for t in (30.0, 45.0, 60.0)] == pytest.approx(before)

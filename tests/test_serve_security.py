@@ -441,6 +441,7 @@ def test_saves_from_several_tabs_are_serialised(stage):
         lock = stage.parent / LOCK_NAME
         lock.write_text(f"{os.getppid()}\n")
         threading.Timer(0.5, lock.unlink).start()
+        app.set_light("Point1", intensity=3.0)  # a change to write (a Save with nothing changed writes nothing)
         t0 = time.perf_counter()
         app.save()
         assert time.perf_counter() - t0 >= 0.4

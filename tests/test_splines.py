@@ -185,3 +185,32 @@ def test_a_zoom_on_a_spline_is_keyed_where_it_curves():
     assert attribute_frames(cam.GetPrim(), lens) == [1.0, 2.0, 3.0, 4.0, 5.0]
     cam.GetFocalLengthAttr().SetSpline(_spline("float", [(1, 35.0), (5, 50.0)]))
     assert attribute_frames(cam.GetPrim(), lens) == [1.0, 5.0]
+
+
+def test_a_blocked_value_and_a_one_knot_spline(tmp_path):
+    """A spline's value-block segment (and a ValueBlock time sample) reads as no opinion, the schema's fallback
+    (intensity 1), not a TypeError from float(None); a spline of one knot is a constant, not an animation."""
+    from pxr import Sdf, Ts
+
+    stage, light = _light_stage(range_=(0, 10))
+    attr = light.CreateIntensityAttr()
+    spline = _spline("float", [(1, 4.0), (5, 6.0), (8, 2.0)])
+    knot = spline.GetKnots()[5.0]
+    knot.SetNextInterpolation(Ts.InterpValueBlock)
+    spline.SetKnot(knot)
+    attr.SetSpline(spline)
+    assert attr.Get(6.0) is None
+    (rec,) = read_lights(stage, 6.0)
+    assert rec.radiance[0] == pytest.approx(1.0)
+    (rec,) = read_lights(stage, 3.0)
+    assert rec.radiance[0] == pytest.approx(5.0)
+    exposure = light.CreateExposureAttr()
+    exposure.Set(1.0, 1.0)
+    exposure.Set(Sdf.ValueBlock(), 4.0)
+    (rec,) = read_lights(stage, 4.0)
+    assert rec.radiance[0] == pytest.approx(5.5)  # the spline's 5.5 x 2^0 (the blocked exposure's fallback)
+    one = light.CreateRadiusAttr()
+    one.SetSpline(_spline("float", [(3, 0.2)], pre="linear", post="linear"))
+    from usdrelight.stage.timing import is_time_varying
+
+    assert value_times(one) == [3.0] and not is_time_varying(one)

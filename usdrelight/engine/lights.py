@@ -157,9 +157,8 @@ class _AreaPoints:
     def __init__(self, light: LightRecord, origins: np.ndarray):
         self.light, self.origins = light, origins
         self.area, self.n_l = world_area(light), light_direction(light)
-        m = light.to_world[:3, :3]
-        self.normals = np.linalg.inv(m).T  # local normals -> world (a scaled frame too)
         if light.kind == "cylinder":  # each pixel samples the half of the side that faces it (around its axis)
+            self.normals = np.linalg.pinv(light.to_world[:3, :3]).T  # local normals -> world (scaled, mirrored)
             local = (origins - light.to_world[:3, 3]) @ self.normals
             self.facing = np.arctan2(local[:, 2], local[:, 1])
 
@@ -181,13 +180,18 @@ class _AreaPoints:
 
     def sample(self, u1: float, u2: float):
         p, n, area = self.local(u1, u2)
+        if n is None:  # one point for every pixel (disk, rect)
+            y = self.light.to_world[:3, :3] @ p + self.light.to_world[:3, 3]
+            v = y[None] - self.origins
+            dist = np.linalg.norm(v, axis=1)
+            cos_l = np.maximum(-(v @ self.n_l) / np.maximum(dist, 1e-300), 0.0)
+            return v, area * cos_l / np.maximum(dist, 1e-12) ** 2
         y = p @ self.light.to_world[:3, :3].T + self.light.to_world[:3, 3]
-        n_l = self.n_l if n is None else n @ self.normals.T
-        if n is not None:
-            n_l = n_l / np.maximum(np.linalg.norm(n_l, axis=1), 1e-300)[:, None]
+        n_l = n @ self.normals.T
+        n_l = n_l / np.maximum(np.linalg.norm(n_l, axis=1), 1e-300)[:, None]
         v = y - self.origins
         dist = np.linalg.norm(v, axis=1)
-        cos_l = np.maximum(-np.einsum("ij,ij->i", v, np.broadcast_to(n_l, v.shape)) / np.maximum(dist, 1e-300), 0.0)
+        cos_l = np.maximum(-np.einsum("ij,ij->i", v, n_l) / np.maximum(dist, 1e-300), 0.0)
         return v, area * cos_l / np.maximum(dist, 1e-12) ** 2
 
 
@@ -233,9 +237,10 @@ def panel_light(tr: LightTransport, light: LightRecord, samples: int, rng, textu
     sx, sy = float(np.linalg.norm(ax)), float(np.linalg.norm(ay))
     if sx * sy * light.width * light.height <= 0 or abs(float(ax @ ay)) > SHEAR_TOL * sx * sy:
         return planar_light(tr, light, samples, rng, textures)
-    ex = ax / sx
-    ey = ay - (ay @ ex) * ex
-    ey = ey / np.linalg.norm(ey)
+    ex, ey = ax / sx, ay / sy
+    if abs(float(ax @ ay)) > 1e-9 * sx * sy:  # float32-rounded: made orthogonal (an exact frame as before)
+        ey = ay - (ay @ ex) * ex
+        ey = ey / np.linalg.norm(ey)
     w, h = light.width * sx, light.height * sy
     centre = light.to_world[:3, 3]
     front = (tr.origins - centre) @ light_direction(light) > 0  # one-sided: the side the panel lights

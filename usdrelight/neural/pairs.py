@@ -135,7 +135,7 @@ def list_photos(data_dir, refused: list | None = None) -> list[Path]:
             refused.append((p, reason))
     if not out:
         first = f" ({len(bad)} file(s) not used, e.g. {bad[0][0].name!r}: {bad[0][1]})" if bad else ""
-        raise UsdRelightError(f"no photos in {d} (expected NAME.png/.jpg/.tif/.exr){first}")
+        raise UsdRelightError(f"no photos in {d} (expected NAME with one of {', '.join(PHOTO_SUFFIXES)}){first}")
     return out
 
 

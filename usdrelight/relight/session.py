@@ -169,8 +169,9 @@ class RelightSession:
         self.max_depth, self.mode = max_depth, mode
         # --model is the network of the mode its contract serves: a residual one (output log_gain) for residual
         # (it was ignored there: the bundled one always ran), a relight one for neural; the other, the bundled one
-        residual = model_path is not None and is_residual_model(path_arg(model_path, "model_path"))
-        self._model_path, self._residual_path = (None, model_path) if residual else (model_path, None)
+        self._model_path = None if model_path is None else path_arg(model_path, "model_path")
+        if self._model_path is not None and not self._model_path.is_file():
+            raise UsdRelightError(f"model not found: {self._model_path}")
         self.model = self.photo = self.residual_model = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
         self._transfer_reference = None  # the photo's residual over the fitted render, split: once
@@ -235,13 +236,17 @@ class RelightSession:
         photo) once; a clear error when the stage cannot run it."""
         if mode not in MODES:
             raise UsdRelightError(f"unknown mode {mode!r} ({', '.join(MODES)})")
+        if self._model_path is not None and (mode == "neural" and self.model is None or
+                                             mode == "residual" and self.residual_model is None):
+            self._residual_given = is_residual_model(self._model_path)  # read when its network first runs
+        residual = getattr(self, "_residual_given", False)
         if mode == "neural" and self.model is None:
-            self.model = RelightModel(self._model_path)
+            self.model = RelightModel(None if residual else self._model_path)
         if mode in ("ratio", "transfer", "residual") and not self.fitted_lights:
             raise UsdRelightError(f"mode {mode} needs the fitted lights: run `usdrelight fit` first, "
                                   "or choose --mode render or --mode add")
         if mode == "residual" and self.residual_model is None:
-            self.residual_model = ResidualModel(self._residual_path)
+            self.residual_model = ResidualModel(self._model_path if residual else None)
         if mode in ("ratio", "add", "transfer", "residual") and self.photo is None:
             self.photo = self._photo()
 

@@ -29,7 +29,7 @@ from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
 from ..stage.read import gf_to_np
-from ..stage.timing import spline_motion
+from ..stage.timing import layer_has_spline, spline_motion
 from .opinions import only_app_opinions, spec_texts
 from .state import SIZE_FIELDS, LightState, is_rigid, matrix_to_quat
 from .uploads import UPLOADS, hdri_label, store_upload  # noqa: F401 (store_upload: kept here too)
@@ -337,8 +337,10 @@ def user_layer_text(stage_dir, states, managed=(), hdri_paths: dict | None = Non
             raise UsdRelightError(f"{USER_LIGHTS} changed {', '.join(moved)} on disk while the app ran (another app "
                                   f"or tool saved it): restart the app to edit the file as it is now")
     scale = 1.0
-    if timing and (layer.HasTimeCodesPerSecond() or layer.HasFramesPerSecond()):
-        own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else layer.framesPerSecond
+    held = bool(layer.ListAllTimeSamples()) or layer_has_spline(layer)  # what the app does not all rewrite
+    if timing and (layer.HasTimeCodesPerSecond() or layer.HasFramesPerSecond() or held):
+        own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else layer.framesPerSecond \
+            if layer.HasFramesPerSecond() else 24.0  # USD's rate of a layer that says none
         scale = float(own) / float(timing["tcps"])  # stage time code -> this layer's (USD maps the other way)
     if scale != 1.0:
         keys = {n: {t * scale: k for t, k in ks.items()} for n, ks in (keys or {}).items()}

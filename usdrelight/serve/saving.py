@@ -1,8 +1,9 @@
-"""Save in the web app: ``lights_user.usda`` gets the lights the app changed, and nothing else changes.
+"""Save in the web app: ``lights_user.usda`` gets the lights the app changed, and no other opinion changes.
 
 * Only a light added, removed, edited or re-keyed since the app read the file (or saved it last) is rewritten
-  (:func:`changed_names`): a light the user never touched keeps its spec as written, its default values, its
-  transform ops and its formatting.
+  (:func:`changed_names`): a light the user never touched keeps its spec as written, its default values and its
+  transform ops. A Save with nothing changed (and the range as it was) writes nothing; a Save that writes
+  re-exports the file as USD writes it (comments and number formatting are not kept).
 * A keyed light changed at a frame without "Set key" is refused (:func:`unkeyed_changes`): Save writes a keyed
   light from its keys, so the change would be lost while the status said saved.
 * Each light rewritten must still be in the file as the app read it (:func:`.opinions.spec_texts`): another app
@@ -22,7 +23,9 @@ from pathlib import Path
 from ..atomic import LOCK_NAME, is_temp_file_of, stage_lock, write_text_atomic
 from ..errors import UsdRelightError
 from ..stage.layout import USER_LIGHTS
-from .files import user_layer_names, user_layer_text, user_spec_texts
+from ..stage.layout import USER_LIGHTS_SCOPE
+from .files import user_layer_names, user_layer_text
+from .opinions import spec_texts
 
 log = logging.getLogger(__name__)
 SAVE_WAIT = 10.0
@@ -53,10 +56,12 @@ def _locked(folder: Path, wait: float):
 
 
 def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = None, wait: float = 0.0,
-                     keys: dict | None = None, timing: dict | None = None, expected: dict | None = None) -> Path:
+                     keys: dict | None = None, timing: dict | None = None, expected: dict | None = None,
+                     specs: dict | None = None) -> Path:
     """Replace ``STAGE_DIR/lights_user.usda`` atomically (see :func:`.files.user_layer_text`); only that file.
     The stage lock is taken first (every stage writer holds it), waiting up to ``wait`` seconds for another
-    writer ("stage ... is being written by PID N" after that)."""
+    writer ("stage ... is being written by PID N" after that). ``specs`` (a dict) gains the spec texts of the
+    ``managed`` lights as written, read under the lock (what the next Save expects to find)."""
     target = Path(stage_dir).resolve() / USER_LIGHTS
     from pxr import Sdf
 
@@ -64,7 +69,12 @@ def write_user_layer(stage_dir, states, managed=(), hdri_paths: dict | None = No
         for p in target.parent.glob(".*.usda"):  # what a killed save left (only this file's temporaries)
             if is_temp_file_of(p, USER_LIGHTS) and p.is_file() and not p.is_symlink():
                 p.unlink(missing_ok=True)
-        write_text_atomic(target, user_layer_text(stage_dir, states, managed, hdri_paths, keys, timing, expected))
+        text = user_layer_text(stage_dir, states, managed, hdri_paths, keys, timing, expected)
+        write_text_atomic(target, text)
+        if specs is not None:
+            written = Sdf.Layer.CreateAnonymous(".usda")
+            written.ImportFromString(text)
+            specs.update(spec_texts(written, USER_LIGHTS_SCOPE, managed))
         cached = Sdf.Layer.Find(str(target))
         if cached is not None:  # a stage open in this process sees the new file
             cached.Reload(force=True)
@@ -125,10 +135,13 @@ def save_lights(owner, lock) -> Path:
                               "another frame to drop the change), then Save")
     if clash := (set(states) - managed) & user_layer_names(owner.stage_dir):  # a user's, meanwhile
         raise UsdRelightError(f"lights_user.usda gained {', '.join(sorted(clash))} while the app ran: rename")
-    changed = changed_names(states, keys, managed, owner.baseline)
+    changed, timing = changed_names(states, keys, managed, owner.baseline), owner.timeline.timing()
+    if not changed and not (timing and timing.get("edited")):  # nothing to write: the file stays as it is
+        return Path(owner.stage_dir).resolve() / USER_LIGHTS
+    written: dict = {}
     path = write_user_layer(owner.stage_dir, [states[n] for n in sorted(changed) if n in states], changed,
                             owner.hdris, wait=SAVE_WAIT, keys={n: keys[n] for n in changed if n in keys},
-                            timing=owner.timeline.timing(), expected={n: owner.on_disk.get(n) for n in changed})
+                            timing=timing, expected={n: owner.on_disk.get(n) for n in changed}, specs=written)
     with lock:
         owner.managed = managed | set(states)
         for name in changed:
@@ -136,5 +149,5 @@ def save_lights(owner, lock) -> Path:
                 owner.baseline[name] = (states[name], keys.get(name))
             else:
                 owner.baseline.pop(name, None)
-        owner.on_disk.update(user_spec_texts(owner.stage_dir, changed))
+        owner.on_disk.update(written)  # read under the stage's lock: another app's save after it is seen
     return path

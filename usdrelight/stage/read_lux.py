@@ -29,7 +29,11 @@ def lux_get(attr, t, warnings=None):
             if warnings is not None:
                 warnings[OLD_LUX_NAMES] += 1
             return old.Get(t)
-    return attr.Get(t)
+    value = attr.Get(t)
+    if value is None and attr.HasAuthoredValue() or value is None and attr.ValueMightBeTimeVarying():
+        # a value block (in samples or a spline's blocked segment): USD's "no opinion", the schema's fallback
+        value = attr.GetPrim().GetPrimDefinition().GetAttributeFallbackValue(name)
+    return value
 
 
 def light_radiance(prim, t=None, warnings=None) -> np.ndarray:
@@ -88,8 +92,8 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
             common["cone_angle_deg"] = angle
             common["cone_softness"] = float(lux_get(sh.GetShapingConeSoftnessAttr(), t, warnings))
             if prim.GetTypeName() != "SphereLight":
-                warnings["ShapingAPI on a disk, rect, distant, dome or mesh light (ignored by every renderer and "
-                         "converter here)"] += 1
+                warnings["ShapingAPI on a disk, rect, cylinder, distant, dome or mesh light (ignored by every "
+                         "renderer and converter here)"] += 1
         if float(lux_get(sh.GetShapingFocusAttr(), t, warnings) or 0.0) != 0.0:
             warnings["ShapingAPI focus (ignored)"] += 1
         ies = lux_get(sh.GetShapingIesFileAttr(), t, warnings)

@@ -52,8 +52,8 @@ def cylinder_light_mesh(light: LightRecord, segments: int = 64) -> MeshRecord:
     faces = np.concatenate([np.stack([i, j, j + segments], 1), np.stack([i, j + segments, i + segments], 1)])
     m = light.to_world
     pts = unit @ m[:3, :3].T + m[:3, 3]
-    normals = np.concatenate([ring, ring]) @ np.linalg.inv(m[:3, :3])
-    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    normals = np.concatenate([ring, ring]) @ np.linalg.pinv(m[:3, :3])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1), 1e-300)[:, None]
     if np.linalg.det(m[:3, :3]) < 0:
         faces = faces[:, ::-1]
     return MeshRecord(light.path, pts, np.asarray(faces, np.int64), normals, None, BLACK)

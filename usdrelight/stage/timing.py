@@ -246,7 +246,7 @@ def value_times(attr) -> list[float]:
         return list(attr.GetTimeSamples()) if attr else []
     times = sorted(float(t) for t in spline.GetKnots().keys())
     rng = stage_time_range(attr.GetStage(), sublayers=True)
-    if rng is not None and times:
+    if rng is not None and len(times) > 1:  # (one knot extrapolates nothing: its value is constant)
         if spline.HasLoops() or spline.GetPreExtrapolation().mode != _held():
             times = sorted({min(rng.start, times[0])} | set(times))
         if spline.HasLoops() or spline.GetPostExtrapolation().mode != _held():
@@ -305,7 +305,7 @@ def light_time_codes(stage) -> list[float]:
     return sorted(codes)
 
 
-def _layer_has_spline(layer) -> bool:
+def layer_has_spline(layer) -> bool:
     """Whether any attribute spec of the Sdf ``layer`` holds a spline."""
     found = []
 
@@ -329,7 +329,7 @@ def rescaled_layers(stage) -> list[str]:
         # USD's effective rate of a layer: timeCodesPerSecond, else framesPerSecond, else 24
         own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else \
             layer.framesPerSecond if layer.HasFramesPerSecond() else 24.0
-        if float(own) != tcps and (layer.ListAllTimeSamples() or _layer_has_spline(layer)):
+        if float(own) != tcps and (layer.ListAllTimeSamples() or layer_has_spline(layer)):
             out.append(f"layer {layer.GetDisplayName()} has {own:g} time codes per second, the stage {tcps:g} "
                        f"(USD reads its time samples scaled by {tcps / own:g})")
     return out
