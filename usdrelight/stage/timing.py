@@ -56,44 +56,10 @@ def stage_time_range(stage, sublayers: bool = False) -> TimeRange | None:
     return None if found is None else TimeRange(found[0], found[1], stage_fps(stage))
 
 
-def _sublayer_range(parent, parent_tcps: float, shift: float, scale: float, seen: set):
-    """(start, end) in the stage's time codes of the strongest layer under ``parent`` (depth first, as USD orders
-    a layer stack: a sublayer's own sublayers before the next sublayer) that authors a range; ``shift`` and
-    ``scale`` map ``parent``'s time codes to the stage's."""
-    from pxr import Sdf
-
-    for path, offset in zip(parent.subLayerPaths, parent.subLayerOffsets):
-        layer = Sdf.Layer.FindOrOpenRelativeToLayer(parent, path)
-        if layer is None or layer.identifier in seen:
-            continue
-        seen.add(layer.identifier)
-        tcps = float(layer.timeCodesPerSecond)
-        s = scale * offset.scale * parent_tcps / tcps  # this layer's time code -> the stage's
-        d = shift + scale * offset.offset
-        if layer.HasStartTimeCode() and layer.HasEndTimeCode():
-            return d + s * float(layer.startTimeCode), d + s * float(layer.endTimeCode)
-        found = _sublayer_range(layer, tcps, d, s, seen)
-        if found is not None:
-            return found
-    return None
-
-
-def layer_range(stage, layer) -> tuple[float, float] | None:
-    """(start, end) in ``stage``'s time codes of the Sdf ``layer`` (a layer of its root layer stack, at any depth)
-    or, where it authors none, of the strongest layer sublayered into it that does; None when neither does."""
-    found = _find_layer(stage.GetRootLayer(), os.path.realpath(layer.realPath), float(stage.GetTimeCodesPerSecond()),
-                        0.0, 1.0, set())
-    if found is None:
-        return None
-    tcps, shift, scale = found
-    if layer.HasStartTimeCode() and layer.HasEndTimeCode():
-        return shift + scale * float(layer.startTimeCode), shift + scale * float(layer.endTimeCode)
-    return _sublayer_range(layer, tcps, shift, scale, set())
-
-
-def _find_layer(parent, real: str, parent_tcps: float, shift: float, scale: float, seen: set):
-    """(timeCodesPerSecond, shift, scale) of the layer at the real path ``real`` under ``parent`` (as :func:`_sublayer_range`
-    maps a sublayer's time codes to the stage's), or None."""
+def _sublayers(parent, parent_tcps: float, shift: float, scale: float, seen: set):
+    """(layer, its timeCodesPerSecond, shift, scale) of every layer under ``parent``, depth first as USD orders a
+    layer stack (a sublayer's own sublayers before the next sublayer); ``shift`` and ``scale`` map the layer's time
+    codes to the stage's as USD maps its samples (``parent``'s own mapping given)."""
     from pxr import Sdf
 
     for path, offset in zip(parent.subLayerPaths, parent.subLayerOffsets):
@@ -103,11 +69,28 @@ def _find_layer(parent, real: str, parent_tcps: float, shift: float, scale: floa
         seen.add(layer.identifier)
         tcps = float(layer.timeCodesPerSecond)
         s, d = scale * offset.scale * parent_tcps / tcps, shift + scale * offset.offset
-        if layer.realPath and os.path.realpath(layer.realPath) == real:
-            return tcps, d, s
-        found = _find_layer(layer, real, tcps, d, s, seen)
-        if found is not None:
-            return found
+        yield layer, tcps, d, s
+        yield from _sublayers(layer, tcps, d, s, seen)
+
+
+def _sublayer_range(parent, parent_tcps: float, shift: float, scale: float, seen: set):
+    """(start, end) in the stage's time codes of the strongest layer under ``parent`` that authors a range."""
+    for layer, _, d, s in _sublayers(parent, parent_tcps, shift, scale, seen):
+        if layer.HasStartTimeCode() and layer.HasEndTimeCode():
+            return d + s * float(layer.startTimeCode), d + s * float(layer.endTimeCode)
+    return None
+
+
+def layer_range(stage, layer) -> tuple[float, float] | None:
+    """(start, end) in ``stage``'s time codes of the Sdf ``layer`` (a layer of its root layer stack, at any depth)
+    or, where it authors none, of the strongest layer sublayered into it that does; None when neither does."""
+    real = os.path.realpath(layer.realPath)
+    for found, tcps, shift, scale in _sublayers(stage.GetRootLayer(), float(stage.GetTimeCodesPerSecond()), 0.0,
+                                                1.0, set()):
+        if found.realPath and os.path.realpath(found.realPath) == real:
+            if layer.HasStartTimeCode() and layer.HasEndTimeCode():
+                return shift + scale * float(layer.startTimeCode), shift + scale * float(layer.endTimeCode)
+            return _sublayer_range(layer, tcps, shift, scale, set())
     return None
 
 
