@@ -172,6 +172,7 @@ class RelightSession:
         self._model_path = None if model_path is None else path_arg(model_path, "model_path")
         if self._model_path is not None and not self._model_path.is_file():
             raise UsdRelightError(f"model not found: {self._model_path}")
+        self._residual_given = self._closed = False  # (the model file's contract: read when its network first runs)
         self.model = self.photo = self.residual_model = None
         self._ratio_reference = None  # the fitted render, hole-filled, and the guard: once per session
         self._transfer_reference = None  # the photo's residual over the fitted render, split: once
@@ -239,7 +240,7 @@ class RelightSession:
         if self._model_path is not None and (mode == "neural" and self.model is None or
                                              mode == "residual" and self.residual_model is None):
             self._residual_given = is_residual_model(self._model_path)  # read when its network first runs
-        residual = getattr(self, "_residual_given", False)
+        residual = self._residual_given
         if mode == "neural" and self.model is None:
             self.model = RelightModel(None if residual else self._model_path)
         if mode in ("ratio", "transfer", "residual") and not self.fitted_lights:
@@ -318,7 +319,7 @@ class RelightSession:
         preview while a light moves; None: the settings'); the fitted render the composites divide by keeps the
         settings' count. Refused with the Mitsuba renderer. No light at all is an error unless ``allow_dark``
         (a frame of a clip at which every light is invisible: rendered without light)."""
-        if getattr(self, "_closed", False):
+        if self._closed:
             raise UsdRelightError("this RelightSession is closed: open another to render")
         t0 = perf_counter()
         if time_code is not None:

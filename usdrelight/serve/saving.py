@@ -22,8 +22,7 @@ from pathlib import Path
 
 from ..atomic import LOCK_NAME, is_temp_file_of, stage_lock, write_text_atomic
 from ..errors import UsdRelightError
-from ..stage.layout import USER_LIGHTS
-from ..stage.layout import USER_LIGHTS_SCOPE
+from ..stage.layout import USER_LIGHTS, USER_LIGHTS_SCOPE
 from .files import user_layer_names, user_layer_text
 from .opinions import spec_texts
 
