@@ -187,9 +187,7 @@ def _xform_codes(prim) -> tuple[set[float], bool]:
             samples = value_times(attr) if attr.GetName().startswith("xformOp:") else ()
             if samples:
                 codes.update(samples)
-                spline = spline_motion(attr)  # a spline (a single-axis op): linear only between linear knots
-                curved |= not attr.GetName().startswith("xformOp:translate") or \
-                    (spline is not None and (spline[0] or bool(spline[1])))
+                curved |= not attr.GetName().startswith("xformOp:translate") or _not_linear(attr)
     return codes, curved
 
 
@@ -198,8 +196,14 @@ def attribute_frames(prim, names) -> list[float]:
     and every whole frame between them when one of them is a spline that is not linear between its knots."""
     attrs = [prim.GetAttribute(n) for n in names if prim.GetAttribute(n)]
     codes = sorted({c for a in attrs for c in value_times(a)})
-    curved = any((m := spline_motion(a)) is not None and (m[0] or bool(m[1])) for a in attrs)
+    curved = any(_not_linear(a) for a in attrs)
     return _key_frames(codes, curved)
+
+
+def _not_linear(attr) -> bool:
+    """Whether ``attr`` holds a spline that is not linear between its knots (curved, or held segments)."""
+    motion = spline_motion(attr)
+    return motion is not None and (motion[0] or bool(motion[1]))
 
 
 def _key_frames(codes: list[float], curved: bool) -> list[float]:

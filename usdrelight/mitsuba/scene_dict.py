@@ -22,7 +22,7 @@ import numpy as np
 
 from ..atomic import write_bytes_atomic
 from ..errors import UsdRelightError
-from ..stage.lux import emitted_radiance, light_direction, world_scale
+from ..stage.lux import cylinder_size, emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .cutout import cutout_spec, presence_map
@@ -250,10 +250,9 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         return {name: {"type": "sphere", "to_world": Matrix(light.to_world @ np.diag([r, r, r, 1.0])),
                        "emitter": emitter, "bsdf": black}}
     if light.kind == "cylinder":  # Mitsuba's cylinder: from p0 to p1, its side only (as UsdLux: no caps)
-        sx, sy, sz = world_scale(light.to_world)
         ends = [light.to_world[:3, :3] @ [e * light.length / 2, 0.0, 0.0] + light.to_world[:3, 3] for e in (-1, 1)]
         return {name: {"type": "cylinder", "p0": [float(v) for v in ends[0]], "p1": [float(v) for v in ends[1]],
-                       "radius": float(light.radius * np.sqrt(sy * sz)), "emitter": emitter, "bsdf": black}}
+                       "radius": float(cylinder_size(light)[0]), "emitter": emitter, "bsdf": black}}
     if light.kind == "disk":
         r = light.radius
         return {name: {"type": "disk", "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([r, r, 1.0, 1.0])),

@@ -52,10 +52,18 @@ def world_area(light: LightRecord) -> float:
     if light.kind == "rect":
         return light.width * light.height * sx * sy
     if light.kind == "cylinder":  # its side (the caps do not emit): 2 pi r l
-        return 2.0 * np.pi * light.radius * float(np.sqrt(sy * sz)) * light.length * sx
+        radius, length = cylinder_size(light)
+        return 2.0 * np.pi * radius * length
     if light.kind == "mesh":
         return light.area
     return 1.0
+
+
+def cylinder_size(light: LightRecord) -> tuple[float, float]:
+    """(radius, length) of a CylinderLight in the world: its length along its scaled local X, its radius the
+    geometric mean of the scales across it (an elliptic one drawn round, of about the same side area)."""
+    sx, sy, sz = world_scale(light.to_world)
+    return light.radius * float(np.sqrt(sy * sz)), light.length * float(sx)
 
 
 def emitted_radiance(light: LightRecord) -> np.ndarray:

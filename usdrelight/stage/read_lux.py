@@ -30,8 +30,7 @@ def lux_get(attr, t, warnings=None):
                 warnings[OLD_LUX_NAMES] += 1
             return old.Get(t)
     value = attr.Get(t)
-    if value is None and attr.HasAuthoredValue() or value is None and attr.ValueMightBeTimeVarying():
-        # a value block (in samples or a spline's blocked segment): USD's "no opinion", the schema's fallback
+    if value is None:  # a value block (samples or a spline's blocked segment): no opinion, the schema's fallback
         value = attr.GetPrim().GetPrimDefinition().GetAttributeFallbackValue(name)
     return value
 

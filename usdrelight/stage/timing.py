@@ -224,23 +224,19 @@ def value_times(attr) -> list[float]:
     """The time codes at which ``attr``'s value is authored, sorted: its time samples, or its spline's knot times;
     a spline that changes beyond its knots (an extrapolation other than held, a loop) adds the ends of the
     stage's authored range that lie beyond them."""
+    from pxr import Ts
+
     spline = _spline(attr)
     if spline is None:
         return list(attr.GetTimeSamples()) if attr else []
     times = sorted(float(t) for t in spline.GetKnots().keys())
     rng = stage_time_range(attr.GetStage(), sublayers=True)
     if rng is not None and len(times) > 1:  # (one knot extrapolates nothing: its value is constant)
-        if spline.HasLoops() or spline.GetPreExtrapolation().mode != _held():
+        if spline.HasLoops() or spline.GetPreExtrapolation().mode != Ts.ExtrapHeld:
             times = sorted({min(rng.start, times[0])} | set(times))
-        if spline.HasLoops() or spline.GetPostExtrapolation().mode != _held():
+        if spline.HasLoops() or spline.GetPostExtrapolation().mode != Ts.ExtrapHeld:
             times = sorted(set(times) | {max(rng.end, times[-1])})
     return times
-
-
-def _held():
-    from pxr import Ts
-
-    return Ts.ExtrapHeld
 
 
 def spline_motion(attr) -> tuple[bool, set[float]] | None:
