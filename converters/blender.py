@@ -59,7 +59,7 @@ CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "h
 
 # ---- USD -> Blender ----------------------------------------------------------------------------
 def _lux_warnings(light, warnings) -> None:
-    """What Cycles cannot show of a UsdLux light (one line per kind; README "UsdLux attributes not represented")."""
+    """What Cycles cannot show of a UsdLux light (one line per kind; manual: Blender, "UsdLux attributes not represented")."""
     sc = np.linalg.norm(light.to_world[:3, :3], axis=0)
     if light.kind == "sphere" and not light.treat_as_point and np.ptp(sc) > 1e-6 * sc.max():
         warnings["SphereLight under a non-uniform scale (Cycles: a sphere of the geometric-mean radius)"] += 1

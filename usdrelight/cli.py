@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--depth", type=_path, help="z-depth map in metres (.npy/.exr/.pfm; 16-bit PNG with --depth-scale); "
                    "<=0, NaN, Inf = invalid")
     g.add_argument("--points", type=_path, help="point map HxWx3, OpenCV camera frame, Inf/NaN = invalid")
-    g.add_argument("--geometry-model", type=_path, help="ONNX geometry model (see README, model contracts)")
+    g.add_argument("--geometry-model", type=_path, help="ONNX geometry model (manual: Photo to stage, Model contracts)")
     b.add_argument("--depth-scale", type=_positive_float, metavar="M",
                    help="metres per stored unit of --depth/--points (0.001: millimetres); needed for integer files")
     k = b.add_mutually_exclusive_group()
@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--fov-x", type=float, help="horizontal field of view in degrees")
     b.add_argument("--albedo", type=_path, help="albedo map (linear), e.g. CID hr_alb")
     b.add_argument("--shading", type=_path, help="diffuse shading map (linear), e.g. CID dif_shd; needs --albedo")
-    b.add_argument("--albedo-model", type=_path, help="ONNX albedo model (see README, model contracts)")
+    b.add_argument("--albedo-model", type=_path, help="ONNX albedo model (manual: Photo to stage, Model contracts)")
     add_estimator_arguments(b, g)
     b.add_argument("--mask", type=_path, help="valid-pixel mask (non-zero = keep)")
     b.add_argument("--decimate", type=_positive_int, default=1, metavar="N",

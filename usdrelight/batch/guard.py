@@ -14,9 +14,9 @@ from ..atomic import LOCK_NAME, stage_lock
 from ..errors import UsdRelightError
 
 WORKER_MEMORY = 2 << 30
-"""Memory one LocalCluster worker is counted to need, bytes: 2 GiB. Measured peak resident memory of one worker
-process building and fitting the motorcycle example (true depth) at the default options (``--max-side 512
---lights 16 --iterations 40``): 1.27 GiB at 741 x 500 px, 2.14 GiB up-sampled to 2223 x 1500 (3.3 MP); the
+"""Memory one LocalCluster worker is counted to need, bytes: 2 GiB. Measured peak resident memory of one process
+building and fitting the motorcycle example (true depth) at the default options (``benchmarks/bench_worker_memory.py``):
+1.01 GiB at 741 x 500 px, 2.31 GiB up-sampled to 2223 x 1500 (3.3 MP), before the Dask worker's own runtime; the
 build runs at full resolution, so larger photos need more."""
 DEFAULT_WORKERS = 2
 """Workers when ``--workers`` is not given (fewer when the machine has fewer cores or too little memory)."""

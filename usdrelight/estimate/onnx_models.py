@@ -1,6 +1,6 @@
 """Running estimator networks exported to ONNX, with their documented contracts.
 
-Geometry contract (MoGe-style; see README "Model contracts")
+Geometry contract (MoGe-style; manual: Photo to stage, "Model contracts")
     input  ``image``      float32 [1, 3, H, W]  sRGB-encoded RGB in [0, 1]
     output ``points``     float32 [1, H, W, 3]  OpenCV camera frame, metres (or relative scale);
                                                  non-finite values mark invalid pixels

@@ -247,8 +247,8 @@ COARSE_SAMPLES = (128, 32)
 
 @dataclass(frozen=True)
 class FastSettings:
-    """Knobs of the coarse-to-fine fast fit (:func:`fit_fast_coarse_to_fine`); the defaults are the
-    README's measured choice (error against time per knob: ``benchmarks/bench_batch.py``)."""
+    """Knobs of the coarse-to-fine fast fit (:func:`fit_fast_coarse_to_fine`); the defaults are the manual's
+    measured choice (Benchmarks, "Batch and fit speed"; error against time per knob: ``benchmarks/bench_batch.py``)."""
 
     coarse_side: int = 128
     """Longer image side (pixels) of the coarse problem on which lights are selected, refined and pruned;

@@ -94,7 +94,7 @@ def _plastic_specular(mat: MaterialRecord, warnings) -> tuple[dict, float]:
 
 
 def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
-    """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (see README's table). Rough lobes use GGX
+    """The closest Mitsuba BSDF to a UsdPreviewSurface's opaque part (manual: Rendering, Mitsuba and units, "Materials"). Rough lobes use GGX
     with alpha = roughness^2, the microfacet model of UsdPreviewSurface's reference implementation (Storm's
     previewSurface.glslfx; Mitsuba's own default is Beckmann)."""
     if mat.is_lambertian:
@@ -115,7 +115,7 @@ def _opaque_bsdf(mat: MaterialRecord, warnings) -> dict:
 
 
 def bsdf_dict(mat: MaterialRecord, warnings, double_sided: bool = True) -> dict:
-    """The closest Mitsuba BSDF to a UsdPreviewSurface (see README's table), wrapped in ``twosided`` unless the
+    """The closest Mitsuba BSDF to a UsdPreviewSurface (manual: Rendering, Mitsuba and units, "Materials"), wrapped in ``twosided`` unless the
     material is marked one-sided (``mat.one_sided``, from a Mitsuba XML) and the gprim is not ``doubleSided``.
 
     Opacity follows the UsdPreviewSurface spec: with ``opacityThreshold`` > 0 it is presence, cut to 0 below the

@@ -4,7 +4,7 @@
   none that is black outside [0, 1]: black is rendered clamp (equal inside st [0, 1] but for the spec's
   half-texel fade to black at the edges) and wrapS != wrapT uses wrapS; both warned.
 * The UsdTransform2d (st' = R (scale * st) + translation) -> the bitmap's ``to_uv``. Mitsuba's uv is (s, 1 - t)
-  (README "st texture coordinates"), so ``to_uv = F T F`` with F(u, v) = (u, 1 - v), a 4x4 :class:`Matrix` of
+  (manual: Rendering, Mitsuba and units, the units table), so ``to_uv = F T F`` with F(u, v) = (u, 1 - v), a 4x4 :class:`Matrix` of
   the 2D affine map (x, y rows; translation in the last column).
 * ``scale`` / ``bias`` and an output other than ``rgb`` (r, g, b, a: a grey colour) are exact: the texture is
   baked (``bake`` in the dict, like :mod:`.cutout`'s ``cutout``): out = decoded texel * scale + bias, texels

@@ -49,7 +49,7 @@ def add_relight_parser(sub, parents, func) -> argparse.ArgumentParser:
     rl.add_argument("--model", type=_path,
                     help="ONNX network: a relight one (output 'output') for --mode neural, a residual one (output "
                          "'log_gain') for residual; the other mode keeps the shipped one")
-    rl.add_argument("-o", "--output", type=_path)
+    rl.add_argument("-o", "--output", type=_path, help="output folder (default: STAGE_DIR/relit)")
     rl.add_argument("--spp", type=_positive_int, default=32, help="samples per pixel (mitsuba renderer)")
     rl.add_argument("--area-samples", type=int, metavar="N",
                     help=f"shadow rays per pixel for sphere, disk, rect and wide sun lights (fast renderer; default "

@@ -117,8 +117,8 @@ class RelitFrame:
 class RelightSession:
     """A stage opened for relighting: prepared once, then rendered for any light set.
 
-    Parameters: ``stage_path`` (the root layer); ``max_side`` (longer side of the frames, pixels; None: the
-    stage's full resolution); ``renderer`` (``fast`` or ``mitsuba``); ``with_fitted`` (render the fitted lights,
+    Parameters: ``stage_path`` (the root layer); ``max_side`` (longer side of the frames, pixels; None or 0:
+    the stage's full resolution); ``renderer`` (``fast`` or ``mitsuba``); ``with_fitted`` (render the fitted lights,
     the photo's own lighting, scaled by ``fitted_scale`` in [0, 1e6]); ``stage_lights`` (False: render only the
     lights passed to :meth:`render`, for callers that own the whole light list; the fitted lights still define
     the ``ratio`` reference, and ``with_fitted`` then says whether the lights passed include the photo's own, as

@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class BuildOptions:
-    """Inputs of ``usdrelight build`` besides the photo (README: "Inputs of build")."""
+    """Inputs of ``usdrelight build`` besides the photo (manual: Photo to stage, "Inputs of build")."""
 
     depth: Path | None = None
     """z-depth map in metres (.npy/.exr/.pfm; integer files with ``depth_scale``); 0, negative, NaN, Inf = invalid."""
@@ -48,9 +48,9 @@ class BuildOptions:
     mask: Path | None = None
     """Valid-pixel mask: non-zero pixels are kept."""
     geometry_model: Path | None = None
-    """ONNX geometry model (README: model contracts)."""
+    """ONNX geometry model (manual: Photo to stage, Model contracts)."""
     albedo_model: Path | None = None
-    """ONNX albedo model (README: model contracts)."""
+    """ONNX albedo model (manual: Photo to stage, Model contracts)."""
     geometry: str | None = None
     """Geometry estimator: ``depth-pro``, ``depth-anything-v2`` (the ``estimate`` extra) or ``onnx:FILE``."""
     albedo_from: str | None = None

@@ -1,6 +1,6 @@
 """UsdLux light units: how a light's radiance L becomes what a renderer's emitter wants.
 
-The table (also in the README, "Light and camera units"), following the UsdLux specification:
+The table (also in the manual: Rendering, Mitsuba and units, "Light and camera units"), following the UsdLux specification:
 
 * L = intensity * 2^exposure * color (* blackbody(colorTemperature), luminance-normalized) [W/(m^2 sr)]
 * ``normalize`` divides L by the light's world-space area (sphere 4 pi r^2, disk pi r^2, rect w h,

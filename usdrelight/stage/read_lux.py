@@ -167,8 +167,8 @@ def _light_texture(prim, asset, what: str) -> TextureRecord:
 
 def _ignored_lux(prim, t, warnings) -> None:
     """UsdLux controls no renderer here represents, at time code ``t``: diffuse/specular multipliers (0 included:
-    it was read as unset), ShadowAPI, light/shadow linking (one warning line per kind; README "UsdLux attributes
-    not represented")."""
+    it was read as unset), ShadowAPI, light/shadow linking (one warning line per kind; manual: Blender,
+    "UsdLux attributes not represented")."""
     from pxr import UsdLux
 
     api = UsdLux.LightAPI(prim)
