@@ -18,7 +18,8 @@ from usdrelight.checks import path_arg
 from usdrelight.atomic import atomic_path
 from usdrelight.errors import UsdRelightError
 from usdrelight.native_io import captured_stderr
-from usdrelight.safe_paths import confined_path, made_folders, writable_parent
+from usdrelight.safe_paths import allow_paths, confined_path, made_folders, writable_parent
+from usdrelight.stage.read import read_lights
 from usdrelight.stage.timing import parse_frames
 from usdrelight.stage.usdz import is_usdz, unpack_usdz
 from usdrelight.stage.validate import check_finite, open_stage
@@ -178,6 +179,8 @@ def _convert(src: Path, dst: Path, reader, writer, options: dict) -> ConvertRepo
         with atomic_path(dst) as tmp:
             tmp.unlink()  # USD creates the layer as a new file
             read = reader.read_from_file(src, usd_path=tmp)  # held: the layer lives as long as its stage
+            with allow_paths([src.resolve().parent]):  # lights every command would refuse (a negative radius,
+                read_lights(read.stage)  # radiance above 1e30, negative texels): refused here, nothing written
             read.stage.GetRootLayer().Save()
         return ConvertReport([str(dst)], read_warnings=dict(read.warnings))
     read = reader.read_from_file(src)

@@ -26,7 +26,7 @@ from collections import Counter
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
-from usdrelight.stage.lux import emitted_radiance, set_light_rgb, world_scale
+from usdrelight.stage.lux import SHARP_SUN_DEG, emitted_radiance, set_light_rgb, world_scale
 
 #: Luminous efficacy (lm/W) used to turn candela and lux into W/sr and W/m^2 (Blender's glTF IO uses it too).
 LUMENS_PER_WATT = 683.0
@@ -225,15 +225,16 @@ def add_lights_and_camera(doc: dict, rec, axes: np.ndarray, warnings: Counter) -
                 warnings["sphere lights with a radius (glTF: point lights of the same radiant intensity)"] += 1
             entry = {"type": "point"}
             if light.cone_angle_deg is not None:
-                outer = math.radians(min(light.cone_angle_deg, 90.0))
+                outer = max(math.radians(min(light.cone_angle_deg, 90.0)), 1e-6)  # glTF: 0 <= inner < outer
                 if light.cone_angle_deg > 90.0:
                     warnings["spot cones wider than 90 degrees (glTF's widest: 90)"] += 1
                 entry = {"type": "spot", "spot": {"outerConeAngle": outer,
-                                                  "innerConeAngle": outer * (1.0 - light.cone_softness)}}
+                                                  "innerConeAngle": outer * (1.0 - max(light.cone_softness, 1e-6))}}
         elif light.kind == "distant":
             entry = {"type": "directional"}
-            if light.angle_deg > 0:
-                warnings["distant lights' angular size (glTF: a sharp directional light)"] += 1
+            if light.angle_deg > SHARP_SUN_DEG:  # the fallback 0.53 (the sun's disk) is silent
+                warnings[f"distant lights' angular size above {SHARP_SUN_DEG:g} degree (glTF: a sharp directional "
+                         f"light)"] += 1
         else:
             warnings[f"{light.kind} lights in a glTF file (not exported: KHR_lights_punctual has point, spot and "
                      f"directional lights)"] += 1

@@ -42,8 +42,10 @@ def Xform "Rig" {
     assert meshes["/Cache"].points[:, 0].max() == pytest.approx(4.0)
     assert meshes["/Rig/Tri"].points[:, 0].min() == pytest.approx(10.0)
     assert meshes["/Rig/Tri"].points[:, 0].max() == pytest.approx(13.0)
-    rest = {m.path: m for m in read_scene(path).meshes}  # the default time: the rest pose, no cache
+    rest = {m.path: m for m in read_scene(path, Usd.TimeCode.Default()).meshes}  # the rest pose, no cache
     assert set(rest) == {"/Rig/Tri"} and rest["/Rig/Tri"].points[:, 0].max() == pytest.approx(1.0)
+    first = {m.path: m for m in read_scene(path).meshes}  # no time given: what render reads, the first samples
+    assert set(first) == {"/Cache", "/Rig/Tri"} and first["/Cache"].points[:, 0].max() == pytest.approx(1.0)
 
 
 def test_a_dome_with_the_scene_pole_on_a_z_up_stage_is_turned_like_a_z_pole(tmp_path):
@@ -104,7 +106,10 @@ def SphereLight "Old" {
     assert scene.warnings[OLD_LUX_NAMES] > 0
 
 
-def test_a_point_instancers_prototypes_are_not_drawn_where_they_stand(tmp_path):
+def test_a_point_instancers_prototypes_are_drawn_where_it_places_them_and_only_there(tmp_path):
+    """Positions, orientations (quaternions), scales, the prototype root's own transform and the instancer's,
+    a masked instance (invisibleIds), a mirroring scale (winding kept counter-clockwise) and a Sphere prototype
+    stretched into an ellipsoid; the prototypes are not drawn where they stand, their light is warned."""
     path = _stage(tmp_path, '''
 def Mesh "Ground" {
     int[] faceVertexCounts = [3]
@@ -112,11 +117,18 @@ def Mesh "Ground" {
     point3f[] points = [(0,0,0), (1,0,0), (0,0,1)]
 }
 def PointInstancer "Scatter" {
-    point3f[] positions = [(5, 0, 0), (6, 0, 0)]
-    int[] protoIndices = [0, 0]
-    rel prototypes = </Scatter/Protos/Lamp>
+    double3 xformOp:translate = (0, 10, 0)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+    point3f[] positions = [(5, 0, 0), (6, 0, 0), (7, 0, 0), (8, 0, 0)]
+    quath[] orientations = [(1, 0, 0, 0), (0.70710677, 0, 0, 0.70710677), (1, 0, 0, 0), (1, 0, 0, 0)]
+    float3[] scales = [(1, 1, 1), (2, 2, 2), (-1, 1, 1), (1, 1, 1)]
+    int64[] invisibleIds = [3]
+    int[] protoIndices = [0, 0, 0, 1]
+    rel prototypes = [</Scatter/Protos/Lamp>, </Scatter/Protos/Ball>]
     def Scope "Protos" {
         def Xform "Lamp" {
+            double3 xformOp:translate = (0, 0, 1)
+            uniform token[] xformOpOrder = ["xformOp:translate"]
             def Mesh "Shade" {
                 int[] faceVertexCounts = [3]
                 int[] faceVertexIndices = [0, 1, 2]
@@ -127,11 +139,38 @@ def PointInstancer "Scatter" {
                 bool treatAsPoint = 1
             }
         }
+        def Sphere "Ball" {
+            double radius = 0.5
+        }
+    }
+}
+def PointInstancer "Stretched" {
+    point3f[] positions = [(0, 0, -5)]
+    float3[] scales = [(1, 3, 1)]
+    int[] protoIndices = [0]
+    rel prototypes = </Stretched/Ball>
+    def Sphere "Ball" {
+        double radius = 0.5
     }
 }''')
     scene = read_scene(path)
-    assert [m.path for m in scene.meshes] == ["/Ground"] and scene.lights == ()
-    assert any("PointInstancer" in w for w in scene.warnings)
+    meshes = {m.path: m for m in scene.meshes}
+    assert set(meshes) == {"/Ground", "/Scatter/Protos/Lamp/Shade/instance0", "/Scatter/Protos/Lamp/Shade/instance1",
+                           "/Scatter/Protos/Lamp/Shade/instance2", "/Stretched/Ball/instance0"}
+    shade = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+    np.testing.assert_allclose(meshes["/Scatter/Protos/Lamp/Shade/instance0"].points,
+                               np.add(shade, (5, 10, 1)), atol=1e-6)
+    # turned 90 degrees about z and scaled 2: (x, y, z) -> (-2y, 2x, 2z), the root's (0, 0, 1) too
+    np.testing.assert_allclose(meshes["/Scatter/Protos/Lamp/Shade/instance1"].points,
+                               [(6, 10, 2), (6, 12, 2), (4, 10, 2)], atol=1e-3)  # quath: half precision
+    mirrored = meshes["/Scatter/Protos/Lamp/Shade/instance2"]
+    np.testing.assert_allclose(mirrored.points, [(7, 10, 1), (6, 10, 1), (7, 11, 1)], atol=1e-6)
+    a, b, c = mirrored.points[mirrored.faces[0]]
+    assert np.cross(b - a, c - a)[2] > 0  # still counter-clockwise seen from +z: the winding flipped back
+    assert scene.shapes == ()  # the masked instance's Ball is not drawn; the stretched one is a mesh
+    egg = meshes["/Stretched/Ball/instance0"].points
+    assert np.ptp(egg[:, 1]) == pytest.approx(3.0, rel=1e-3) and np.ptp(egg[:, 0]) == pytest.approx(1.0, rel=1e-3)
+    assert scene.lights == () and any("light inside a PointInstancer" in w for w in scene.warnings)
     assert read_lights(Usd.Stage.Open(str(path))) == ()
 
 

@@ -51,8 +51,8 @@ def port(text: str) -> int:
     return v
 
 
-TIME_HELP = ("the USD time code lights are read at (default: the stage's startTimeCode, else each attribute's "
-             "first time sample)")
+TIME_HELP = ("the USD time code the stage is read at: its lights, camera, meshes and materials (default: the "
+             "stage's startTimeCode, else each attribute's first time sample)")
 
 
 def add_time_argument(parser) -> None:

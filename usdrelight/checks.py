@@ -47,6 +47,14 @@ def number(value, name: str, lo: float = 0.0) -> float:
     raise UsdRelightError(f"{_name(name)} must be a finite number >= {lo:g}, got {value!r}")
 
 
+def bounded(value, name: str, lo: float, hi: float) -> float:
+    """``value`` as a finite float in [lo, hi] (:func:`number`, with an upper bound)."""
+    x = number(value, name, lo)
+    if x > hi:
+        raise UsdRelightError(f"{_name(name)} must be a finite number in [{lo:g}, {hi:g}], got {value!r}")
+    return x
+
+
 def names(value, name: str) -> list[str]:
     """A list of strings from one string (one name, not its letters) or an iterable of strings."""
     if isinstance(value, str):

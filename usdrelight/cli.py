@@ -171,7 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--max-side", type=_positive_int, default=512, help="longer side of the live frames, pixels")
     sv.set_defaults(func=cmd_serve)
 
-    v = sub.add_parser("validate", parents=[common], help="run every pxr.UsdValidation validator",
+    v = sub.add_parser("validate", parents=[common, reads], help="run every pxr.UsdValidation validator",
                        description="Exit 0 only when no validator reports an error: every pxr.UsdValidation validator, "
                                    "and usdrelight's own reader (usdrelight:ReadScene: what render and fit would "
                                    "refuse, as errors; what they leave out, as warnings).")

@@ -56,7 +56,7 @@ def max_megapixels() -> float:
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
     x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return np.where(x <= 0.04045, x / 12.92, (np.maximum(x + 0.055, 0.0) / 1.055) ** 2.4).astype(np.float32)
 
 
 def display_exposure(image: np.ndarray) -> float:
@@ -109,15 +109,15 @@ def _checked_buf(path: Path):
     return buf
 
 
-def stores_floats(path: str | os.PathLike) -> bool:
-    """Whether the image file stores float data (linear by the conventions above) rather than integers (sRGB),
-    from its header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS, as :func:`check_image_size`."""
-    return str(_checked_buf(Path(path)).spec().format) in LINEAR_FORMATS
+def stored_format(path: str | os.PathLike) -> tuple[str, int]:
+    """The pixel type the file stores (OpenImageIO's name: ``uint8``, ``uint16``, ``half``, ``float`` ...; float
+    ones, :data:`LINEAR_FORMATS`, are linear by the conventions above) and its channel count, from its header."""
+    spec = _checked_buf(Path(path)).spec()
+    return str(spec.format), spec.nchannels
 
 
 def check_image_size(path: str | os.PathLike) -> tuple[int, int]:
-    """``(width, height)`` from the file's header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS (for images
-    a renderer decodes by itself, such as Mitsuba's textures)."""
+    """``(width, height)`` from the file's header; UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS."""
     spec = _checked_buf(Path(path)).spec()
     return spec.width, spec.height
 
@@ -240,12 +240,12 @@ def read_photo(path: str | os.PathLike) -> np.ndarray:
 def read_texture_rgb(path: str | os.PathLike, linear: bool) -> np.ndarray:
     """A light's texture as (H, W, 3) float32 linear RGB: texels sRGB-decoded unless ``linear`` (as
     :attr:`usdrelight.stage.records.TextureRecord.linear` decides and Mitsuba decodes), grey replicated, alpha
-    dropped. A NaN, Inf, negative or above 1e30 texel is an error (no light is negative or unbounded)."""
+    dropped; a negative texel (a processed HDRI's noise) is 0. A NaN, Inf or above 1e30 texel is an error."""
     rgb = _rgb(read_raw(path)[0], decode=not linear)
-    if not np.all(np.isfinite(rgb)) or rgb.min(initial=0.0) < 0 or rgb.max(initial=0.0) > 1e30:
-        raise UsdRelightError(f"light texture {path} has NaN, Inf, negative or above 1e30 texels (a light's "
-                              "radiance is finite and not negative)")
-    return np.ascontiguousarray(rgb, np.float32)
+    if not np.all(np.isfinite(rgb)) or rgb.max(initial=0.0) > 1e30:
+        raise UsdRelightError(f"light texture {path} has NaN, Inf or above 1e30 texels (a light's radiance is "
+                              "finite)")
+    return np.ascontiguousarray(np.maximum(rgb, 0.0), np.float32)
 
 
 #: The largest value of each integer pixel type OpenImageIO scales to [0, 1] (its stored value = scaled x this).

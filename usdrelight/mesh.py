@@ -100,7 +100,8 @@ def triangulate(points: np.ndarray, valid: np.ndarray, *, stride: int = 1,
     faces = np.concatenate([np.stack([i0[m], i1[m], i2[m]], 1) for (i0, i1, i2), m in cand])
     n_before = faces.shape[0]
     if n_before == 0:
-        raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
+        raise UsdRelightError("no triangle survives: no 2x2 block of neighbouring pixels has valid geometry (the "
+                              "depth or mask leaves isolated pixels only)")
     n = _face_normals(Pn, faces)
     centroid = Pn[faces[:, 0]] + Pn[faces[:, 1]] + Pn[faces[:, 2]]
     with np.errstate(over="ignore", invalid="ignore"):  # a huge mesh overflows float32: such a triangle is cut
@@ -110,7 +111,9 @@ def triangulate(points: np.ndarray, valid: np.ndarray, *, stride: int = 1,
         keep = (n2 > 0) & (dot * dot >= cos_min * cos_min * n2)
     faces, fn = faces[keep], n[keep].astype(np.float64)
     if faces.shape[0] == 0:
-        raise UsdRelightError("no triangle survives: the geometry is empty or all discontinuities")
+        raise UsdRelightError(f"no triangle survives: every triangle is seen at more than --max-grazing-deg "
+                              f"{max_grazing_deg:g} degrees (all depth discontinuities, or intrinsics far from the "
+                              f"photo's: a focal length or principal point that makes every surface grazing)")
     used = np.zeros(h * w, bool)
     used[faces.ravel()] = True
     remap = np.full(h * w, -1, np.int64)

@@ -209,6 +209,9 @@ class UsdBuilder(AreaLights):
                 sh = UsdLux.ShapingAPI.Apply(light.GetPrim())
                 cutoff = float(p.props.get("cutoff_angle", 20.0))
                 beam = float(p.props.get("beam_width", cutoff * 3 / 4))
+                if not (0.0 < cutoff <= 180.0 and 0.0 <= beam):
+                    raise UsdRelightError(f"<emitter type='spot'>: cutoff_angle must be in (0, 180] degrees and "
+                                          f"beam_width >= 0 (got {cutoff:g} and {beam:g})")
                 sh.CreateShapingConeAngleAttr(cutoff)
                 sh.CreateShapingConeSoftnessAttr(float(min(max(1 - beam / cutoff, 0.0), 1.0)))
                 R = R @ FLIP_Z
@@ -228,7 +231,10 @@ class UsdBuilder(AreaLights):
         elif p.type == "directional":
             light = UsdLux.DistantLight.Define(self.stage, path)
             light.CreateAngleAttr(0.0)
-            R = frame_pointing_along(M[:3, :3] @ np.asarray(p.props.get("direction", (0, 0, 1)), np.float64))
+            direction = M[:3, :3] @ np.asarray(p.props.get("direction", (0, 0, 1)), np.float64)
+            if not np.linalg.norm(direction) > 0:
+                raise UsdRelightError(f"<emitter type='{p.type}'>: its direction is zero or not finite")
+            R = frame_pointing_along(direction)
             self.set_xform(light.GetPrim(), R)
             self._light_common(light, p.props.get("irradiance", (1.0, 1.0, 1.0)))
         elif p.type in ("constant", "envmap"):

@@ -56,7 +56,7 @@ def from_depth(depth: np.ndarray, intrinsics: Intrinsics, valid: np.ndarray | No
                source: str = "depth") -> GeometryEstimate:
     """Unproject a z-depth map (H, W); non-finite, tiny (< MIN_DEPTH) or huge (> MAX_DEPTH) depth is invalid."""
     depth = np.asarray(depth, dtype=np.float64)
-    ok = np.isfinite(depth) & (depth >= MIN_DEPTH) & (depth <= MAX_DEPTH)
+    ok = np.isfinite(depth) & (depth >= np.float32(MIN_DEPTH)) & (depth <= MAX_DEPTH)  # 1e-6 stored as a float
     if valid is not None:
         ok &= valid
     z = np.where(ok, depth, 0.0)
@@ -192,5 +192,6 @@ def estimate_geometry(photo: Photo, *, depth_file=None, points_file=None, intrin
         geo = from_depth(box_room_prior(intrinsics), intrinsics, mask, source="prior:box-room")
         geo.metric = False
     if not geo.valid.any():
-        raise UsdRelightError("geometry has no valid pixel (depth all invalid, or masked out)")
+        raise UsdRelightError(f"geometry has no valid pixel: every depth is NaN, Inf or outside [{MIN_DEPTH:g}, "
+                              f"{MAX_DEPTH:g}] scene units (see --depth-scale), or masked out")
     return geo

@@ -21,6 +21,7 @@ from ..imageio import write_image
 from ..mitsuba.render import MAX_SPP, render_record
 from ..safe_paths import writable_parent
 from ..stage.layout import SCENE
+from ..stage.light_syntax import MAX_RADIANCE
 from ..stage.lights_layer import write_fitted_lights
 from ..stage.records import LightRecord, PointLightValue, TextureRecord
 from ..stage.usdz import refuse_usdz
@@ -173,9 +174,26 @@ def _checked(settings) -> FitSettings:
     if settings.method not in ("fast", "adam"):
         raise UsdRelightError(f"unknown --method {settings.method!r} (adam or fast)")
     return replace(settings, lights=whole(settings.lights, "lights", 0, 256),
-                   iterations=whole_or_none(settings.iterations, "iterations", 0),  # 0 (as None): the default
+                   iterations=whole_or_none(settings.iterations, "iterations", 0, 100_000),  # 0 (as None): default
                    max_side=whole(settings.max_side, "max_side", 1), seed=whole(settings.seed, "seed", 0, MAX_SEED - 1),
                    verify_spp=whole(settings.verify_spp, "verify_spp", 0, MAX_SPP))  # 0: no verification render
+
+
+def _radiance_scale(prob: FitProblem) -> float:
+    """What the photo's diffuse target is divided by for the fit: its peak when above 1e6 (an HDR photo in
+    physical units; the fit's constants and float32 transport are for ordinary radiance), else 1 (unchanged).
+    The transport is linear in the lights, so the fit at a peak of 1 scaled back is the same fit."""
+    peak = float(prob.target.max(initial=0.0))
+    return peak if peak > 1e6 else 1.0
+
+
+def _rescaled(res: FitResult, scale: float) -> FitResult:
+    """A fit made on the target / ``scale``, in the target's own units."""
+    if scale == 1.0:
+        return res
+    return replace(res, lights=tuple(replace(l, rgb=np.asarray(l.rgb) * scale) for l in res.lights),
+                   env=None if res.env is None else res.env * scale, mse=res.mse * scale ** 2,
+                   curve=[[t, m * scale ** 2] for t, m in res.curve])
 
 
 def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> FitReport:
@@ -186,6 +204,8 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
         writable_parent(Path(report_dir) / "fit_report.json", "the --report")
     t_all = time.perf_counter()
     prob = load_problem(stage_path, max_side)
+    full, scale = prob, _radiance_scale(prob)
+    prob = prob if scale == 1.0 else replace(prob, target=prob.target / scale)  # fitted at a peak of 1
     if method == "fast":
         env_shape = _parse_env_res(env_res or "8x16", FAST_MAX_ENV_CELLS)
         res = fast_result(prob, lights, env_shape, iterations or 40, progress=progress, seed=seed,
@@ -196,6 +216,7 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
         res = prune_by_contribution(prob, res)
     else:
         raise UsdRelightError(f"unknown --method {method!r} (adam or fast)")
+    prob, res = full, _rescaled(res, scale)
     if float(prob.target.max()) <= 0:  # a black photo: no light explains it, and every light found is noise
         log.warning("the photo's diffuse target is black: no light fitted (a relight adds only the lights you give)")
         res = replace(res, lights=(), env=None, mse=0.0, psnr_db=psnr(0.0, 0.0))
@@ -204,6 +225,11 @@ def _fit_unlocked(stage_path, settings: FitSettings, report_dir, progress) -> Fi
             raise UsdRelightError("the fit diverged (non-finite light); nothing was written")
     if res.env is not None and not np.all(np.isfinite(res.env)):
         raise UsdRelightError("the fit diverged (non-finite environment); nothing was written")
+    top = max([float(np.max(l.rgb)) for l in res.lights] + [float(np.max(res.env)) if res.env is not None else 0.0])
+    if top > MAX_RADIANCE:  # every reader refuses such a light: the layer would break the stage
+        raise UsdRelightError(f"the fitted lights would emit {top:.3g}, above {MAX_RADIANCE:g} (the photo's diffuse "
+                              f"target peaks at {float(prob.target.max()):.3g}): scale the photo down; nothing was "
+                              f"written")
     # verification: render the fitted lights with Mitsuba, as the converter would
     t = time.perf_counter()
     img = render_fitted(prob, res.lights, res.env, spp=verify_spp, seed=seed + 1) if verify_spp > 0 else None

@@ -32,7 +32,7 @@ from ..imageio import image_attribute, write_image
 from ..safe_paths import confined_path
 from ..stage.backplate import hides_emitters
 from ..stage.read import read_scene
-from ..stage.records import RenderVarRecord, SceneRecord
+from ..stage.records import ProductRecord, RenderVarRecord, SceneRecord
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..stage.versions import check_outside_versions, is_stage_folder, stage_free
@@ -44,6 +44,11 @@ log = logging.getLogger(__name__)
 BEAUTY_NAMES = {"C.*", "color", "Ci", "rgb", "rgba", "beauty", "diffuse"}
 GEOMETRIC = {"albedo": 3, "valid": 1, "depth": 1, "normal": 3, "N": 3}
 PRIMARY_RAY_NUDGE_PX = (1.0 / 64.0, 1.0 / 128.0)
+
+
+DEFAULT_PRODUCT = ProductRecord("color", "color.exr", (RenderVarRecord("color", "color", "raw", "color3f"),))
+"""What ``render`` writes for a stage that declares no RenderProducts: the beauty, at the camera's aspect (640 px
+wide without RenderSettings)."""
 
 
 def aov_kind(var: RenderVarRecord) -> str:
@@ -295,11 +300,12 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
     aovs = names(aovs, "aovs") if aovs else None  # none named: every declared AOV
     stage = open_stage(stage_path)
     rec = read_scene(stage, frame_time(stage, time))
-    if not rec.products:
-        raise UsdRelightError(f"{stage_path} declares no RenderProducts (UsdRender settings)")
     if rec.camera is None:
         raise UsdRelightError(f"{stage_path} has no camera")
-    declared = {p.name: p for p in rec.products}
+    declared = {p.name: p for p in rec.products or (DEFAULT_PRODUCT,)}
+    if not rec.products:  # a stage from a DCC or usdview's samples: no UsdRender settings
+        rec.warnings[f"no RenderProducts declared (UsdRender settings): the beauty written to "
+                     f"{DEFAULT_PRODUCT.product_name}, {rec.resolution[0]}x{rec.resolution[1]}"] += 1
     wanted_names = list(declared) if not aovs else aovs
     unknown = [n for n in wanted_names if n not in declared]
     if unknown:
@@ -320,6 +326,10 @@ def render_stage(stage_path, out_dir=None, aovs=None, spp: int = 64, max_depth: 
             raise UsdRelightError(f"RenderProducts {seen[path]} and {name} both write {path.relative_to(base)} "
                                   f"(nothing was rendered)")
         seen[path] = name
+    if not rec.products and paths[DEFAULT_PRODUCT.name].exists() and \
+            image_attribute(paths[DEFAULT_PRODUCT.name], STAMP_KEY) is None:  # a file of the user's, not a render
+        raise UsdRelightError(f"{paths[DEFAULT_PRODUCT.name]} exists and is not a usdrelight render: choose another "
+                              f"output folder with -o (nothing was rendered)")
     taken = [name for name, path in paths.items() if not stage_free(path.relative_to(base))]
     if taken and is_stage_folder(base):  # the stage's scene file is read only when a name needs it
         raise UsdRelightError(f"RenderProduct {taken[0]} productName {paths[taken[0]].relative_to(base)} would "

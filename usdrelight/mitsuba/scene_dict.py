@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -22,12 +23,12 @@ import numpy as np
 
 from ..atomic import write_bytes_atomic
 from ..errors import UsdRelightError
-from ..stage.lux import cylinder_size, emitted_radiance, light_direction, world_scale
+from ..stage.lux import SHARP_SUN_DEG, cylinder_size, emitted_radiance, light_direction, world_scale
 from ..stage.read_geometry import OPACITY_WARNING
 from ..stage.records import LightRecord, MaterialRecord, SceneRecord, TextureRecord
 from .cutout import cutout_spec, presence_map
-from .textures import baked_texels, merged_dome_dict, merged_dome_texels, mirrored_texels, rect_radiance_bitmap, \
-    texture_dict
+from .textures import BLACK_WRAP, baked_texels, merged_dome_dict, merged_dome_texels, mirrored_texels, \
+    rect_radiance_bitmap, st_inside, texture_dict
 from .runtime import load_mitsuba
 
 log = logging.getLogger(__name__)
@@ -263,8 +264,8 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         return {name: {"type": "rectangle", "emitter": emitter, "bsdf": black,
                        "to_world": Matrix(light.to_world @ FLIP_Z @ np.diag([light.width / 2, light.height / 2, 1, 1]))}}
     if light.kind == "distant":
-        if light.angle_deg > 0:
-            warnings["DistantLight angle > 0 (rendered as a sharp directional light)"] += 1
+        if light.angle_deg > SHARP_SUN_DEG:  # the fallback 0.53 (the sun's disk) is silent
+            warnings[f"DistantLight angle > {SHARP_SUN_DEG:g} degree (rendered as a sharp directional light)"] += 1
         return {name: {"type": "directional", "direction": [float(x) for x in light_direction(light)],
                        "irradiance": rgb_value(L)}}
     if light.kind == "dome":
@@ -275,9 +276,11 @@ def emitter_dicts(light: LightRecord, warnings) -> dict:
         d = {"type": "envmap", "filename": light.texture.path, "to_world": Matrix(rot)}
         if np.allclose(L, L[0]):
             d["scale"] = float(L[0])
-        else:
+            if light.texture.negative_texels:  # a clamped copy (to_mitsuba, the XML writer), the scale kept
+                d["tint"] = [1.0, 1.0, 1.0]
+        else:  # applied by to_mitsuba / the XML writer to a baked texture, negative texels read as 0
             d["scale"] = 1.0
-            d["tint"] = [float(x) for x in L]  # applied by to_mitsuba / the XML writer (baked texture)
+            d["tint"] = [float(x) for x in L]
         return {name: d}
     raise UsdRelightError(f"unsupported light kind {light.kind}")
 
@@ -308,7 +311,11 @@ def scene_dict(scene: SceneRecord, *, spp: int = 16, max_depth: int = 3, mesh_di
             continue  # no surface (a mesh light keeps its geometry)
         uv = None if mesh.uv is None else np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
         k = key(safe_name(mesh.path))
-        bsdf = bsdf_dict(mesh.material, warnings, mesh.double_sided)
+        local = Counter()  # this mesh's lines: 'black' wrap only where a lookup leaves [0, 1]^2
+        bsdf = bsdf_dict(mesh.material, local, mesh.double_sided)
+        if local[BLACK_WRAP] and st_inside(mesh.material, mesh.uv):
+            del local[BLACK_WRAP]
+        warnings.update(local)
         # a MeshLightAPI mesh (or one of its GeomSubsets) emits: Mitsuba's area emitter on the same shape
         owner = mesh.path if mesh.path in mesh_lights else mesh.path.rsplit("/", 1)[0]
         light = mesh_lights.get(owner)
@@ -376,7 +383,7 @@ def to_mitsuba(d, mi=None, name: str = "root"):
         if d.get("type") == "envmap" and "tint" in d:
             bmp = np.array(mi.Bitmap(d["filename"]).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, False))
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("tint", "filename")}
-            out["bitmap"] = mi.Bitmap((bmp * np.asarray(d["tint"], np.float32)).astype(np.float32))
+            out["bitmap"] = mi.Bitmap(np.maximum(bmp * np.asarray(d["tint"], np.float32), 0.0).astype(np.float32))
             return out
         if d.get("type") == "bitmap" and ("cutout" in d or "bake" in d or "mirror_u" in d):  # computed in memory
             out = {k: to_mitsuba(v, mi, k) for k, v in d.items() if k not in ("cutout", "bake", "filename", "mirror_u")}

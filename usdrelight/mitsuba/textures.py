@@ -14,7 +14,7 @@
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import fields, replace
 from functools import lru_cache
 
 import numpy as np
@@ -28,14 +28,30 @@ WRAP_MODES = {"repeat": "repeat", "mirror": "mirror", "clamp": "clamp", "black":
 FLIP_V = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0], [0.0, 0.0, 1.0]])  # (u, v) <-> (s, t): v = 1 - t
 
 
+BLACK_WRAP = "UsdUVTexture wrap 'black' (Mitsuba clamp used: differs where st leaves [0, 1])"
+
+
 def wrap_mode(tex: TextureRecord, warnings) -> str:
     """Mitsuba's one ``wrap_mode`` for the texture's wrapS / wrapT (see the module docstring)."""
     if tex.wrap_s != tex.wrap_t:
         warnings[f"UsdUVTexture wrapS '{tex.wrap_s}' != wrapT '{tex.wrap_t}' (Mitsuba has one wrap_mode: wrapS "
                  "used for both)"] += 1
     if tex.wrap_s == "black":
-        warnings["UsdUVTexture wrap 'black' (Mitsuba clamp used: differs where st leaves [0, 1])"] += 1
+        warnings[BLACK_WRAP] += 1
     return WRAP_MODES.get(tex.wrap_s, "clamp")
+
+
+def st_inside(material, uv: np.ndarray | None) -> bool:
+    """Whether every texture of ``material`` is looked up inside [0, 1]^2 on a mesh of texture coordinates ``uv``
+    (N, 2; None: none, all at (0, 0)), through its UsdTransform2d: where no wrap mode makes a difference."""
+    st = np.zeros((1, 2)) if uv is None else np.asarray(uv, np.float64).reshape(-1, 2)
+    for tex in (getattr(material, f.name) for f in fields(material)):
+        if isinstance(tex, TextureRecord):
+            m = tex.st_matrix()
+            looked = st @ m[:2, :2].T + m[:2, 2]
+            if looked.size and (looked.min() < -1e-6 or looked.max() > 1.0 + 1e-6):
+                return False
+    return True
 
 
 def to_uv(tex: TextureRecord) -> np.ndarray | None:
@@ -121,6 +137,8 @@ def baked_texels(spec: dict) -> np.ndarray:
         else:
             v = _decode(tx[..., 0] if c <= 2 else tx[..., i], b["linear"])
         out = np.repeat((v * scale[i] + bias[i])[..., None], 3, axis=2)
+    if b.get("clamp"):  # a light's texture: negative texels read as 0
+        out = np.maximum(out, 0.0)
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
@@ -131,16 +149,19 @@ def rect_radiance_bitmap(tex: TextureRecord, radiance) -> dict:
     at the light's local (+X, +Y) corner; Mitsuba's rectangle (light frame x FLIP_Z) has its bitmap's first texel
     at uv (0, 0), the light's (-X, +Y). Not the bitmap's ``to_uv`` u -> 1 - u: Mitsuba importance-samples the
     texels ignoring to_uv (unbiased, far noisier)."""
-    return {**scaled_bitmap(tex.path, tex.linear, tex.linear, radiance), "mirror_u": True}
+    d = scaled_bitmap(tex.path, tex.linear, tex.linear, radiance, rtol=-1.0 if tex.negative_texels else 0.0)
+    if tex.negative_texels:
+        d["bake"]["clamp"] = True
+    return {**d, "mirror_u": True}
 
 
 def scaled_bitmap(path: str, raw: bool, linear: bool, scale, rtol: float = 0.0) -> dict:
     """A plain-data bitmap of the file's texels x ``scale`` (RGB): the file itself (``raw`` as given) when the
     scale is 1 (to ``rtol``), else baked (``bake``: decoded as :func:`baked_texels` does, sRGB unless
-    ``linear``; then ``raw``)."""
+    ``linear``; then ``raw``). ``rtol`` < 0: always baked."""
     scale = np.asarray(scale, np.float64)[:3]
     d = {"type": "bitmap", "filename": path, "raw": raw}
-    if not np.allclose(scale, 1.0, rtol=rtol, atol=0.0):
+    if rtol < 0 or not np.allclose(scale, 1.0, rtol=rtol, atol=0.0):
         d["raw"] = True
         d["bake"] = {"channel": "rgb", "linear": linear, "scale": [float(x) for x in scale] + [1.0],
                      "bias": [0.0] * 4}

@@ -19,7 +19,7 @@ from rich.progress import track
 
 from ..atomic import result_group
 from ..engine.fast import EngineSettings, check_area_samples
-from ..checks import flag, number, path_arg
+from ..checks import bounded, flag, path_arg
 from ..errors import UsdRelightError
 from ..imageio import display_exposure, write_image
 from ..neural.model import write_relit
@@ -32,7 +32,7 @@ from ..stage.versions import check_outside_versions
 from ..stage.timing import check_time, parse_frames, stage_fps, video_fps
 from .composite import MODES
 from .contact_sheet import write_contact_sheet
-from .session import DEFAULT_MODE, RelightSession, RelitFrame
+from .session import DEFAULT_MODE, MAX_FITTED_SCALE, RelightSession, RelitFrame
 from .video import Mp4Writer, check_video_path
 
 log = logging.getLogger(__name__)
@@ -199,7 +199,7 @@ def relight(stage_path, lights=(), out=None, model_path=None, with_fitted: bool 
     common = parse_lights(lights)
     per_frame = [parse_lights(f, len(common)) for f in seq] if seq is not None else None
     with_fitted = with_fitted or fitted_scale is not None  # any scale given, 1 too, keeps the fitted lights
-    fitted_scale = 1.0 if fitted_scale is None else number(fitted_scale, "fitted_scale")
+    fitted_scale = 1.0 if fitted_scale is None else bounded(fitted_scale, "fitted_scale", 0.0, MAX_FITTED_SCALE)
     if mode == "add" and fitted_scale != 1.0:  # the photo, as it is, plus the new lights: it cannot dim
         log.warning("--mode add keeps the photo's own light as it is: --fitted-scale %g is not applied (transfer, "
                     "ratio or auto dim it)", fitted_scale)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import flag, number, path_arg, whole_or_none
+from ..checks import bounded, flag, path_arg, whole_or_none
 from ..engine import EngineSettings, check_renderer_options, open_renderer
 from ..engine.fast import content_key
 from ..errors import UsdRelightError
@@ -45,6 +45,9 @@ from .composite import (MODES, add_composite, per_covered_area, ratio_apply, rat
 from .light_match import match_angles, match_weight, scene_centre
 
 log = logging.getLogger(__name__)
+
+MAX_FITTED_SCALE = 1e6
+"""Largest ``fitted_scale`` (``--fitted-scale``): the photo's own light at most a million times brighter."""
 DEFAULT_MODE = "auto"
 """The mode ``relight`` uses unless told otherwise: ``auto`` is ``add`` when the photo's own (fitted) lighting is
 kept as it is, ``transfer`` (the physics render with the photo's own detail) when it is scaled (dimmed or
@@ -141,8 +144,7 @@ class RelightSession:
         with_fitted, stage_lights = flag(with_fitted, "with_fitted"), flag(stage_lights, "stage_lights")
         check_renderer_options(renderer, spp, max_depth)  # before the stage is read
         max_side = whole_or_none(max_side, "max_side", 0)  # 0 (as None): the stage's full resolution
-        if number(fitted_scale, "fitted_scale") > 1e6:
-            raise UsdRelightError(f"the fitted lights' scale must be in [0, 1e6], got {fitted_scale}")
+        bounded(fitted_scale, "fitted_scale", 0.0, MAX_FITTED_SCALE)
         for value, kind, name in ((settings, EngineSettings, "settings"), (cache, TransportCache, "cache")):
             if value is not None and not isinstance(value, kind):
                 raise UsdRelightError(f"{name} must be a {kind.__name__} or None, got {type(value).__name__}")

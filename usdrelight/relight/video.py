@@ -17,7 +17,7 @@ import numpy as np
 from ..atomic import atomic_path
 from ..errors import UsdRelightError
 from ..imageio import display_exposure, linear_to_srgb
-from ..safe_paths import writable_parent
+from ..safe_paths import made_folders, writable_parent
 
 CRF = 16
 """x264 constant rate factor (0 lossless .. 51; 16: visually lossless for relit photos)."""
@@ -68,6 +68,7 @@ class Mp4Writer:
         self._scaler = interp.BILINEAR | interp.ACCURATE_RND  # rounded, not truncated: no 1-level darkening
 
     def __enter__(self) -> Mp4Writer:
+        self._stack.enter_context(made_folders(self.path.parent))  # removed again, if still empty, on a failure
         tmp = self._stack.enter_context(atomic_path(self.path))
         self._tmp = tmp
         return self

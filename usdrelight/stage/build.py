@@ -5,6 +5,7 @@ import logging
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -149,8 +150,9 @@ def build(photo_path, outdir, opts: BuildOptions | None = None, progress=None) -
     grazing = number(opts.max_grazing_deg, "max_grazing_deg")
     if not 0 < grazing <= 90:
         raise UsdRelightError(f"max_grazing_deg (--max-grazing-deg) must be in (0, 90] degrees, got {grazing:g}")
-    if opts.fov_x is not None and not 0 < number(opts.fov_x, "fov_x") < 180:
-        raise UsdRelightError(f"fov_x (--fov-x) must be in (0, 180) degrees, got {opts.fov_x!r}")
+    fov = opts.fov_x
+    if fov is not None and not (isinstance(fov, Real) and not isinstance(fov, bool) and 0 < fov < 180):
+        raise UsdRelightError(f"fov_x (--fov-x) must be a number in (0, 180) degrees, got {fov!r}")
     if opts.depth_scale is not None and not number(opts.depth_scale, "depth_scale") > 0:
         raise UsdRelightError(f"depth_scale (--depth-scale) must be > 0 (metres per stored unit), got "
                               f"{opts.depth_scale!r}")

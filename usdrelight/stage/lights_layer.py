@@ -64,6 +64,8 @@ def _author_layer(layer, points: list[PointLightValue], env, fit: FitProvenance)
                              ("usdrelight:fit:psnrDb", fit.psnr_db, Sdf.ValueTypeNames.Float),
                              ("usdrelight:fit:seconds", fit.seconds, Sdf.ValueTypeNames.Float),
                              ("usdrelight:fit:iterations", fit.iterations, Sdf.ValueTypeNames.Int)):
+        if typ == Sdf.ValueTypeNames.Float and not abs(value) < 3.4e38:  # beyond a float (an mse of a photo in
+            continue  # physical units, ~1e20 peak): left unauthored, the schema's -1 "not recorded"; no Inf
         root.CreateAttribute(name, typ, custom=False, variability=Sdf.VariabilityUniform).Set(value)
     if points or env is not None:
         UsdGeom.Scope.Define(stage, LIGHTS)

@@ -14,8 +14,8 @@ SphereLight, DiskLight, RectLight, DistantLight, DomeLight / DomeLight_1 and Sha
 :mod:`usdrelight.stage.read_lux`); a Mesh with MeshLightAPI is both a mesh and a light of kind ``mesh``. The
 camera's apertures are conformed to the image as RenderSettings' ``aspectRatioConformPolicy`` says
 (:func:`usdrelight.stage.camera.conformed_apertures`). Meshes are read at the time code asked for (their points,
-topology and primvars, not only their transforms). A PointInstancer is not converted (warned), and neither are
-its prototypes, which are drawn only where it instances them.
+topology and primvars, not only their transforms). A PointInstancer's prototypes are drawn where it instances
+them, and only there (:mod:`usdrelight.stage.read_gprims`).
 Anything else is counted in ``warnings`` (one line per kind), never dropped silently.
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
 
@@ -31,12 +31,14 @@ from ..errors import UsdRelightError
 from ..imageio import check_resolution
 from .backplate import settings_prim
 from .camera import CONFORM_POLICIES, check_clipping, depth_of_field, intrinsics_from_usd_camera
-from .read_geometry import mesh_area, normal_inverse, read_material, read_mesh
+from .read_geometry import mesh_area, read_material, read_mesh
+from .read_gprims import check_instanced_size, ellipsoid_mesh, instance_matrices, placed_mesh, \
+    prototype_gprims, read_shape
 from .lux import uniform_scale
 from .read_lux import read_light
-from .timing import check_time, rescaled_layers
+from .timing import frame_time, rescaled_layers
 from .validate import open_stage
-from .records import CameraRecord, LightRecord, MeshRecord, ProductRecord, RenderVarRecord, SceneRecord, \
+from .records import CameraRecord, LightRecord, ProductRecord, RenderVarRecord, SceneRecord, \
     ShapeRecord
 
 log = logging.getLogger(__name__)
@@ -204,55 +206,13 @@ def _camera_frame(xf: np.ndarray, path: str) -> np.ndarray:
     return out
 
 
-def _shape(prim, xf, mat, t) -> ShapeRecord | None:
-    from pxr import UsdGeom
-
-    name = str(prim.GetPath())
-    ds = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(t))
-    if prim.IsA(UsdGeom.Sphere):
-        r = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t))
-        return ShapeRecord(name, "sphere", xf @ np.diag([r, r, r, 1.0]), mat, ds)
-    if prim.IsA(UsdGeom.Cube):
-        h = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) / 2
-        return ShapeRecord(name, "cube", xf @ np.diag([h, h, h, 1.0]), mat, ds)
-    if prim.IsA(UsdGeom.Plane):
-        p = UsdGeom.Plane(prim)
-        w, l = float(p.GetWidthAttr().Get(t)) / 2, float(p.GetLengthAttr().Get(t)) / 2
-        axis = p.GetAxisAttr().Get(t)
-        # Plane: width along the first in-plane axis, length along the second; normal along `axis`.
-        basis = {"Z": np.eye(4), "X": np.array([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]]),
-                 "Y": np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])}[axis]
-        return ShapeRecord(name, "rectangle", xf @ basis @ np.diag([w, l, 1.0, 1.0]), mat, ds)
-    return None
-
-
-def ellipsoid_mesh(shape: ShapeRecord, subdivisions: int = 4) -> MeshRecord:
-    """A sphere gprim under a non-uniform scale as the ellipsoid it is: a unit icosphere (``subdivisions`` times
-    subdivided: 5120 triangles at 4; no poles, whose thin triangles show a ring in Cycles) mapped by
-    ``shape.to_world``, counter-clockwise seen from outside, with smooth normals (the inverse transpose), world
-    space, metres; no st (a Sphere gprim has none)."""
-    import trimesh
-
-    ico = trimesh.creation.icosphere(subdivisions=subdivisions)
-    unit, faces = np.asarray(ico.vertices, np.float64), np.asarray(ico.faces, np.int64)
-    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
-    m = shape.to_world
-    if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: keep the outside counter-clockwise
-        faces = faces[:, [0, 2, 1]]
-    normals = unit @ normal_inverse(m[:3, :3])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-    return MeshRecord(shape.path, unit @ m[:3, :3].T + m[:3, 3], faces, normals, None, shape.material,
-                      shape.double_sided)
-
-
 def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     """Only the lights of ``stage`` (a ``Usd.Stage``) at ``time`` (a time code: a number or ``Usd.TimeCode``;
-    None: the default time), in metres, as :func:`read_scene` reads them: what a frame of an animation needs
+    None: as :func:`read_scene`), in metres, as :func:`read_scene` reads them: what a frame of an animation needs
     once the scene itself is read. Invisible lights (``visibility`` at ``time``) are left out."""
     from pxr import Usd, UsdGeom, UsdLux
 
-    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else \
-        Usd.TimeCode(check_time(time))
+    t = Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else frame_time(stage, time)
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter()
     xcache = UsdGeom.XformCache(t)
@@ -272,8 +232,8 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         area = 0.0
         if prim.IsA(UsdGeom.Mesh):
-            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings), warnings,
-                                                             t=t)))
+            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings, t=t),
+                                                             warnings, t=t)))
         light = read_light(prim, xf, warnings, area, t=t)
         if light is not None:
             lights.append(light)
@@ -302,13 +262,14 @@ def other_unit_layers(stage, mpu: float) -> list[str]:
 def read_scene(stage, time=None) -> SceneRecord:
     """Collect everything a renderer needs from ``stage`` (a ``Usd.Stage``, or the path of one: opened with
     :func:`usdrelight.stage.validate.open_stage`) into a :class:`SceneRecord`, in metres (the stage's
-    metersPerUnit applied; see the module docstring). ``time``: the USD time code to read (None: default)."""
+    metersPerUnit applied; see the module docstring). ``time``: the USD time code to read (a number or a
+    ``Usd.TimeCode``; None: the frame every command reads without ``--time``, the stage's startTimeCode, else its
+    earliest samples: :func:`usdrelight.stage.timing.frame_time`)."""
     from pxr import Usd, UsdGeom, UsdLux
 
     if not isinstance(stage, Usd.Stage):
         stage = open_stage(stage)
-    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else \
-        Usd.TimeCode(check_time(time))
+    t = Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else frame_time(stage, time)
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter(rescaled_layers(stage) + other_unit_layers(stage, mpu))
     meshes, shapes, lights = [], [], []
@@ -316,8 +277,9 @@ def read_scene(stage, time=None) -> SceneRecord:
     prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     for prim in prims:
         if prim.IsA(UsdGeom.PointInstancer):  # its prototypes are drawn only where it instances them
-            warnings["PointInstancer (not converted: neither it nor its prototypes are drawn)"] += 1
             prims.PruneChildren()
+            if UsdGeom.Imageable(prim).ComputeVisibility(t) != UsdGeom.Tokens.invisible:
+                _read_instancer(prim, xcache, t, mpu, warnings, meshes, shapes)
             continue
         img = UsdGeom.Imageable(prim)
         if img and prim.IsA(UsdGeom.Imageable):
@@ -334,27 +296,60 @@ def read_scene(stage, time=None) -> SceneRecord:
         if not prim.IsA(UsdGeom.Gprim):
             continue
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
-        mat = read_material(prim, warnings)
-        if prim.IsA(UsdGeom.Mesh):
-            records = read_mesh(prim, xf, mat, warnings, t=t)
-            meshes.extend(records)
-            if is_light:
-                light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t)
-                lights.append(light)
-            continue
-        with np.errstate(all="ignore"):  # an Inf size: refused just below
-            shape = _shape(prim, xf, mat, t)
-        if shape is not None and not np.all(np.isfinite(shape.to_world)):
-            raise UsdRelightError(f"{prim.GetPath()} has a non-finite size")
-        if shape is None:
-            warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
-        elif shape.kind == "sphere" and not uniform_scale(shape.to_world):
-            meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
-        else:
-            shapes.append(shape)
+        records, shape = _gprim_records(prim, xf, t, warnings)
+        meshes.extend(records)
+        if is_light and prim.IsA(UsdGeom.Mesh):
+            lights.append(read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t))
+        _add_shape(shape, meshes, shapes)
     camera, products, resolution = _render_camera(stage, xcache, t, warnings, mpu)
     return SceneRecord(tuple(meshes), tuple(shapes), tuple(lights), camera, products, resolution,
                        mpu, str(UsdGeom.GetStageUpAxis(stage)), warnings)
+
+
+def _gprim_records(prim, xf: np.ndarray, t, warnings) -> tuple[list, ShapeRecord | None]:
+    """(mesh records, shape record or None) of one gprim with local-to-world matrix ``xf`` at time code ``t``."""
+    from pxr import UsdGeom
+
+    mat = read_material(prim, warnings, t=t)
+    if prim.IsA(UsdGeom.Mesh):
+        return read_mesh(prim, xf, mat, warnings, t=t), None
+    with np.errstate(all="ignore"):  # an Inf size: refused just below
+        shape = read_shape(prim, xf, mat, t)
+    if shape is not None and not np.all(np.isfinite(shape.to_world)):
+        raise UsdRelightError(f"{prim.GetPath()} has a non-finite size")
+    if shape is None:
+        warnings[f"gprim type {prim.GetTypeName()} (not converted)"] += 1
+    return [], shape
+
+
+def _add_shape(shape: ShapeRecord | None, meshes: list, shapes: list) -> None:
+    if shape is not None and shape.kind == "sphere" and not uniform_scale(shape.to_world):
+        meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
+    elif shape is not None:
+        shapes.append(shape)
+
+
+def _read_instancer(prim, xcache, t, mpu: float, warnings, meshes: list, shapes: list) -> None:
+    """Append the gprims the PointInstancer ``prim`` places to ``meshes`` and ``shapes`` (:mod:`.read_gprims`)."""
+    from pxr import UsdGeom
+
+    protos = []
+    for target in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetForwardedTargets():
+        root = prim.GetStage().GetPrimAtPath(target)
+        protos.append([_gprim_records(p, rel, t, warnings) for p, rel in prototype_gprims(root, t, warnings)]
+                      if root else [])
+    placed = 0
+    for i, k, m in instance_matrices(prim, t, mpu, xcache):
+        if not 0 <= k < len(protos):
+            raise UsdRelightError(f"PointInstancer {prim.GetPath()}: protoIndices names prototype {k}, of "
+                                  f"{len(protos)}")
+        for records, shape in protos[k]:
+            meshes.extend(placed_mesh(r, m, f"{r.path}/instance{i}") for r in records)
+            placed += sum(len(r.faces) for r in records)
+            if shape is not None:
+                _add_shape(replace(shape, path=f"{shape.path}/instance{i}", to_world=m @ shape.to_world), meshes,
+                           shapes)
+        check_instanced_size(placed, prim)
 
 
 def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:

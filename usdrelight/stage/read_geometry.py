@@ -1,7 +1,7 @@
 """Read the geometry of a USD stage: meshes, as :mod:`records <usdrelight.stage.records>` (their materials:
 :mod:`.read_material`).
 
-Meshes: polygons fan-triangulated (holes ignored with a warning); normals and st with vertex / varying /
+Meshes: polygons fan-triangulated (``holeIndices`` faces left out, as Hydra cuts them); normals and st with vertex / varying /
 faceVarying / uniform / constant interpolation, indexed or not (zero-length normals take the surface's own,
 with a warning); leftHanded orientation and mirroring transforms flip the winding; material-bind GeomSubsets split a mesh into one record per material.
 What is not represented is counted in ``warnings`` (one line per kind). Matrices: column-vector convention (see
@@ -9,13 +9,15 @@ records).
 """
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 
 from ..errors import UsdRelightError
 from .mesh_math import fan_triangles, fill_zero_normals, normal_inverse
 from .mesh_math import mesh_area as _area
 from .read_material import OPACITY_WARNING, read_material
-from .records import MaterialRecord, MeshRecord
+from .records import MaterialRecord, MeshRecord, TextureRecord
 
 __all__ = ["OPACITY_WARNING", "mesh_area", "normal_inverse", "read_material", "read_mesh"]
 
@@ -66,11 +68,17 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) points")
     if np.any(counts < 3):
         warnings["faces with fewer than 3 vertices (skipped)"] += 1
-    if mesh.GetHoleIndicesAttr().Get(t):
-        warnings["mesh holeIndices (holes filled)"] += 1
-    if mesh.GetSubdivisionSchemeAttr().Get(t) not in (None, "none"):
-        warnings["subdivision surfaces (rendered as the control mesh)"] += 1
+    scheme = mesh.GetSubdivisionSchemeAttr()
+    if scheme.HasAuthoredValue() and scheme.Get(t) != "none":  # unauthored (fallback catmullClark): usdview's
+        warnings["subdivision surfaces (rendered as the control mesh)"] += 1  # default complexity, no warning
     corners, tri_face = fan_triangles(counts)
+    holes = np.asarray(mesh.GetHoleIndicesAttr().Get(t) or [], dtype=np.int64)
+    if len(holes):  # faces cut out of the surface, as Hydra draws them
+        keep = ~np.isin(tri_face, holes)
+        corners, tri_face = corners[keep], tri_face[keep]
+        if not keep.any():
+            warnings["mesh whose every face is a hole (skipped)"] += 1
+            return []
     left = mesh.GetOrientationAttr().Get(t) == UsdGeom.Tokens.leftHanded
     A = xf[:3, :3]
     if left != (np.linalg.det(A) < 0):
@@ -99,6 +107,9 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
                 break
     if pv and pv.HasValue():
         uv, ukind = _primvar(pv, len(pts), n_corners, len(counts), t, warnings)
+    if uv is None and any(isinstance(getattr(material, f.name), TextureRecord) for f in fields(material)):
+        warnings["textured material on a mesh without texture coordinates (every texel lookup at st = (0, 0))"] += 1
+        uv, ukind = np.zeros((len(pts), 2)), "point"  # the primvar reader's fallback, in every renderer alike
     for name, arr in (("normals", normals), (st_name, uv)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise UsdRelightError(f"mesh {prim.GetPath()} has non-finite (NaN/Inf) {name}")
@@ -144,7 +155,7 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
             continue
         taken |= sel
         records.append(_compact(str(sub.GetPath()), w_pts, faces[sel], v_n, v_uv,
-                                read_material(sub.GetPrim(), warnings, material), ds))
+                                read_material(sub.GetPrim(), warnings, material, t), ds))
     if not taken.all():
         records.append(_compact(str(prim.GetPath()), w_pts, faces[~taken], v_n, v_uv, material, ds))
     return records

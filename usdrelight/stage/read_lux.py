@@ -7,11 +7,16 @@ one time code. Files that predate UsdLux 21.02 name the inputs without ``inputs:
 """
 from __future__ import annotations
 
+import os
+from dataclasses import replace
+from functools import lru_cache
+
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import stores_floats
+from ..imageio import LINEAR_FORMATS, read_raw, read_texture_rgb, stored_format
 from ..safe_paths import check_read, stage_folder
+from .light_syntax import MAX_RADIANCE
 from .lux import uniform_scale, world_scale
 from .records import LightRecord, TextureRecord
 
@@ -56,7 +61,8 @@ def light_radiance(prim, t=None, warnings=None) -> np.ndarray:
         raise UsdRelightError(f"light {prim.GetPath()} has a non-finite intensity/exposure/color")
     if np.any(L < 0):
         raise UsdRelightError(f"light {prim.GetPath()} has a negative intensity or color (radiance {L.tolist()})")
-    if np.any(L > 1e30):  # beyond what a float32 image can carry once lit (as --light's cap)
+    if np.any(L > MAX_RADIANCE * (1 + 1e-6)):  # beyond what a float32 image can carry once lit (--light's cap;
+        # the slack: 1e30 stored as a float, as --save-lights and the web app write it, reads 1.000000015e30)
         raise UsdRelightError(f"light {prim.GetPath()} emits {float(L.max()):.3g} (intensity x 2^exposure x color), "
                               "above 1e30")
     return L
@@ -116,7 +122,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
     if typ == "RectLight":
         r = UsdLux.RectLight(prim)
         asset = lux_get(r.GetTextureFileAttr(), t, warnings)
-        tex = _light_texture(prim, asset, "RectLight") if asset is not None and asset.path else None
+        tex = _light_texture(prim, asset, "RectLight", warnings) if asset is not None and asset.path else None
         return LightRecord(kind="rect", width=float(lux_get(r.GetWidthAttr(), t, warnings)),
                            height=float(lux_get(r.GetHeightAttr(), t, warnings)), texture=tex,
                            **common)
@@ -138,7 +144,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
         tex = None
         asset = lux_get(d.GetTextureFileAttr(), t, warnings)
         if asset is not None and asset.path:
-            tex = _light_texture(prim, asset, "DomeLight")
+            tex = _light_texture(prim, asset, "DomeLight", warnings)
             fmt = lux_get(d.GetTextureFormatAttr(), t, warnings)
             if fmt not in ("automatic", "latlong"):
                 warnings[f"DomeLight textureFormat '{fmt}' (read as latlong)"] += 1
@@ -152,7 +158,7 @@ def _light_record(prim, xf: np.ndarray, warnings, area: float, t) -> LightRecord
     return None
 
 
-def _light_texture(prim, asset, what: str) -> TextureRecord:
+def _light_texture(prim, asset, what: str, warnings) -> TextureRecord:
     """A DomeLight's or RectLight's ``inputs:texture:file`` as a texture record (8-bit files sRGB-decoded, float
     files as they are); one clear error for a file that is missing or outside the stage's folder."""
     if not asset.resolvedPath:
@@ -162,7 +168,22 @@ def _light_texture(prim, asset, what: str) -> TextureRecord:
         return TextureRecord(asset.resolvedPath, "auto")
     # by what the file stores, as photos are read: float data is linear, integers sRGB (an 8-bit TIFF too); one
     # header read, which also bounds the size before a renderer decodes it
-    return TextureRecord(asset.resolvedPath, "raw" if stores_floats(asset.resolvedPath) else "sRGB")
+    tex = TextureRecord(asset.resolvedPath, "raw" if stored_format(asset.resolvedPath)[0] in LINEAR_FORMATS
+                        else "sRGB")
+    stat = os.stat(tex.path)
+    if _negative_texels(tex.path, tex.linear, stat.st_mtime_ns, stat.st_size):
+        warnings[f"{what} texture with negative texels (read as 0)"] += 1
+        tex = replace(tex, negative_texels=True)
+    return tex
+
+
+@lru_cache(maxsize=32)
+def _negative_texels(path: str, linear: bool, mtime_ns: int, size: int) -> bool:
+    """Whether a light texture holds texels below 0, once its texels are known finite and <= 1e30
+    (:func:`usdrelight.imageio.read_texture_rgb`, else UsdRelightError): decoded once per file version, so every
+    command and converter refuses an Inf dome, not only the fast renderer."""
+    read_texture_rgb(path, linear)
+    return bool(read_raw(path)[0].min(initial=0.0) < 0)
 
 
 def _ignored_lux(prim, t, warnings) -> None:

@@ -1,12 +1,14 @@
 """Read a gprim's material: the UsdPreviewSurface bound to it (inputs as constants or UsdUVTexture records,
 values and textures followed through Material and NodeGraph interface connections, as UsdShade resolves
-them), else its ``displayColor``. What is not represented is counted in ``warnings`` (one line per kind)."""
+them), else its ``displayColor`` (inherited from an ancestor, as constant primvars are). Every value is read at
+the time code asked for (a time-sampled diffuseColor or displayColor changes with the frame). What is not
+represented is counted in ``warnings`` (one line per kind)."""
 from __future__ import annotations
 
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import check_image_size
+from ..imageio import stored_format
 from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, TextureRecord
 
@@ -33,12 +35,12 @@ def _producer(inp):
     return None, inp.GetAttr()
 
 
-def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | None:
+def _texture_from_source(shader, output_name: str, warnings, t) -> TextureRecord | None:
     sid = shader.GetIdAttr().Get()
     if sid != "UsdUVTexture":
         warnings[f"shader '{sid}' feeding a UsdPreviewSurface input (constant used)"] += 1
         return None
-    asset = _get(shader, "file", None)
+    asset = _get(shader, "file", None, t)
     if asset is None or not getattr(asset, "path", None):
         warnings["UsdUVTexture without a file"] += 1
         return None
@@ -47,25 +49,37 @@ def _texture_from_source(shader, output_name: str, warnings) -> TextureRecord | 
         udim = " (UDIM tiles are not read: name one tile's file)" if "<UDIM>" in asset.path else ""
         raise UsdRelightError(f"texture not found: {asset.path} (used by {shader.GetPath()}){udim}")
     check_read(resolved, stage_folder(shader.GetPrim().GetStage()), f"texture (used by {shader.GetPath()})")
-    if not resolved.endswith("]"):  # not inside a .usdz: bounded before a renderer decodes it
-        check_image_size(resolved)
-    cs = _get(shader, "sourceColorSpace", None)
-    scale = _vec(shader, "scale", (1.0, 1.0, 1.0, 1.0), warnings)
-    bias = _vec(shader, "bias", (0.0, 0.0, 0.0, 0.0), warnings)
+    cs = str(_get(shader, "sourceColorSpace", None, t) or "auto")
+    if cs not in ("raw", "sRGB", "auto"):
+        warnings[f"UsdUVTexture sourceColorSpace '{cs}' (read as auto)"] += 1
+        cs = "auto"
+    if not resolved.endswith("]"):  # not inside a .usdz (there: by its suffix): one header read, which also
+        by_data = _auto_color_space(resolved)  # bounds the size before a renderer decodes the file
+        cs = by_data if cs == "auto" else cs
+    scale = _vec(shader, "scale", (1.0, 1.0, 1.0, 1.0), warnings, t)
+    bias = _vec(shader, "bias", (0.0, 0.0, 0.0, 0.0), warnings, t)
     if not np.all(np.isfinite(scale + bias)):
         warnings["non-finite UsdUVTexture scale / bias (1 / 0 used)"] += 1
         scale, bias = (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.0)
-    return TextureRecord(resolved, str(cs) if cs else "auto", scale, bias, output_name,
-                         _wrap(shader, "wrapS", warnings), _wrap(shader, "wrapT", warnings),
-                         **_st_transform(shader, warnings))
+    return TextureRecord(resolved, cs, scale, bias, output_name,
+                         _wrap(shader, "wrapS", warnings, t), _wrap(shader, "wrapT", warnings, t),
+                         **_st_transform(shader, warnings, t))
+
+
+def _auto_color_space(path: str) -> str:
+    """What ``sourceColorSpace = "auto"`` means for the file at ``path``, as USD's Hio decides it for Storm and
+    usdview: ``sRGB`` for 3 or 4 channels of 8-bit integers, ``raw`` for anything else (a 16-bit PNG, a float
+    .tx, a one-channel 8-bit mask), by its header (UsdRelightError over USDRELIGHT_MAX_MEGAPIXELS)."""
+    kind, channels = stored_format(path)
+    return "sRGB" if kind == "uint8" and channels in (3, 4) else "raw"
 
 
 WRAPS = ("repeat", "mirror", "clamp", "black")
 
 
-def _wrap(shader, name: str, warnings) -> str:
+def _wrap(shader, name: str, warnings, t) -> str:
     """wrapS / wrapT; ``useMetadata`` (the fallback) resolves to black: image metadata is not read."""
-    v = _get(shader, name, None)
+    v = _get(shader, name, None, t)
     v = "useMetadata" if v is None else str(v)
     if v == "useMetadata":
         return "black"
@@ -75,9 +89,9 @@ def _wrap(shader, name: str, warnings) -> str:
     return v
 
 
-def _vec(shader, name: str, default: tuple, warnings) -> tuple:
+def _vec(shader, name: str, default: tuple, warnings, t) -> tuple:
     """A float vector input of ``len(default)`` components; another shape is warned and ``default`` used."""
-    v = _get(shader, name, default)
+    v = _get(shader, name, default, t)
     try:
         out = tuple(float(x) for x in v)
     except TypeError:  # a scalar where a vector belongs
@@ -89,17 +103,18 @@ def _vec(shader, name: str, default: tuple, warnings) -> tuple:
     return out
 
 
-def _get(shader, name: str, default):
-    """The value of input ``name`` (through interface connections, :func:`_producer`), or ``default``."""
+def _get(shader, name: str, default, t):
+    """The value of input ``name`` at time code ``t`` (through interface connections, :func:`_producer`), or
+    ``default``."""
     inp = shader.GetInput(name)
     if not inp:
         return default
     src, attr = _producer(inp)
-    v = inp.Get() if src is not None else attr.Get()  # fed by a shader's output: its own authored value
+    v = inp.Get(t) if src is not None else attr.Get(t)  # fed by a shader's output: its own authored value
     return default if v is None else v
 
 
-def _st_transform(tex, warnings) -> dict:
+def _st_transform(tex, warnings, t) -> dict:
     """The UsdTransform2d between the texture's ``st`` and a UsdPrimvarReader_float2, as TextureRecord fields
     (``{}``: none). Another node feeding ``st`` is warned and left out (the mesh's st used as they are)."""
     from pxr import UsdShade
@@ -111,10 +126,10 @@ def _st_transform(tex, warnings) -> dict:
     sid = node.GetIdAttr().Get()
     out = {}
     if sid == "UsdTransform2d":
-        rotation = _get(node, "rotation", 0.0)
-        out = {"st_scale": _vec(node, "scale", (1.0, 1.0), warnings),
+        rotation = _get(node, "rotation", 0.0, t)
+        out = {"st_scale": _vec(node, "scale", (1.0, 1.0), warnings, t),
                "st_rotation": float(rotation) if isinstance(rotation, (int, float)) else float("nan"),
-               "st_translation": _vec(node, "translation", (0.0, 0.0), warnings)}
+               "st_translation": _vec(node, "translation", (0.0, 0.0), warnings, t)}
         if not all(np.isfinite([*out["st_scale"], out["st_rotation"], *out["st_translation"]])):
             warnings["non-finite UsdTransform2d (ignored)"] += 1
             out = {}
@@ -129,56 +144,59 @@ def _st_transform(tex, warnings) -> dict:
     return out
 
 
-def _input_value(shader, name, default, warnings):
+def _input_value(shader, name, default, warnings, t):
     inp = shader.GetInput(name)
     if not inp:
         return default
     src, attr = _producer(inp)
     if src is not None:
-        tex = _texture_from_source(src, str(attr), warnings)
+        tex = _texture_from_source(src, str(attr), warnings, t)
         if tex is not None:
             return tex
         attr = inp
-    v = attr.Get()
+    v = attr.Get(t)
     if v is None:
         return default
     return tuple(float(x) for x in v) if hasattr(v, "__len__") else float(v)
 
 
-def read_material(prim, warnings, fallback: MaterialRecord | None = None) -> MaterialRecord:
-    """The UsdPreviewSurface bound to ``prim`` as a record; when none is bound, ``fallback`` (a GeomSubset: its
-    mesh's material) or else the prim's displayColor (grey diffuse without one); what cannot be read counts
-    into ``warnings`` (a Counter of one-line messages, logged once per stage)."""
-    from pxr import UsdShade
+def read_material(prim, warnings, fallback: MaterialRecord | None = None, t=None) -> MaterialRecord:
+    """The UsdPreviewSurface bound to ``prim`` as a record, its inputs read at time code ``t`` (a
+    ``Usd.TimeCode``; None: the default time); when none is bound, ``fallback`` (a GeomSubset: its mesh's material)
+    or else the prim's displayColor (grey diffuse without one); what cannot be read counts into ``warnings`` (a
+    Counter of one-line messages, logged once per stage)."""
+    from pxr import Usd, UsdShade
+
+    t = Usd.TimeCode.Default() if t is None else t
 
     binding = UsdShade.MaterialBindingAPI(prim)
     mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.full)  # a full render's binding, else all-purpose
     if not mat:  # only a preview binding (material:binding:preview): better than grey
         mat, _ = binding.ComputeBoundMaterial(UsdShade.Tokens.preview)
     if not mat:
-        return fallback if fallback is not None else _display_color_material(prim, warnings)
+        return fallback if fallback is not None else _display_color_material(prim, warnings, t)
     surf = mat.ComputeSurfaceSource()[0]
     if not surf or surf.GetIdAttr().Get() != "UsdPreviewSurface":
         warnings[f"material without a UsdPreviewSurface ({mat.GetPath()}): grey diffuse used"] += 1
         return MaterialRecord(path=str(mat.GetPath()))
     d = MaterialRecord()
-    ior = _input_value(surf, "ior", d.ior, warnings)
+    ior = _input_value(surf, "ior", d.ior, warnings, t)
     rec = MaterialRecord(
         path=str(mat.GetPath()),
-        diffuse=_input_value(surf, "diffuseColor", d.diffuse, warnings),
-        roughness=_input_value(surf, "roughness", d.roughness, warnings),
-        metallic=_input_value(surf, "metallic", d.metallic, warnings),
-        specular=_input_value(surf, "specularColor", d.specular, warnings),
-        use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings)),
+        diffuse=_input_value(surf, "diffuseColor", d.diffuse, warnings, t),
+        roughness=_input_value(surf, "roughness", d.roughness, warnings, t),
+        metallic=_input_value(surf, "metallic", d.metallic, warnings, t),
+        specular=_input_value(surf, "specularColor", d.specular, warnings, t),
+        use_specular_workflow=bool(_input_value(surf, "useSpecularWorkflow", 0.0, warnings, t)),
         ior=_ior(ior, d.ior, warnings),
-        opacity=_input_value(surf, "opacity", d.opacity, warnings),
-        opacity_threshold=_threshold(surf, warnings),
+        opacity=_input_value(surf, "opacity", d.opacity, warnings, t),
+        opacity_threshold=_threshold(surf, warnings, t),
         one_sided=_one_sided(mat.GetPrim()),
-        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings),
+        emissive=_input_value(surf, "emissiveColor", d.emissive, warnings, t),
         st_primvar=_st_primvar(mat, warnings))
     for name in ("normal", "displacement", "occlusion", "clearcoat"):
         inp = surf.GetInput(name)
-        if inp and (inp.HasConnectedSource() or (inp.Get() not in (None, 0.0))):
+        if inp and (inp.HasConnectedSource() or (inp.Get(t) not in (None, 0.0))):
             warnings[f"UsdPreviewSurface input '{name}' (ignored)"] += 1
     if rec.opacity != 1.0:
         warnings[OPACITY_WARNING] += 1
@@ -187,14 +205,14 @@ def read_material(prim, warnings, fallback: MaterialRecord | None = None) -> Mat
     return rec
 
 
-def _display_color_material(prim, warnings) -> MaterialRecord:
-    """No material bound: the gprim's ``displayColor`` as its diffuse colour, as USD viewers show it (its mean
-    where it varies over the surface, warned); the grey default without one."""
+def _display_color_material(prim, warnings, t) -> MaterialRecord:
+    """No material bound: the gprim's ``displayColor`` at time code ``t`` as its diffuse colour, as USD viewers
+    show it (its mean where it varies over the surface, warned), its own or, as a constant primvar inherits, an
+    ancestor's; the grey default without one."""
     from pxr import UsdGeom
 
-    gprim = UsdGeom.Gprim(prim)
-    pv = gprim.GetDisplayColorPrimvar() if gprim else None
-    vals = pv.ComputeFlattened() if pv and pv.HasAuthoredValue() else None
+    pv = UsdGeom.PrimvarsAPI(prim).FindPrimvarWithInheritance(UsdGeom.Tokens.primvarsDisplayColor)
+    vals = pv.ComputeFlattened(t) if pv and pv.HasAuthoredValue() else None
     if vals is None or len(vals) == 0:
         return MaterialRecord()
     rgb = np.asarray(vals, np.float64).reshape(-1, 3)
@@ -237,9 +255,9 @@ def _ior(v, default: float, warnings) -> float:
     return v
 
 
-def _threshold(surf, warnings) -> float:
+def _threshold(surf, warnings, t) -> float:
     """opacityThreshold as a float in [0, 1] (a connected texture: 0.5, warned)."""
-    v = _input_value(surf, "opacityThreshold", 0.0, warnings)
+    v = _input_value(surf, "opacityThreshold", 0.0, warnings, t)
     if isinstance(v, TextureRecord):
         warnings["textured opacityThreshold (0.5 used)"] += 1
         return 0.5

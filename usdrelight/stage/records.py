@@ -52,15 +52,20 @@ class TextureRecord:
     """UsdTransform2d ``rotation``, degrees counter-clockwise about st = (0, 0)."""
     st_translation: tuple = (0.0, 0.0)
     """UsdTransform2d ``translation``. The texture is looked up at st' = R(rotation) (scale * st) + translation."""
+    negative_texels: bool = False
+    """A light's texture only: the file holds texels below 0 (a processed HDRI's noise), which every renderer
+    reads as 0 (Mitsuba from a clamped copy)."""
 
     @property
     def linear(self) -> bool:
-        """True when texel values are used as they are (no sRGB decoding)."""
+        """True when texel values are used as they are (no sRGB decoding). ``auto`` is resolved by the file's data
+        where the stage is read (:mod:`usdrelight.stage.read_material`); left here only for a file inside a
+        .usdz, it goes by the suffix (float formats raw, others sRGB)."""
         if self.color_space == "raw":
             return True
         if self.color_space == "sRGB":
             return False
-        return Path(self.path).suffix.lower() in (".exr", ".hdr", ".pfm", ".tif", ".tiff")
+        return Path(self.path.rstrip("]")).suffix.lower() in (".exr", ".hdr", ".pfm")
 
     def st_matrix(self) -> np.ndarray:
         """The UsdTransform2d as a 3x3 affine matrix on column vectors ``[s, t, 1]`` (identity when none)."""

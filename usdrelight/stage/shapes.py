@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from .read import ellipsoid_mesh
+from .read_gprims import ellipsoid_mesh
 from .records import LightRecord, MaterialRecord, MeshRecord, ShapeRecord
 
 
 def shape_mesh(shape: ShapeRecord) -> MeshRecord:
     """A Sphere/Cube/Plane gprim as a world-space triangle mesh (sphere:
-    :func:`usdrelight.stage.read.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
+    :func:`usdrelight.stage.read_gprims.ellipsoid_mesh`, an icosphere, 5120 triangles, smooth normals; its area is
     0.12% short of the sphere's)."""
     if shape.kind == "sphere":  # an icosphere: no poles (a UV sphere's pole showed a ring in Cycles)
         return ellipsoid_mesh(shape)

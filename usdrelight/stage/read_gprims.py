@@ -1,0 +1,141 @@
+"""Read gprims other than meshes (Sphere, Cube, Plane) as shape records, and the gprims a PointInstancer places.
+
+Matrices are numpy 4x4 in the column-vector convention, in metres (see :mod:`usdrelight.stage.read`).
+
+A PointInstancer (:func:`instanced_records`) draws each prototype's gprims at every instance that is not masked
+out (``invisibleIds``, ``inactiveIds``): a gprim's world matrix is its transform inside the prototype root, then
+the instance's (position, orientation, scale and the prototype root's own transform, as
+``ComputeInstanceTransformsAtTime`` composes them), then the instancer's. Each prototype gprim is read once and
+placed per instance (its points and normals moved, the winding flipped under a mirroring instance); every record
+is named ``<gprim path>/instance<i>``. Prims inside a prototype that are invisible (up to its root) or of purpose
+guide or proxy are not drawn; lights inside prototypes are not instanced (warned); nested instancers are not
+expanded (warned). At most :data:`MAX_INSTANCED_TRIANGLES` triangles in all.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import UsdRelightError
+from .mesh_math import normal_inverse
+from .records import MeshRecord, ShapeRecord
+
+MAX_INSTANCED_TRIANGLES = 50_000_000
+"""Most triangles one stage's PointInstancers may place (a scatter of 1e5 instances of a 500-triangle prototype
+is 5e7): beyond it, one error instead of running out of memory."""
+
+
+def read_shape(prim, xf: np.ndarray, mat, t) -> ShapeRecord | None:
+    """A Sphere, Cube or Plane gprim at time code ``t`` as a record (``xf``: its local-to-world matrix in
+    metres); None for any other gprim type."""
+    from pxr import UsdGeom
+
+    name = str(prim.GetPath())
+    ds = bool(UsdGeom.Gprim(prim).GetDoubleSidedAttr().Get(t))
+    if prim.IsA(UsdGeom.Sphere):
+        r = float(UsdGeom.Sphere(prim).GetRadiusAttr().Get(t))
+        return ShapeRecord(name, "sphere", xf @ np.diag([r, r, r, 1.0]), mat, ds)
+    if prim.IsA(UsdGeom.Cube):
+        h = float(UsdGeom.Cube(prim).GetSizeAttr().Get(t)) / 2
+        return ShapeRecord(name, "cube", xf @ np.diag([h, h, h, 1.0]), mat, ds)
+    if prim.IsA(UsdGeom.Plane):
+        p = UsdGeom.Plane(prim)
+        w, l = float(p.GetWidthAttr().Get(t)) / 2, float(p.GetLengthAttr().Get(t)) / 2
+        axis = p.GetAxisAttr().Get(t)
+        # the spec's Plane: width along x (axis Z or Y) or z (axis X), length along y (Z or X) or z (Y), normal
+        # along `axis`; the columns (width, length, normal) as a rotation (a sign of length flipped where needed)
+        basis = {"Z": np.eye(4), "X": np.array([[0, 0, 1, 0], [0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]]),
+                 "Y": np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])}[axis]
+        return ShapeRecord(name, "rectangle", xf @ basis @ np.diag([w, l, 1.0, 1.0]), mat, ds)
+    return None
+
+
+def ellipsoid_mesh(shape: ShapeRecord, subdivisions: int = 4) -> MeshRecord:
+    """A sphere gprim under a non-uniform scale as the ellipsoid it is: a unit icosphere (``subdivisions`` times
+    subdivided: 5120 triangles at 4; no poles, whose thin triangles show a ring in Cycles) mapped by
+    ``shape.to_world``, counter-clockwise seen from outside, with smooth normals (the inverse transpose), world
+    space, metres; no st (a Sphere gprim has none)."""
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=subdivisions)
+    unit, faces = np.asarray(ico.vertices, np.float64), np.asarray(ico.faces, np.int64)
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    m = shape.to_world
+    if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform: keep the outside counter-clockwise
+        faces = faces[:, [0, 2, 1]]
+    normals = unit @ normal_inverse(m[:3, :3])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    return MeshRecord(shape.path, unit @ m[:3, :3].T + m[:3, 3], faces, normals, None, shape.material,
+                      shape.double_sided)
+
+
+def instance_matrices(prim, t, mpu: float, xcache) -> list[tuple[int, int, np.ndarray]]:
+    """(instance index, prototype index, world matrix in metres of the prototype root's space) of every instance
+    of the PointInstancer ``prim`` at time code ``t`` that its mask keeps."""
+    from pxr import UsdGeom
+
+    inst = UsdGeom.PointInstancer(prim)
+    proto_ids = np.asarray(inst.GetProtoIndicesAttr().Get(t) or [], np.int64)
+    mats = inst.ComputeInstanceTransformsAtTime(t, t, UsdGeom.PointInstancer.IncludeProtoXform,
+                                                UsdGeom.PointInstancer.IgnoreMask)
+    mask = list(inst.ComputeMaskAtTime(t)) or [True] * len(proto_ids)
+    world = np.array(xcache.GetLocalToWorldTransform(prim), np.float64).T
+    if mats is None or len(mats) != len(proto_ids):
+        raise UsdRelightError(f"PointInstancer {prim.GetPath()}: its per-instance attributes do not match "
+                              f"protoIndices ({len(proto_ids)} instances)")
+    out = []
+    for i, (proto, m, keep) in enumerate(zip(proto_ids, mats, mask)):
+        if keep:
+            xf = world @ np.array(m, np.float64).T
+            xf[:3, :] *= mpu
+            if not np.all(np.isfinite(xf)):
+                raise UsdRelightError(f"PointInstancer {prim.GetPath()}: instance {i} has a non-finite transform")
+            out.append((i, int(proto), xf))
+    return out
+
+
+def prototype_gprims(root, t, warnings) -> list[tuple[object, np.ndarray]]:
+    """(gprim prim, its transform in the prototype root's space, in the stage's units, column vectors) of the
+    drawable gprims under (and including) the prototype ``root``."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    out = []
+    cache = UsdGeom.XformCache(t)
+    for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        if p.IsA(UsdGeom.PointInstancer) and p != root:
+            warnings["PointInstancer inside a PointInstancer's prototype (not expanded)"] += 1
+            continue
+        if p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase):
+            warnings["light inside a PointInstancer's prototype (not instanced)"] += 1
+            continue
+        if not p.IsA(UsdGeom.Gprim) or UsdGeom.Imageable(p).ComputePurpose() in (UsdGeom.Tokens.guide,
+                                                                                   UsdGeom.Tokens.proxy):
+            continue
+        q, visible = p, True
+        while visible and q and q != root.GetParent():
+            visible = UsdGeom.Imageable(q).GetVisibilityAttr().Get(t) != UsdGeom.Tokens.invisible
+            q = q.GetParent()
+        if visible:
+            rel = np.eye(4) if p == root else np.array(cache.ComputeRelativeTransform(p, root)[0], np.float64).T
+            out.append((p, rel))
+    return out
+
+
+def placed_mesh(rec: MeshRecord, m: np.ndarray, path: str) -> MeshRecord:
+    """``rec`` (read in a prototype root's space) moved by the world matrix ``m``: points, normals (inverse
+    transpose, unit length), the winding flipped when ``m`` mirrors."""
+    a = m[:3, :3]
+    normals = None
+    if rec.normals is not None:
+        normals = rec.normals @ normal_inverse(a)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    faces = rec.faces[:, [0, 2, 1]] if np.linalg.det(a) < 0 else rec.faces
+    return replace(rec, path=path, points=rec.points @ a.T + m[:3, 3], faces=faces, normals=normals)
+
+
+def check_instanced_size(n_triangles: int, prim) -> None:
+    """UsdRelightError once the triangles placed by PointInstancers pass :data:`MAX_INSTANCED_TRIANGLES`."""
+    if n_triangles > MAX_INSTANCED_TRIANGLES:
+        raise UsdRelightError(f"PointInstancer {prim.GetPath()}: the stage's instancers place more than "
+                              f"{MAX_INSTANCED_TRIANGLES:,} triangles (too many to render here)")
