@@ -35,7 +35,7 @@ from .blender_materials import EMISSIVE_WARNING, material_spec
 from .blender_photo import photo_stage_payload, script_text
 from .blender_read import blender_lights, lights_layer
 from .blender_run import blender_command, render_blend, run_blender  # noqa: F401  (this module's API)
-from .blender_animation import attribute_frames, light_keys, object_keys, scene_animation
+from .blender_animation import attribute_frames, emission_keys, light_keys, object_keys, scene_animation
 from .blender_units import Y_UP_TO_Z_UP, focal_length, light_to_blender, spot_blend
 from .blender_units import camera_lens as _lens
 from .report import ReadReport, WriteReport, check_options, checked_io
@@ -52,7 +52,7 @@ ANIMATED = True
 
 #: UsdGeom.Camera attributes whose time samples become keyframes of the .blend's camera lens (:func:`_lens`).
 CYLINDER_MESH = ("CylinderLight as an emissive mesh of its side in Blender (Blender has no cylinder light; its "
-                 "emission keyed nowhere, its transform as a mesh's)")
+                 "emission keyed on its material's Emission node, its transform as a mesh's)")
 CAMERA_LENS_ATTRS = ("focalLength", "horizontalAperture", "verticalAperture", "horizontalApertureOffset",
                      "verticalApertureOffset", "clippingRange")
 
@@ -99,6 +99,9 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
                                       rec.warnings)
             if light is not None:
                 mats[key]["emission"] = [float(x) for x in emitted_radiance(light)]
+                keys = emission_keys(stage, light.path) if time is None else None
+                if keys:  # an animated MeshLightAPI mesh or CylinderLight: the Emission node's colour keyed
+                    mats[key]["emission_keys"] = keys
         points = m.points @ conv[:3, :3].T
         if not np.all(np.abs(points) < np.finfo(np.float32).max):  # Blender keeps float32: 1e39 would be inf
             raise UsdRelightError(f"{m.path}: points beyond what Blender's float32 holds (|x| up to "

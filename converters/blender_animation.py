@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
-from usdrelight.stage.lux import split_rgb
+from usdrelight.stage.lux import emitted_radiance, split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
 from usdrelight.stage.timing import (light_time_codes, spline_motion, stage_fps, stage_time_range, value_times,
                                     xformable_ancestors)
@@ -102,6 +102,24 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings, found: list | 
                 warnings[DOME_WARNING] += 1
             rec_d["keys"] = seq
     return scene_animation(stage, codes)
+
+
+def emission_keys(stage, path: str) -> list[dict] | None:
+    """Keys of the emission of an emissive mesh (a MeshLightAPI mesh or a CylinderLight's side, at USD prim
+    ``path``): [{frame, rgb (the radiance L of UsdLux, 0 where the light is invisible), hold}] at the light's sample
+    times, and every whole frame between them where Blender's linear keys would not be USD's (exposure, colour
+    temperature ...: as :func:`light_keys`); None when its emission never changes."""
+    prim = stage.GetPrimAtPath(path)
+    dense, steps, extra = _light_motion(prim)
+    frames = _key_frames(sorted(set(light_time_codes(stage)) | extra), dense)
+    if len(frames) < 2:
+        return None
+    keys = []
+    for i, t in enumerate(frames):
+        light = next((l for l in read_lights(stage, t) if l.path == path), None)
+        keys.append({"frame": float(t), "rgb": [0.0] * 3 if light is None else emitted_radiance(light).tolist(),
+                     "hold": i + 1 < len(frames) and any(t < s <= frames[i + 1] for s in steps)})
+    return keys if any(k["rgb"] != keys[0]["rgb"] for k in keys) else None
 
 
 #: Light attributes of which Blender's value is linear (when only one of them changes): keyed at the samples.

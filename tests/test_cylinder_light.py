@@ -3,6 +3,7 @@ side's area, rendered by the fast renderer and Mitsuba (the agreement: tests/tes
 tests/test_cross_renderer_lux.py), written to Mitsuba XML as a cylinder emitter and read back as the same light."""
 from __future__ import annotations
 
+import json
 import math
 import xml.etree.ElementTree as ET
 
@@ -96,3 +97,62 @@ def test_relight_renders_the_tube_where_it_is(tmp_path, cli):
 
     img = read_map(tmp_path / "r" / "render_diffuse.exr", 3).mean(-1)
     assert np.all(np.isfinite(img)) and img.min() >= 0 and img.max() > 10 * np.median(img[img > 0])
+
+
+EMISSION_PROBE = r'''
+import bpy, json, sys
+args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+bpy.ops.wm.open_mainfile(filepath=args[0])
+sc, out = bpy.context.scene, {}
+for f in (1, 2, 3, 4, 5):
+    sc.frame_set(f)
+    out[f] = {m.name: list(n.inputs["Color"].default_value)[:3] for m in bpy.data.materials if m.node_tree
+              for n in m.node_tree.nodes if n.type == "EMISSION"}
+json.dump(out, open(args[1], "w"))
+'''
+
+
+def test_an_animated_tube_and_mesh_light_keep_their_emission_in_blender(tmp_path, cli):
+    """The emissive mesh Blender gets for a CylinderLight (and a MeshLightAPI mesh) had its emission of the first
+    frame for the whole clip: now its Emission colour follows USD at every frame, exposure's 2^x included."""
+    from usdrelight.converters.blender_run import run_blender
+    from usdrelight.stage.read import read_lights
+
+    (tmp_path / "s.usda").write_text('''#usda 1.0
+(
+    startTimeCode = 1
+    endTimeCode = 5
+    metersPerUnit = 1
+    upAxis = "Y"
+)
+def CylinderLight "Tube" {
+    float inputs:intensity.timeSamples = { 1: 2, 5: 10 }
+    float inputs:radius = 0.05
+    float inputs:length = 1
+}
+def Mesh "Panel" (
+    prepend apiSchemas = ["MeshLightAPI"]
+) {
+    int[] faceVertexCounts = [4]
+    int[] faceVertexIndices = [0, 1, 2, 3]
+    point3f[] points = [(0,0,-2), (1,0,-2), (1,1,-2), (0,1,-2)]
+    float inputs:exposure.timeSamples = { 1: 0, 5: 2 }
+    float inputs:intensity = 3
+}
+def Camera "Cam" {
+}
+''')
+    rc, _, err = cli("convert", tmp_path / "s.usda", tmp_path / "s.blend")
+    assert rc == 0, err
+    (tmp_path / "probe.py").write_text(EMISSION_PROBE)
+    run_blender(tmp_path / "probe.py", str(tmp_path / "s.blend"), str(tmp_path / "p.json"))
+    got = {int(k): v for k, v in json.loads((tmp_path / "p.json").read_text()).items()}
+    stage = open_stage(tmp_path / "s.usda")
+    for f in range(1, 6):
+        want = {l.path: emitted_radiance(l) for l in read_lights(stage, f)}
+        tube = next(v for k, v in got[f].items() if "Tube" in k)
+        panel = next(v for k, v in got[f].items() if "Panel" in k)
+        np.testing.assert_allclose(tube, want["/Tube"], rtol=1e-5, err_msg=str(f))
+        np.testing.assert_allclose(panel, want["/Panel"], rtol=1e-5, err_msg=str(f))
+    panel3 = next(v for k, v in got[3].items() if "Panel" in k)
+    assert panel3[0] == pytest.approx(3 * 2.0, rel=1e-5)  # exposure 1 at frame 3: 3 x 2^1, not (3 + 12) / 2
