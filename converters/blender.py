@@ -144,6 +144,9 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
         codes += [k["frame"] for k in (cam or {}).get("lens_keys", ())]
         if codes:  # the scene's range spans the lights' samples and these
             animation = scene_animation(stage, sorted(set(codes) | set(light_time_codes(stage))))
+    if animation is not None and animation["frame_start"] < 0:
+        rec.warnings["time codes below 0 (a Blender scene's range starts at frame 0 at the earliest: the keys at "
+                     "negative frames are kept, the scene's range starts at 0)"] += 1
     if set(mesh_lights) - emitting:
         rec.warnings["MeshLightAPI on a mesh without triangles (no emission)"] += len(set(mesh_lights) - emitting)
     for l in list(rec.lights) + late:

@@ -40,7 +40,7 @@ import numpy as np
 from usdrelight.errors import UsdRelightError
 from usdrelight.stage.lux import emitted_radiance, split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
-from usdrelight.stage.timing import (light_time_codes, spline_motion, stage_fps, stage_time_range, value_times,
+from usdrelight.stage.timing import (light_time_codes, spline_motion, stage_time_range, value_times,
                                     xformable_ancestors)
 
 from .blender_units import light_to_blender
@@ -175,13 +175,15 @@ def _light_motion(prim) -> tuple[bool, set[float], set[float]]:
 
 def scene_animation(stage, codes: list[float]) -> dict:
     """The scene's animation settings {frame_start, frame_end, fps, time_codes_per_second, held}: the stage's
-    start/end time codes, else the span of ``codes`` (sorted time codes); ``held``: the stage's interpolation is
-    Held (every value steps at its samples: CONSTANT keys in Blender)."""
+    start/end time codes, else the span of ``codes`` (sorted time codes); ``fps``: its timeCodesPerSecond (a
+    Blender frame is a time code, so the clip plays in the stage's seconds, as ``relight --video`` does;
+    framesPerSecond is only USD's playback hint); ``held``: the stage's interpolation is Held (every value
+    steps at its samples: CONSTANT keys in Blender)."""
     from pxr import Usd
 
     rng = stage_time_range(stage)
     start, end = (rng.start, rng.end) if rng is not None else (codes[0], codes[-1])
-    return {"frame_start": int(math.floor(start)), "frame_end": int(math.ceil(end)), "fps": stage_fps(stage),
+    return {"frame_start": int(math.floor(start)), "frame_end": int(math.ceil(end)), "fps": float(stage.GetTimeCodesPerSecond()),
             "time_codes_per_second": float(stage.GetTimeCodesPerSecond()),
             "held": stage.GetInterpolationType() == Usd.InterpolationTypeHeld}
 
@@ -226,13 +228,34 @@ def _not_linear(attr) -> bool:
 
 def _key_frames(codes: list[float], curved: bool) -> list[float]:
     """The frames to key: the sample codes, and every whole frame between them when the motion is not a
-    translation (so Blender's interpolation between keys one frame apart matches USD's to a frame)."""
+    translation (so Blender's interpolation between keys one frame apart matches USD's to a frame), spaced
+    :data:`MIN_KEY_GAP` apart at least (:func:`_spaced`)."""
     if not curved or len(codes) < 2:
-        return codes
+        return _spaced(codes)
     whole = np.arange(math.ceil(codes[0]), math.floor(codes[-1]) + 1, dtype=np.float64)
     if len(whole) > MAX_OBJECT_KEYS:
         whole = np.linspace(codes[0], codes[-1], MAX_OBJECT_KEYS)
-    return sorted(set(codes) | set(whole.tolist()))
+    return _spaced(sorted(set(codes) | set(whole.tolist())))
+
+
+#: Closest two keys of one fcurve may be, in frames: Blender's keyframe_insert merges keys within 0.01 frame.
+MIN_KEY_GAP = 0.02
+
+
+def _spaced(frames: list[float]) -> list[float]:
+    """``frames`` (sorted) with a key closer than :data:`MIN_KEY_GAP` before the next one moved back to that gap
+    (dropped where that passes the key before it): a step written as two samples a hair apart (a value clip's
+    end, 19.999999995 then 20) stays a step one fiftieth of a frame wide, instead of Blender merging the two
+    keys into a ramp from the key before."""
+    out = list(frames)
+    for i in range(len(out) - 2, -1, -1):
+        if out[i + 1] - out[i] < MIN_KEY_GAP:
+            moved = out[i + 1] - MIN_KEY_GAP
+            if i == 0 or moved - out[i - 1] >= MIN_KEY_GAP:
+                out[i] = moved
+            else:
+                del out[i]
+    return out
 
 
 def object_keys(stage, records: list[dict], conv: np.ndarray, t0, warnings) -> list[float]:

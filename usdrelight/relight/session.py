@@ -37,6 +37,7 @@ from ..stage.layout import FITTED_LIGHTS_SCOPE
 from ..stage.lights_layer import fitted_as_written
 from ..stage.light_specs import parse_lights
 from ..stage.read import read_lights, read_scene
+from ..stage.read_lux import invisible_lights
 from ..stage.timing import frame_time
 from ..stage.validate import open_stage
 from ..transport.cache import TransportCache
@@ -336,6 +337,11 @@ class RelightSession:
             if self._with_fitted and not self.fitted_lights:
                 raise UsdRelightError("no light to relight with: the stage has no fitted lights (run usdrelight fit "
                                       "first); or add --light, or put lights in lights_user.usda")
+            hidden = invisible_lights(self._stage, frame_time(self._stage, self.time))
+            if hidden:  # the user's lights are there, only invisible at this time
+                raise UsdRelightError(f"no light to relight with at time code {self.time}: {', '.join(hidden[:3])} "
+                                      f"{'is' if len(hidden) == 1 else 'are'} invisible then (add --light, or "
+                                      f"choose another --time)")
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
         if area_samples is not None and self.engine.name != "fast":

@@ -11,7 +11,7 @@ HDRI held from the key before). Changing a keyed light without "Set key" lasts u
 
 Range at start: ``lights_user.usda``'s own startTimeCode/endTimeCode (what the app saved last) or those of a layer
 sublayered into it, mapped to the stage's time codes by their timeCodesPerSecond as USD maps their samples (and
-rounded to whole frames), else the stage's, else :data:`DEFAULT_RANGE`; the playback rate is the stage's framesPerSecond. Save writes the range into
+rounded to whole frames), else the stage's, else :data:`DEFAULT_RANGE`; the playback rate is the stage's timeCodesPerSecond. Save writes the range into
 ``lights_user.usda`` (once a light is keyed or the range was edited) with the stage's framesPerSecond and
 timeCodesPerSecond: USD uses a sublayer's start/end only when that layer is opened alone (the composed stage
 takes its root layer's), and a sublayer whose timeCodesPerSecond differs from the stage's would have its samples
@@ -198,8 +198,9 @@ class TimelineGui:
         self._play_lock = threading.Lock()  # Play/Stop from several tabs: one player at a time
         with gui.add_folder("Timeline"):
             self.frame = gui.add_slider("Frame", tl.start, tl.end, 1.0, tl.frame,
-                                        hint=f"USD time code; plays at the stage's {tl.fps:g} frames/s")
-            self.play = gui.add_button("Play", hint="advance one frame every 1/fps s (Stop: stay there)")
+                                        hint=f"USD time code; plays at the stage's {tl.tcps:g} time codes/s")
+            self.play = gui.add_button("Play", hint="advance one time code every 1/timeCodesPerSecond s, in the "
+                                                    "stage's seconds as the exported video (Stop: stay there)")
             self.set_key = gui.add_button("Set key", hint="store the selected light as it is now at this frame")
             self.delete_key = gui.add_button("Delete key", hint="remove the selected light's key at this frame")
             self.keys = gui.add_markdown("")
@@ -276,9 +277,10 @@ class TimelineGui:
             self.go_to(self.tl.frame)  # the editor shows the light where playing stopped
 
     def _play(self, stop: threading.Event) -> None:
-        """Advance one frame every 1/fps s (wrapping to the start) until ``stop``; only the newest frame is
-        rendered (:class:`.live.FrameLoop`), so a slow render drops frames instead of slowing the clock."""
-        period, due = 1.0 / self.tl.fps, time.monotonic()
+        """Advance one time code every 1/timeCodesPerSecond s (the stage's own seconds, as the exported video
+        plays; framesPerSecond is only USD's playback hint), wrapping to the start, until ``stop``; only the newest
+        frame is rendered (:class:`.live.FrameLoop`), so a slow render drops frames instead of slowing the clock."""
+        period, due = 1.0 / self.tl.tcps, time.monotonic()
         try:
             while not stop.is_set() and self.app.loop is not None:
                 t = self.tl.frame + 1.0

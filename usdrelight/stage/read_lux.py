@@ -214,3 +214,13 @@ def _ignored_lux(prim, t, warnings) -> None:
 def _rot_x(deg: float) -> np.ndarray:
     c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
     return np.array([[1, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1]], dtype=np.float64)
+
+
+def invisible_lights(stage, t) -> list[str]:
+    """Paths of the stage's UsdLux lights that are invisible at time code ``t`` (a ``Usd.TimeCode``: their own
+    ``visibility`` or an ancestor's), which no renderer draws then."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    return [str(p.GetPath()) for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
+            if (p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
+            and p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility(t) == UsdGeom.Tokens.invisible]

@@ -299,12 +299,14 @@ def layer_has_spline(layer) -> bool:
 
 
 def rescaled_layers(stage) -> list[str]:
-    """One line per layer of ``stage``'s root layer stack whose time samples USD reads rescaled: a sublayer that
-    authors another timeCodesPerSecond than the stage (a 30-codes lights layer in a 24-codes stage: its sample at
-    30 is read at 24). Correct USD, and easy to miss."""
+    """One line per layer ``stage`` uses (sublayers, references, payloads) whose time samples USD reads rescaled:
+    one that authors another timeCodesPerSecond than the stage (a 30-codes lights layer or cache in a 24-codes
+    stage: its sample at 30 is read at 24). Correct USD, and easy to miss."""
     out = []
     tcps = float(stage.GetTimeCodesPerSecond())
-    for layer in stage.GetLayerStack(includeSessionLayers=False)[1:]:
+    for layer in stage.GetUsedLayers(includeClipLayers=False):
+        if layer == stage.GetRootLayer() or layer.anonymous:
+            continue
         # USD's effective rate of a layer: timeCodesPerSecond, else framesPerSecond, else 24
         own = layer.timeCodesPerSecond if layer.HasTimeCodesPerSecond() else \
             layer.framesPerSecond if layer.HasFramesPerSecond() else 24.0
