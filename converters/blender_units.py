@@ -136,7 +136,7 @@ def light_to_blender(light: LightRecord, up_axis: str = "Y") -> dict:
             # Blender direction d_b -> USD light-local direction -> the equirect fix
             inv = np.linalg.inv(light.to_world[:3, :3] / np.maximum(world_scale(light.to_world), 1e-300))
             R = EQUIRECT_FIX @ Y_UP_TO_Z_UP[:3, :3] @ inv @ conv[:3, :3].T
-            d.update(texture=light.texture.path, rotation=R.tolist())
+            d.update(texture=light.texture.path, rotation=R.tolist(), negative_texels=light.texture.negative_texels)
     return d
 
 

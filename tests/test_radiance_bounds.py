@@ -92,7 +92,7 @@ def test_a_light_of_1e30_stored_as_a_float_reads_back(tmp_path):
     (light,) = read_lights(Usd.Stage.Open(str(tmp_path / "l.usda")))
     assert light.radiance.max() == pytest.approx(1e30, rel=1e-6)
     UsdLux.SphereLight(stage.GetPrimAtPath("/L")).GetIntensityAttr().Set(1.01e30)
-    with pytest.raises(Exception, match="above 1e30"):
+    with pytest.raises(usdrelight.UsdRelightError, match="above 1e30"):
         read_lights(stage)
 
 

@@ -155,18 +155,17 @@ def PointInstancer "Stretched" {
 }''')
     scene = read_scene(path)
     meshes = {m.path: m for m in scene.meshes}
-    assert set(meshes) == {"/Ground", "/Scatter/Protos/Lamp/Shade/instance0", "/Scatter/Protos/Lamp/Shade/instance1",
-                           "/Scatter/Protos/Lamp/Shade/instance2", "/Stretched/Ball/instance0"}
+    assert set(meshes) == {"/Ground", "/Scatter/Protos/Lamp/Shade/instances", "/Stretched/Ball/instance0"}
     shade = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
-    np.testing.assert_allclose(meshes["/Scatter/Protos/Lamp/Shade/instance0"].points,
-                               np.add(shade, (5, 10, 1)), atol=1e-6)
+    placed = meshes["/Scatter/Protos/Lamp/Shade/instances"]  # the three instances as one record (one shape)
+    assert placed.points.shape == (9, 3) and placed.faces.shape == (3, 3)
+    np.testing.assert_allclose(placed.points[:3], np.add(shade, (5, 10, 1)), atol=1e-6)
     # turned 90 degrees about z and scaled 2: (x, y, z) -> (-2y, 2x, 2z), the root's (0, 0, 1) too
-    np.testing.assert_allclose(meshes["/Scatter/Protos/Lamp/Shade/instance1"].points,
-                               [(6, 10, 2), (6, 12, 2), (4, 10, 2)], atol=1e-3)  # quath: half precision
-    mirrored = meshes["/Scatter/Protos/Lamp/Shade/instance2"]
-    np.testing.assert_allclose(mirrored.points, [(7, 10, 1), (6, 10, 1), (7, 11, 1)], atol=1e-6)
-    a, b, c = mirrored.points[mirrored.faces[0]]
-    assert np.cross(b - a, c - a)[2] > 0  # still counter-clockwise seen from +z: the winding flipped back
+    np.testing.assert_allclose(placed.points[3:6], [(6, 10, 2), (6, 12, 2), (4, 10, 2)], atol=1e-3)  # quath
+    np.testing.assert_allclose(placed.points[6:], [(7, 10, 1), (6, 10, 1), (7, 11, 1)], atol=1e-6)  # mirrored
+    for face in placed.faces:
+        a, b, c = placed.points[face]
+        assert np.cross(b - a, c - a)[2] > 0  # counter-clockwise seen from +z: the mirrored one's winding flipped
     assert scene.shapes == ()  # the masked instance's Ball is not drawn; the stretched one is a mesh
     egg = meshes["/Stretched/Ball/instance0"].points
     assert np.ptp(egg[:, 1]) == pytest.approx(3.0, rel=1e-3) and np.ptp(egg[:, 0]) == pytest.approx(1.0, rel=1e-3)

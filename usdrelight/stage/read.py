@@ -32,7 +32,7 @@ from ..imageio import check_resolution
 from .backplate import settings_prim
 from .camera import CONFORM_POLICIES, check_clipping, depth_of_field, intrinsics_from_usd_camera
 from .read_geometry import mesh_area, read_material, read_mesh
-from .read_gprims import check_instanced_size, ellipsoid_mesh, instance_matrices, placed_mesh, \
+from .read_gprims import check_instanced_size, ellipsoid_mesh, instance_matrices, placed_meshes, \
     prototype_gprims, read_shape
 from .lux import uniform_scale
 from .read_lux import read_light
@@ -230,11 +230,11 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
                     img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy)):
             continue
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
-        area = 0.0
-        if prim.IsA(UsdGeom.Mesh):
-            area = float(sum(mesh_area(m) for m in read_mesh(prim, xf, read_material(prim, warnings, t=t),
-                                                             warnings, t=t)))
-        light = read_light(prim, xf, warnings, area, t=t)
+        records = read_mesh(prim, xf, read_material(prim, warnings, t=t), warnings, t=t) \
+            if prim.IsA(UsdGeom.Mesh) else None
+        if records == []:  # a mesh light without a triangle (all holes ...): no emitter, as read_scene
+            continue
+        light = read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records or ())), t=t)
         if light is not None:
             lights.append(light)
     return tuple(lights)
@@ -272,14 +272,14 @@ def read_scene(stage, time=None) -> SceneRecord:
     t = Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else frame_time(stage, time)
     mpu = stage_meters_per_unit(stage)
     warnings: Counter = Counter(rescaled_layers(stage) + other_unit_layers(stage, mpu))
-    meshes, shapes, lights = [], [], []
+    meshes, shapes, lights, placed = [], [], [], 0
     xcache = UsdGeom.XformCache(t)
     prims = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     for prim in prims:
         if prim.IsA(UsdGeom.PointInstancer):  # its prototypes are drawn only where it instances them
             prims.PruneChildren()
             if UsdGeom.Imageable(prim).ComputeVisibility(t) != UsdGeom.Tokens.invisible:
-                _read_instancer(prim, xcache, t, mpu, warnings, meshes, shapes)
+                placed = _read_instancer(prim, xcache, t, mpu, warnings, meshes, shapes, placed)
             continue
         img = UsdGeom.Imageable(prim)
         if img and prim.IsA(UsdGeom.Imageable):
@@ -298,7 +298,7 @@ def read_scene(stage, time=None) -> SceneRecord:
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         records, shape = _gprim_records(prim, xf, t, warnings)
         meshes.extend(records)
-        if is_light and prim.IsA(UsdGeom.Mesh):
+        if is_light and prim.IsA(UsdGeom.Mesh) and records:  # (no triangle: no emitter, read_mesh warned)
             lights.append(read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t))
         _add_shape(shape, meshes, shapes)
     camera, products, resolution = _render_camera(stage, xcache, t, warnings, mpu)
@@ -322,15 +322,20 @@ def _gprim_records(prim, xf: np.ndarray, t, warnings) -> tuple[list, ShapeRecord
     return [], shape
 
 
-def _add_shape(shape: ShapeRecord | None, meshes: list, shapes: list) -> None:
+def _add_shape(shape: ShapeRecord | None, meshes: list, shapes: list) -> int:
+    """Append ``shape`` to ``shapes``, or its ellipsoid mesh to ``meshes`` (a sphere under a non-uniform scale);
+    returns the triangles that made (0 for an analytic shape)."""
     if shape is not None and shape.kind == "sphere" and not uniform_scale(shape.to_world):
         meshes.append(ellipsoid_mesh(shape))  # a renderer's analytic sphere cannot stretch
-    elif shape is not None:
+        return len(meshes[-1].faces)
+    if shape is not None:
         shapes.append(shape)
+    return 0
 
 
-def _read_instancer(prim, xcache, t, mpu: float, warnings, meshes: list, shapes: list) -> None:
-    """Append the gprims the PointInstancer ``prim`` places to ``meshes`` and ``shapes`` (:mod:`.read_gprims`)."""
+def _read_instancer(prim, xcache, t, mpu: float, warnings, meshes: list, shapes: list, placed: int) -> int:
+    """Append the gprims the PointInstancer ``prim`` places to ``meshes`` and ``shapes`` (:mod:`.read_gprims`);
+    returns ``placed`` (the triangles the stage's instancers placed before) plus this one's."""
     from pxr import UsdGeom
 
     protos = []
@@ -338,18 +343,18 @@ def _read_instancer(prim, xcache, t, mpu: float, warnings, meshes: list, shapes:
         root = prim.GetStage().GetPrimAtPath(target)
         protos.append([_gprim_records(p, rel, t, warnings) for p, rel in prototype_gprims(root, t, warnings)]
                       if root else [])
-    placed = 0
-    for i, k, m in instance_matrices(prim, t, mpu, xcache):
-        if not 0 <= k < len(protos):
-            raise UsdRelightError(f"PointInstancer {prim.GetPath()}: protoIndices names prototype {k}, of "
-                                  f"{len(protos)}")
-        for records, shape in protos[k]:
-            meshes.extend(placed_mesh(r, m, f"{r.path}/instance{i}") for r in records)
-            placed += sum(len(r.faces) for r in records)
-            if shape is not None:
-                _add_shape(replace(shape, path=f"{shape.path}/instance{i}", to_world=m @ shape.to_world), meshes,
-                           shapes)
-        check_instanced_size(placed, prim)
+    ids, kinds, mats = instance_matrices(prim, t, mpu, xcache, len(protos))
+    for k, gprims in enumerate(protos):
+        sel, which = mats[kinds == k], ids[kinds == k]
+        for records, shape in gprims if len(sel) else ():
+            for r in records:
+                placed = check_instanced_size(placed + len(sel) * len(r.faces), prim)
+                meshes.append(placed_meshes(r, sel))
+            for i, m in zip(which, sel) if shape is not None else ():
+                made = _add_shape(replace(shape, path=f"{shape.path}/instance{i}", to_world=m @ shape.to_world),
+                                  meshes, shapes)
+                placed = check_instanced_size(placed + made, prim)
+    return placed
 
 
 def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
@@ -377,9 +382,9 @@ def _render_camera(stage, xcache, t, warnings, mpu: float) -> tuple:
 
 
 def read_camera(stage, time=None) -> CameraRecord | None:
-    """The render camera alone (as :func:`read_scene` reads it, in metres) at USD time code ``time`` (None:
-    default); None when the stage has no camera. For tools that follow a camera's samples without the meshes."""
+    """The render camera alone (as :func:`read_scene` reads it, in metres) at USD time code ``time`` (None: as
+    :func:`read_scene`); None when the stage has no camera. For tools that follow a camera's samples."""
     from pxr import Usd, UsdGeom
 
-    t = Usd.TimeCode.Default() if time is None else Usd.TimeCode(time)
+    t = Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else frame_time(stage, time)
     return _render_camera(stage, UsdGeom.XformCache(t), t, Counter(), stage_meters_per_unit(stage))[0]

@@ -107,7 +107,11 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
                 break
     if pv and pv.HasValue():
         uv, ukind = _primvar(pv, len(pts), n_corners, len(counts), t, warnings)
-    if uv is None and any(isinstance(getattr(material, f.name), TextureRecord) for f in fields(material)):
+    # GeomSubsets bound to their own materials split the triangles (below); their materials read first
+    subsets = [(sub, read_material(sub.GetPrim(), warnings, material, t))
+               for sub in UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()]
+    if uv is None and any(isinstance(getattr(m, f.name), TextureRecord) for m in [material] + [m for _, m in subsets]
+                          for f in fields(m)):
         warnings["textured material on a mesh without texture coordinates (every texel lookup at st = (0, 0))"] += 1
         uv, ukind = np.zeros((len(pts), 2)), "point"  # the primvar reader's fallback, in every renderer alike
     for name, arr in (("normals", normals), (st_name, uv)):
@@ -144,18 +148,16 @@ def read_mesh(prim, xf: np.ndarray, material: MaterialRecord, warnings, st_name:
         if fill_zero_normals(w_pts, faces, v_n):
             warnings["zero-length normals (the surface's own normal used)"] += 1
     ds = bool(mesh.GetDoubleSidedAttr().Get(t))
-    # GeomSubsets bound to their own materials split the triangles.
-    subsets = UsdShade.MaterialBindingAPI(prim).GetMaterialBindSubsets()
     records = []
     taken = np.zeros(len(faces), bool)
-    for sub in subsets:
+    for sub, sub_material in subsets:
         ids = np.asarray(sub.GetIndicesAttr().Get(t) or [], dtype=np.int64)
         sel = np.isin(tri_face, ids) & ~taken
         if not sel.any():
             continue
         taken |= sel
         records.append(_compact(str(sub.GetPath()), w_pts, faces[sel], v_n, v_uv,
-                                read_material(sub.GetPrim(), warnings, material, t), ds))
+                                sub_material, ds))
     if not taken.all():
         records.append(_compact(str(prim.GetPath()), w_pts, faces[~taken], v_n, v_uv, material, ds))
     return records

@@ -14,7 +14,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import UsdRelightError
-from ..imageio import LINEAR_FORMATS, read_raw, read_texture_rgb, stored_format
+from ..imageio import LINEAR_FORMATS, read_raw, stored_format
 from ..safe_paths import check_read, stage_folder
 from .light_syntax import MAX_RADIANCE
 from .lux import uniform_scale, world_scale
@@ -171,19 +171,25 @@ def _light_texture(prim, asset, what: str, warnings) -> TextureRecord:
     tex = TextureRecord(asset.resolvedPath, "raw" if stored_format(asset.resolvedPath)[0] in LINEAR_FORMATS
                         else "sRGB")
     stat = os.stat(tex.path)
-    if _negative_texels(tex.path, tex.linear, stat.st_mtime_ns, stat.st_size):
+    if _negative_texels(tex.path, stat.st_mtime_ns, stat.st_size):
         warnings[f"{what} texture with negative texels (read as 0)"] += 1
         tex = replace(tex, negative_texels=True)
     return tex
 
 
 @lru_cache(maxsize=32)
-def _negative_texels(path: str, linear: bool, mtime_ns: int, size: int) -> bool:
-    """Whether a light texture holds texels below 0, once its texels are known finite and <= 1e30
-    (:func:`usdrelight.imageio.read_texture_rgb`, else UsdRelightError): decoded once per file version, so every
-    command and converter refuses an Inf dome, not only the fast renderer."""
-    read_texture_rgb(path, linear)
-    return bool(read_raw(path)[0].min(initial=0.0) < 0)
+def _negative_texels(path: str, mtime_ns: int, size: int) -> bool:
+    """Whether a light texture holds texels below 0; UsdRelightError for a NaN, Inf or above 1e30 one (as
+    :func:`usdrelight.imageio.read_texture_rgb`, so every command and converter refuses an Inf dome, not only the
+    fast renderer). Decoded once per file version, and only a float file (integers decode into [0, 1])."""
+    if stored_format(path)[0] not in LINEAR_FORMATS:
+        return False
+    raw = read_raw(path)[0]
+    rgb = raw[..., :3] if raw.shape[2] >= 3 else raw
+    if not np.all(np.isfinite(rgb)) or rgb.max(initial=0.0) > 1e30:
+        raise UsdRelightError(f"light texture {path} has NaN, Inf or above 1e30 texels (a light's radiance is "
+                              "finite)")
+    return bool(rgb.min(initial=0.0) < 0)
 
 
 def _ignored_lux(prim, t, warnings) -> None:
