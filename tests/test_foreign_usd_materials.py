@@ -11,6 +11,8 @@ from usdrelight.imageio import read_map, write_image
 from usdrelight.mitsuba.scene_dict import scene_dict
 from usdrelight.stage.read import read_scene
 
+from usd_scenes import color_product_settings
+
 
 def _stage(tmp_path: Path, body: str, extra: str = "") -> Path:
     path = tmp_path / "s.usda"
@@ -197,23 +199,7 @@ def Camera "Cam" {
     float verticalAperture = 15
     float focalLength = 20
 }'''
-SETTINGS = '''
-def Scope "Render" {
-    def RenderSettings "Settings" {
-        rel camera = </Cam>
-        uniform int2 resolution = (640, 480)
-        rel products = </Render/Beauty>
-    }
-    def RenderProduct "Beauty" {
-        token productName = "beauty.exr"
-        rel orderedVars = </Render/Vars/Color>
-    }
-    def Scope "Vars" {
-        def RenderVar "Color" {
-            uniform string sourceName = "color"
-        }
-    }
-}'''
+SETTINGS = color_product_settings((640, 480), 'beauty.exr')
 
 
 def test_render_writes_the_beauty_of_a_stage_without_render_settings(tmp_path, cli):

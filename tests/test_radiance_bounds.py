@@ -18,6 +18,7 @@ from usdrelight.imageio import read_map, srgb_to_linear, write_image
 from usdrelight.stage.build import BuildOptions, build
 from usdrelight.stage.read import read_lights, read_scene
 
+from usd_scenes import color_product_settings
 from conftest import EXAMPLES, build_procedural
 
 CARD = '''#usda 1.0
@@ -35,23 +36,7 @@ def Camera "Cam" {
 '''
 
 
-SETTINGS = '''def Scope "Render" {
-    def RenderSettings "Settings" {
-        rel camera = </Cam>
-        uniform int2 resolution = (32, 24)
-        rel products = </Render/Beauty>
-    }
-    def RenderProduct "Beauty" {
-        token productName = "color.exr"
-        rel orderedVars = </Render/Vars/Color>
-    }
-    def Scope "Vars" {
-        def RenderVar "Color" {
-            uniform string sourceName = "color"
-        }
-    }
-}
-'''
+SETTINGS = color_product_settings((32, 24), 'color.exr')
 
 
 def test_a_dome_textures_negative_texels_are_zero_in_every_renderer_and_inf_is_refused(tmp_path, cli):

@@ -161,3 +161,25 @@ def expected_dome_view(stage_path: Path, tex: np.ndarray, intensity: float = 2.0
     world /= np.linalg.norm(world, axis=-1, keepdims=True)
     local = world @ rec.lights[0].to_world[:3, :3]  # inverse rotation
     return intensity * latlong_lookup(tex, local)
+
+
+def color_product_settings(resolution=(640, 480), product="color.exr") -> str:
+    """USD text of a RenderSettings at /Render that renders camera /Cam's beauty to ``product``."""
+    return f'''
+def Scope "Render" {{
+    def RenderSettings "Settings" {{
+        rel camera = </Cam>
+        uniform int2 resolution = ({resolution[0]}, {resolution[1]})
+        rel products = </Render/Beauty>
+    }}
+    def RenderProduct "Beauty" {{
+        token productName = "{product}"
+        rel orderedVars = </Render/Vars/Color>
+    }}
+    def Scope "Vars" {{
+        def RenderVar "Color" {{
+            uniform string sourceName = "color"
+        }}
+    }}
+}}
+'''
