@@ -136,6 +136,18 @@ def _base_color_factor(mat: dict) -> np.ndarray | None:
     return rgba if rgba is not None and np.all(np.isfinite(rgba)) and rgba.min() >= 0 else None
 
 
+def add_emissive_strengths(doc: dict, strengths: dict[str, float]) -> None:
+    """Give the file's materials named in ``strengths`` their KHR_materials_emissive_strength (the writer's
+    emissiveColor above 1: the factor scaled into [0, 1], the peak here), as the reader applies it back."""
+    for mat in doc.get("materials", []) or []:
+        if isinstance(mat, dict) and mat.get("name") in strengths:
+            mat.setdefault("extensions", {})["KHR_materials_emissive_strength"] = {
+                "emissiveStrength": strengths[mat["name"]]}
+            used = doc.setdefault("extensionsUsed", [])
+            if "KHR_materials_emissive_strength" not in used:
+                used.append("KHR_materials_emissive_strength")
+
+
 def emissive_strengths(doc: dict) -> dict[str, float]:
     """Material name -> ``KHR_materials_emissive_strength.emissiveStrength`` (:func:`_per_material_name`)."""
     return _per_material_name(doc, _emissive_strength)
@@ -147,12 +159,42 @@ def base_color_factors(doc: dict) -> dict[str, np.ndarray]:
     return _per_material_name(doc, _base_color_factor)
 
 
+#: Extensions whose geometry the reader cannot decode (it would come out as placeholder zeros).
+COMPRESSED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
+#: Vertex attributes the reader takes as raw numbers when stored as normalized or quantized integers.
+FLOAT_ONLY = ("POSITION", "NORMAL", "TEXCOORD_0", "TEXCOORD_1", "COLOR_0")
+
+
+def primitives(doc: dict) -> list[dict]:
+    """Every mesh primitive of the file (dicts only)."""
+    return [prim for mesh in doc.get("meshes", []) or [] if isinstance(mesh, dict)
+            for prim in mesh.get("primitives", []) or [] if isinstance(prim, dict)]
+
+
 def check_readable(doc: dict, name: str) -> None:
-    """UsdRelightError for what the reader (trimesh) would read wrong without a word: sparse accessors (their
-    substituted values are not applied: vertices where the base data has them, or all at the origin)."""
-    if any(isinstance(a, dict) and a.get("sparse") for a in doc.get("accessors", []) or []):
+    """UsdRelightError for what the reader (trimesh) would read wrong without a word: glTF 1.0; sparse accessors
+    (their substituted values are not applied: vertices where the base data has them, or all at the origin);
+    Draco or meshopt compressed geometry (all zeros); vertex attributes stored as integers (normalized texture
+    coordinates or colours, KHR_mesh_quantization positions: read as the raw integers, 65535 for 1)."""
+    version = str((doc.get("asset") or {}).get("version", "2.0")) if isinstance(doc.get("asset"), dict) else "2.0"
+    if not version.startswith("2"):
+        raise UsdRelightError(f"{name}: a glTF {version} file (glTF 2.0 is read: convert it first)")
+    accessors = doc.get("accessors", []) or []
+    if any(isinstance(a, dict) and a.get("sparse") for a in accessors):
         raise UsdRelightError(f"{name}: sparse accessors, which the glTF reader does not apply (the geometry would "
                               "come out wrong); write the file without them (gltf-transform's sparse off)")
+    used = [e for e in COMPRESSED if e in (doc.get("extensionsUsed", []) or [])]
+    if used:
+        raise UsdRelightError(f"{name}: {used[0]} compressed geometry, which the glTF reader does not decode (it "
+                              f"would come out as zeros); decompress it first (e.g. gltf-transform copy)")
+    for prim in primitives(doc):
+        for attr, i in (prim.get("attributes") or {}).items():
+            a = accessors[i] if isinstance(i, int) and 0 <= i < len(accessors) else None
+            if attr in FLOAT_ONLY and isinstance(a, dict) and a.get("componentType", 5126) != 5126 and \
+                    not (attr == "COLOR_0" and a.get("componentType") == 5121):
+                raise UsdRelightError(f"{name}: {attr} stored as {'normalized ' if a.get('normalized') else ''}"
+                                      f"integers, which the glTF reader takes as raw numbers (65535 for 1); "
+                                      f"write it as floats first (e.g. gltf-transform dequantize)")
 
 
 def unconverted(doc: dict) -> Counter:
@@ -174,11 +216,19 @@ def unconverted(doc: dict) -> Counter:
             [pbr.get(k) for k in ("baseColorTexture", "metallicRoughnessTexture")]
         if any(isinstance(i, dict) and i.get("texCoord", 0) != 0 for i in infos):
             warnings["glTF texture of texCoord 1 or above (TEXCOORD_0 used)"] += 1
+    for sampler in doc.get("samplers", []) or []:
+        if isinstance(sampler, dict) and {sampler.get("wrapS", 10497), sampler.get("wrapT", 10497)} - {10497}:
+            warnings["glTF texture sampler clamping or mirroring (repeat used)"] += 1
+    applied = emissive_strengths(doc)  # by material name: trimesh keeps names, not indices
+    for mat in doc.get("materials", []) or []:
+        if isinstance(mat, dict) and _emissive_strength(mat) not in (None, 1.0) and mat.get("name") not in applied:
+            warnings["KHR_materials_emissive_strength on an unnamed or same-named material (not applied)"] += 1
     accessors = doc.get("accessors", []) or []
-    for mesh in doc.get("meshes", []) or []:
-        for prim in (mesh.get("primitives", []) or []) if isinstance(mesh, dict) else []:
-            i = (prim.get("attributes") or {}).get("COLOR_0") if isinstance(prim, dict) else None
-            if isinstance(i, int) and 0 <= i < len(accessors) and isinstance(accessors[i], dict) and \
-                    accessors[i].get("componentType") == 5126:
-                warnings["glTF COLOR_0 of floats (read through 8 bits: within 0.002)"] += 1
+    for prim in primitives(doc):
+        if prim.get("mode") in (2, 3, 6):
+            warnings["glTF line loops, line strips or triangle fans (not converted)"] += 1
+        i = (prim.get("attributes") or {}).get("COLOR_0")
+        if isinstance(i, int) and 0 <= i < len(accessors) and isinstance(accessors[i], dict) and \
+                accessors[i].get("componentType") == 5126:
+            warnings["glTF COLOR_0 of floats (read through 8 bits: within 0.002)"] += 1
     return warnings

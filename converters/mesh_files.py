@@ -45,8 +45,8 @@ from usdrelight.stage.timing import frame_time
 from usdrelight.stage.shapes import shape_mesh
 from usdrelight.stage.validate import check_finite
 
-from .gltf_extras import (base_color_factors, check_readable, emissive_strengths, glb_json, glb_with_json, gltf_files,
-                          gltf_json, unconverted)
+from .gltf_extras import (add_emissive_strengths, base_color_factors, check_readable, emissive_strengths, glb_json,
+                          glb_with_json, gltf_files, gltf_json, primitives, unconverted)
 from .gltf_lights import add_lights_and_camera, author_lights_and_cameras
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
@@ -74,6 +74,29 @@ def missing_mtl(path: Path) -> list[str]:
             names.append(parts[1].strip().decode("utf-8", "replace"))  # writes "mtllib my scene.mtl" unquoted)
     folder = path.parent.resolve()  # trimesh reads nothing outside the OBJ's folder (its resolver's root)
     return [n for n in names if not (path.parent / n).is_file() or folder not in (path.parent / n).resolve().parents]
+
+
+def missing_maps(path: Path) -> list[str]:
+    """One warning per ``map_Kd`` of the OBJ's material libraries that its reader leaves untextured in silence: a
+    file that is not there (a Windows path with backslashes, too) or one written with options (-s, -o ...)."""
+    out = []
+    for lib in set(sum((line.split(None, 1)[1:] for line in _lines(path) if line.startswith("mtllib")), [])):
+        mtl = path.parent / lib.strip()
+        for line in _lines(mtl) if mtl.is_file() and path.parent.resolve() in mtl.resolve().parents else ():
+            parts = line.split(None, 1)
+            if parts[:1] != ["map_Kd"] or len(parts) < 2:
+                continue
+            if parts[1].startswith("-"):
+                out.append(f"OBJ map_Kd with options ({parts[1].split()[0]} ...): not read (the material untextured)")
+            elif not (mtl.parent / parts[1].strip()).is_file():
+                hint = " (a Windows path: write it with /)" if "\\" in parts[1] else ""
+                out.append(f"OBJ map_Kd '{parts[1].strip()}' not found{hint} (the material untextured)")
+    return out
+
+
+def _lines(path: Path) -> list[str]:
+    """A text file's lines without comments, stripped (undecodable bytes replaced)."""
+    return [ln.split("#", 1)[0].strip() for ln in path.read_bytes().decode("utf-8", "replace").splitlines()]
 
 
 def absolute_obj_indices(data: bytes) -> bytes | None:
@@ -142,10 +165,10 @@ def write_to_file(stage, path, **options) -> WriteReport:
             warnings["normals of only some meshes (one PLY vertex list: not exported)"] += 1
         data = (obj_bytes if fmt == "obj" else ply_bytes)(meshes, axes)
     else:
-        scene = trimesh.Scene()
+        scene, strengths = trimesh.Scene(), {}
         for m in meshes:
-            visual = trimesh.visual.TextureVisuals(uv=texture_uv(m), material=pbr_material(trimesh, m.material,
-                                                                                         warnings))
+            visual = trimesh.visual.TextureVisuals(uv=texture_uv(m), material=pbr_material(
+                trimesh, m.material, warnings, m.double_sided, strengths))
             # the visual goes in with the normals: assigning it later would drop the given normals from the cache
             normals = None if m.normals is None else m.normals @ axes.T
             mesh = trimesh.Trimesh(m.points @ axes.T, m.faces, vertex_normals=normals, visual=visual,
@@ -154,6 +177,7 @@ def write_to_file(stage, path, **options) -> WriteReport:
                                geom_name=m.path.strip("/").replace("/", "_"))
         def lights_and_camera(doc):
             add_lights_and_camera(doc, rec, axes, warnings)
+            add_emissive_strengths(doc, strengths)
         if fmt == "glb":
             data = glb_with_json(trimesh.exchange.gltf.export_glb(scene, include_normals=True), lights_and_camera)
         else:
@@ -203,9 +227,15 @@ def read_from_file(path, **options) -> ReadReport:
     if suffix == ".obj":
         for name in missing_mtl(path):
             warnings[f"OBJ mtllib {name!r} not found in the file's folder (its materials: white)"] += 1
+        for line in missing_maps(path):
+            warnings[line] += 1
     strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
     base_factors = base_color_factors(doc) if doc else {}
     warnings.update(unconverted(doc) if doc else {})
+    flat = doc is not None and not any("NORMAL" in (prim.get("attributes") or {}) for prim in primitives(doc))
+    if doc is not None and not flat and any("NORMAL" not in (prim.get("attributes") or {}) for prim in primitives(doc)):
+        warnings["glTF primitives without normals beside ones with (smooth normals computed; glTF asks for flat "
+                 "ones)"] += 1
     for node in scene.graph.nodes_geometry:
         xf, geom_name = scene.graph[node]
         mesh = scene.geometry[geom_name]
@@ -218,6 +248,7 @@ def read_from_file(path, **options) -> ReadReport:
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
         base = "".join(c if c.isalnum() else "_" for c in str(node)) or "Mesh"
         base = base if base[0].isalpha() else "_" + base
+        base = "Looks_mesh" if base == "Looks" else base  # /World/Looks holds the materials
         used[base] += 1
         name = base if used[base] == 1 else f"{base}_{used[base]}"
         m = UsdGeom.Mesh.Define(stage, f"{ROOT}/{name}")
@@ -235,8 +266,9 @@ def read_from_file(path, **options) -> ReadReport:
         m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.astype(np.int32).reshape(-1)))
         m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         m.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, pts.min(0))), Gf.Vec3f(*map(float, pts.max(0)))]))
-        m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(nrm.astype(np.float32)))
-        m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        if not flat:  # a glTF file without normals: none authored, so every renderer shades it flat (glTF 3.7.2.1)
+            m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(nrm.astype(np.float32)))
+            m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
         uv = getattr(mesh.visual, "uv", None)
         if uv is not None and len(uv) == len(pts) and np.all(np.isfinite(uv)):
             UsdGeom.PrimvarsAPI(m).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
@@ -252,7 +284,8 @@ def read_from_file(path, **options) -> ReadReport:
         author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, suffix not in (".glb", ".gltf"),
                         warnings, base_factors.get(getattr(material, "name", None)))
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
-        raise UsdRelightError(f"{path.name}: no mesh in the file (nothing was written)")
+        raise UsdRelightError(f"{path.name}: no mesh in the file (points, lines and triangle fans are not read; "
+                              f"nothing was written)")
     if doc:  # a glTF file's punctual lights and perspective cameras (trimesh reads neither)
         author_lights_and_cameras(stage, doc, ROOT, warnings, used)
     check_finite(stage, path.name)

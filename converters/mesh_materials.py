@@ -60,9 +60,12 @@ def base_color_texture(tex: TextureRecord, warnings: Counter):
     return Image.fromarray(_srgb8(texels)), scale
 
 
-def pbr_material(trimesh, mat: MaterialRecord, warnings: Counter):
-    """The glTF PBR material closest to a UsdPreviewSurface record (linear factors, sRGB 8-bit texture)."""
-    kw = {"name": mat.path.strip("/").replace("/", "_") or "default"}
+def pbr_material(trimesh, mat: MaterialRecord, warnings: Counter, double_sided: bool = False,
+                 strengths: dict | None = None):
+    """The glTF PBR material closest to a UsdPreviewSurface record (linear factors, sRGB 8-bit texture), double
+    sided as its mesh; an emissiveColor above 1 is a factor in [0, 1] and its peak, recorded in ``strengths``
+    (material name -> KHR_materials_emissive_strength, added to the file's JSON by the writer)."""
+    kw = {"name": mat.path.strip("/").replace("/", "_") or "default", "doubleSided": bool(double_sided)}
     if isinstance(mat.diffuse, TextureRecord):
         image, factor = base_color_texture(mat.diffuse, warnings)
         kw.update(baseColorTexture=image, baseColorFactor=[*map(float, factor), 1.0])
@@ -70,6 +73,10 @@ def pbr_material(trimesh, mat: MaterialRecord, warnings: Counter):
         kw["baseColorFactor"] = [*map(float, _clip01(mat.diffuse, "base colour", warnings)), 1.0]
     if isinstance(mat.emissive, TextureRecord):
         warnings["textured emissiveColor in glTF (not exported)"] += 1
+    elif max(mat.emissive) > 1.0 and strengths is not None and np.all(np.isfinite(mat.emissive)):
+        peak = float(max(mat.emissive))
+        kw["emissiveFactor"] = [float(c) / peak for c in mat.emissive]
+        strengths[kw["name"]] = peak
     elif max(mat.emissive) > 0.0:
         kw["emissiveFactor"] = [*map(float, _clip01(mat.emissive, "emissiveColor", warnings))]
     if mat.is_lambertian:
@@ -184,6 +191,18 @@ def vertex_colors(mesh, srgb: bool):
     return np.asarray(rgb, np.float64), interp
 
 
+def _rgb8(image):
+    """A PIL image as 8-bit RGB: 16- and 32-bit integer greys scaled down first (PIL's convert clips them at 255:
+    a 16-bit PNG of 32768 came out white)."""
+    from PIL import Image
+
+    if image.mode.startswith("I;16") or image.mode == "I":
+        top = 65535.0 if image.mode.startswith("I;16") else float(max(np.asarray(image).max(initial=0), 1))
+        grey = np.clip(np.round(np.asarray(image, np.float64) / top * 255.0), 0, 255).astype(np.uint8)
+        return Image.fromarray(grey).convert("RGB")
+    return image.convert("RGB")
+
+
 def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings) -> None:
     """``surf.input_name`` = factor x image: an sRGB PNG ``textures/<mesh>_<label>_<sha8>.png`` beside the USD file
     whose UsdUVTexture ``scale`` is the factor (a stage in memory: the image's mean colour times the factor,
@@ -194,7 +213,7 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
     if image is not None and usd_dir is not None:
         name = look.rsplit("/", 1)[1]
         buf = io.BytesIO()
-        image.convert("RGB").save(buf, format="PNG")
+        _rgb8(image).save(buf, format="PNG")
         # the digest of its bytes in the name: another file's texture of the same name never overwrites it
         rel = f"textures/{name}_{label}_{hashlib.sha256(buf.getvalue()).hexdigest()[:8]}.png"
         write_bytes_atomic(Path(usd_dir) / rel, buf.getvalue())
@@ -205,7 +224,7 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
         return
     if image is not None:
         warnings["embedded texture in an in-memory stage (its mean colour used)"] += 1
-        rgb = rgb * srgb_to_linear(np.asarray(image.convert("RGB"), np.float32) / 255.0).reshape(-1, 3).mean(0)
+        rgb = rgb * srgb_to_linear(np.asarray(_rgb8(image), np.float32) / 255.0).reshape(-1, 3).mean(0)
     surf.CreateInput(input_name, Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*map(float, rgb)))
 
 
