@@ -227,6 +227,8 @@ def unconverted(doc: dict) -> Counter:
     for prim in primitives(doc):
         if prim.get("mode") in (2, 3, 6):
             warnings["glTF line loops, line strips or triangle fans (not converted)"] += 1
+        if prim.get("targets"):
+            warnings["glTF morph targets (the base shape, whatever the weights)"] += 1
         i = (prim.get("attributes") or {}).get("COLOR_0")
         if isinstance(i, int) and 0 <= i < len(accessors) and isinstance(accessors[i], dict) and \
                 accessors[i].get("componentType") == 5126:

@@ -83,6 +83,11 @@ def test_a_file_without_normals_is_flat_and_fans_are_named(tmp_path, cli):
     assert not mesh.GetNormalsAttr().HasAuthoredValue()  # glTF 3.7.2.1: flat normals, which renderers compute
     rc, _, err = cli("convert", gltf(tmp_path / "fan.gltf", mode=6), tmp_path / "fan.usda")
     assert rc == 2 and "triangle fans are not read" in err
+    doc = json.loads(gltf(tmp_path / "m.gltf").read_text())
+    doc["meshes"][0]["primitives"][0]["targets"] = [{"POSITION": 0}]  # a morph target (the base positions)
+    (tmp_path / "m.gltf").write_text(json.dumps(doc))
+    rc, _, err = cli("convert", tmp_path / "m.gltf", tmp_path / "m.usda")
+    assert rc == 0 and "glTF morph targets (the base shape" in err, err
 
 
 def test_a_16_bit_texture_keeps_its_values_and_a_clamping_sampler_is_warned(tmp_path, cli):
