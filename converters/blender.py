@@ -79,7 +79,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
     rec = read_scene(stage, t0)
     conv = Y_UP_TO_Z_UP if rec.up_axis == "Y" else np.eye(4)
     data_dir.mkdir(parents=True, exist_ok=True)
-    mats, meshes = {}, []
+    mats, meshes, emission_reads = {}, [], {}
     tubes = [l for l in rec.lights if l.kind == "cylinder"]  # Blender has no cylinder light: an emissive mesh
     if tubes:
         rec.warnings[CYLINDER_MESH] += len(tubes)
@@ -99,7 +99,7 @@ def scene_payload(stage, data_dir: Path, spp: int = 64, max_depth: int = 3, time
                                       rec.warnings)
             if light is not None:
                 mats[key]["emission"] = [float(x) for x in emitted_radiance(light)]
-                keys = emission_keys(stage, light.path) if time is None else None
+                keys = emission_keys(stage, light.path, emission_reads) if time is None else None
                 if keys:  # an animated MeshLightAPI mesh or CylinderLight: the Emission node's colour keyed
                     mats[key]["emission_keys"] = keys
         points = m.points @ conv[:3, :3].T

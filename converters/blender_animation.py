@@ -16,7 +16,7 @@ and ``hide_viewport`` there (held); the lights are read at every keyed time, so 
 is in the .blend too, hidden until it shows. An animated DomeLight keys the World: its colour x intensity (0 where
 invisible, held) and its texture's rotation (the mapping node's Euler angles, kept continuous); a texture file
 that changes over time keeps the first frame's (one warning). The scene gets the stage's start/end time codes
-(else the keys' span) and framesPerSecond. The camera's lens (focal length, apertures, clipping) is keyed at its
+(else the keys' span) and plays at its timeCodesPerSecond. The camera's lens (focal length, apertures, clipping) is keyed at its
 samples' time codes.
 
 The camera and the meshes follow their transforms the same way (:func:`object_keys`): a keyframe of the object's
@@ -104,21 +104,29 @@ def light_keys(stage, lights: list[dict], up_axis: str, warnings, found: list | 
     return scene_animation(stage, codes)
 
 
-def emission_keys(stage, path: str) -> list[dict] | None:
+def emission_keys(stage, path: str, reads: dict) -> list[dict] | None:
     """Keys of the emission of an emissive mesh (a MeshLightAPI mesh or a CylinderLight's side, at USD prim
-    ``path``): [{frame, rgb (the radiance L of UsdLux, 0 where the light is invisible), hold}] at the light's sample
+    ``path``): [{frame, rgb (the radiance L of UsdLux, 0 where the light is invisible), hold}] at its own sample
     times, and every whole frame between them where Blender's linear keys would not be USD's (exposure, colour
-    temperature ...: as :func:`light_keys`); None when its emission never changes."""
+    temperature ...: as :func:`light_keys`); a key before a visibility change holds (CONSTANT). None when its
+    emission never changes. ``reads``: {time code: the stage's lights} shared between calls."""
     prim = stage.GetPrimAtPath(path)
     dense, steps, extra = _light_motion(prim)
-    frames = _key_frames(sorted(set(light_time_codes(stage)) | extra), dense)
+    own = {c for a in prim.GetAttributes() if not a.GetName().startswith("xformOp:") for c in value_times(a)}
+    frames = _key_frames(sorted(own | extra), dense)
     if len(frames) < 2:
         return None
     keys = []
-    for i, t in enumerate(frames):
-        light = next((l for l in read_lights(stage, t) if l.path == path), None)
+    for t in frames:
+        if t not in reads:
+            reads[t] = {l.path: l for l in read_lights(stage, t)}
+        light = reads[t].get(path)
         keys.append({"frame": float(t), "rgb": [0.0] * 3 if light is None else emitted_radiance(light).tolist(),
-                     "hold": i + 1 < len(frames) and any(t < s <= frames[i + 1] for s in steps)})
+                     "hold": False, "seen": light is not None})
+    for i, key in enumerate(keys[:-1]):
+        key["hold"] = key.pop("seen") != keys[i + 1]["seen"] or any(key["frame"] < s <= keys[i + 1]["frame"]
+                                                                     for s in steps)
+    keys[-1].pop("seen")
     return keys if any(k["rgb"] != keys[0]["rgb"] for k in keys) else None
 
 
@@ -239,20 +247,29 @@ def _key_frames(codes: list[float], curved: bool) -> list[float]:
 
 
 #: Closest two keys of one fcurve may be, in frames: Blender's keyframe_insert merges keys within 0.01 frame.
-MIN_KEY_GAP = 0.02
+MIN_KEY_GAP = 0.0105
+_GAP_EPS = 1e-9
 
 
 def _spaced(frames: list[float]) -> list[float]:
-    """``frames`` (sorted) with a key closer than :data:`MIN_KEY_GAP` before the next one moved back to that gap
-    (dropped where that passes the key before it): a step written as two samples a hair apart (a value clip's
-    end, 19.999999995 then 20) stays a step one fiftieth of a frame wide, instead of Blender merging the two
-    keys into a ramp from the key before."""
+    """``frames`` (sorted) with no two closer than :data:`MIN_KEY_GAP`: of a pair too close, a key on a whole frame
+    stays and the other moves away from it to that gap (dropped where that passes its other neighbour); a step
+    written as two samples a hair apart (a value clip's end, 19.999999995 then 20; or 20 then 20.000000005)
+    stays a step a hundredth of a frame wide, instead of Blender merging the two keys into a ramp."""
     out = list(frames)
     for i in range(len(out) - 2, -1, -1):
-        if out[i + 1] - out[i] < MIN_KEY_GAP:
-            moved = out[i + 1] - MIN_KEY_GAP
-            if i == 0 or moved - out[i - 1] >= MIN_KEY_GAP:
-                out[i] = moved
+        if i + 1 >= len(out) or out[i + 1] - out[i] >= MIN_KEY_GAP - _GAP_EPS:
+            continue
+        if float(out[i]).is_integer() and not float(out[i + 1]).is_integer():  # keep the whole frame: move on
+            later = out[i] + MIN_KEY_GAP
+            if i + 2 >= len(out) or out[i + 2] - later >= MIN_KEY_GAP - _GAP_EPS:
+                out[i + 1] = later
+            else:
+                del out[i + 1]
+        else:
+            earlier = out[i + 1] - MIN_KEY_GAP
+            if i == 0 or earlier - out[i - 1] >= MIN_KEY_GAP - _GAP_EPS:
+                out[i] = earlier
             else:
                 del out[i]
     return out

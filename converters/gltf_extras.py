@@ -161,14 +161,16 @@ def base_color_factors(doc: dict) -> dict[str, np.ndarray]:
 
 #: Extensions whose geometry the reader cannot decode (it would come out as placeholder zeros).
 COMPRESSED = ("KHR_draco_mesh_compression", "EXT_meshopt_compression")
-#: Vertex attributes the reader takes as raw numbers when stored as normalized or quantized integers.
-FLOAT_ONLY = ("POSITION", "NORMAL", "TEXCOORD_0", "TEXCOORD_1", "COLOR_0")
+#: Vertex attributes the reader takes as raw numbers when stored as normalized integers (it reads no TEXCOORD_1;
+#: plain integer positions of KHR_mesh_quantization are right: the node's scale turns them into metres).
+NORMALIZED_WRONG = ("POSITION", "NORMAL", "TEXCOORD_0", "COLOR_0")
 
 
 def primitives(doc: dict) -> list[dict]:
     """Every mesh primitive of the file (dicts only)."""
-    return [prim for mesh in doc.get("meshes", []) or [] if isinstance(mesh, dict)
-            for prim in mesh.get("primitives", []) or [] if isinstance(prim, dict)]
+    meshes = doc.get("meshes") if isinstance(doc.get("meshes"), list) else []
+    return [prim for mesh in meshes if isinstance(mesh, dict) and isinstance(mesh.get("primitives"), list)
+            for prim in mesh["primitives"] if isinstance(prim, dict)]
 
 
 def check_readable(doc: dict, name: str) -> None:
@@ -183,18 +185,21 @@ def check_readable(doc: dict, name: str) -> None:
     if any(isinstance(a, dict) and a.get("sparse") for a in accessors):
         raise UsdRelightError(f"{name}: sparse accessors, which the glTF reader does not apply (the geometry would "
                               "come out wrong); write the file without them (gltf-transform's sparse off)")
-    used = [e for e in COMPRESSED if e in (doc.get("extensionsUsed", []) or [])]
+    required = doc.get("extensionsRequired") if isinstance(doc.get("extensionsRequired"), list) else []
+    used = [e for e in COMPRESSED if e in required]  # only "used": the file holds an uncompressed fallback too
     if used:
         raise UsdRelightError(f"{name}: {used[0]} compressed geometry, which the glTF reader does not decode (it "
                               f"would come out as zeros); decompress it first (e.g. gltf-transform copy)")
     for prim in primitives(doc):
-        for attr, i in (prim.get("attributes") or {}).items():
+        attributes = prim.get("attributes") if isinstance(prim.get("attributes"), dict) else {}
+        for attr, i in attributes.items():
             a = accessors[i] if isinstance(i, int) and 0 <= i < len(accessors) else None
-            if attr in FLOAT_ONLY and isinstance(a, dict) and a.get("componentType", 5126) != 5126 and \
+            if attr in NORMALIZED_WRONG and isinstance(a, dict) and a.get("componentType", 5126) != 5126 and \
+                    (a.get("normalized") or attr in ("NORMAL", "TEXCOORD_0")) and \
                     not (attr == "COLOR_0" and a.get("componentType") == 5121):
-                raise UsdRelightError(f"{name}: {attr} stored as {'normalized ' if a.get('normalized') else ''}"
-                                      f"integers, which the glTF reader takes as raw numbers (65535 for 1); "
-                                      f"write it as floats first (e.g. gltf-transform dequantize)")
+                raise UsdRelightError(f"{name}: {attr} stored as normalized integers, which the glTF reader takes "
+                                      f"as raw numbers (the largest integer for 1); write it as floats first "
+                                      f"(e.g. gltf-transform dequantize)")
 
 
 def unconverted(doc: dict) -> Counter:
@@ -205,7 +210,8 @@ def unconverted(doc: dict) -> Counter:
         warnings["glTF animations (not converted: the meshes at rest)"] += len(doc["animations"])
     if doc.get("skins"):
         warnings["glTF skins (not converted: the meshes at rest)"] += len(doc["skins"])
-    for name in sorted(set(doc.get("extensionsUsed", []) or []) - APPLIED):
+    listed = doc.get("extensionsUsed") if isinstance(doc.get("extensionsUsed"), list) else []
+    for name in sorted({n for n in listed if isinstance(n, str)} - APPLIED):
         if isinstance(name, str):
             warnings[f"glTF extension {name} (not converted)"] += 1
     for mat in doc.get("materials", []) or []:
@@ -217,7 +223,7 @@ def unconverted(doc: dict) -> Counter:
         if any(isinstance(i, dict) and i.get("texCoord", 0) != 0 for i in infos):
             warnings["glTF texture of texCoord 1 or above (TEXCOORD_0 used)"] += 1
     for sampler in doc.get("samplers", []) or []:
-        if isinstance(sampler, dict) and {sampler.get("wrapS", 10497), sampler.get("wrapT", 10497)} - {10497}:
+        if isinstance(sampler, dict) and any(sampler.get(k, 10497) != 10497 for k in ("wrapS", "wrapT")):
             warnings["glTF texture sampler clamping or mirroring (repeat used)"] += 1
     applied = emissive_strengths(doc)  # by material name: trimesh keeps names, not indices
     for mat in doc.get("materials", []) or []:
@@ -229,7 +235,7 @@ def unconverted(doc: dict) -> Counter:
             warnings["glTF line loops, line strips or triangle fans (not converted)"] += 1
         if prim.get("targets"):
             warnings["glTF morph targets (the base shape, whatever the weights)"] += 1
-        i = (prim.get("attributes") or {}).get("COLOR_0")
+        i = prim["attributes"].get("COLOR_0") if isinstance(prim.get("attributes"), dict) else None
         if isinstance(i, int) and 0 <= i < len(accessors) and isinstance(accessors[i], dict) and \
                 accessors[i].get("componentType") == 5126:
             warnings["glTF COLOR_0 of floats (read through 8 bits: within 0.002)"] += 1

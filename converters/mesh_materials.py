@@ -74,9 +74,11 @@ def pbr_material(trimesh, mat: MaterialRecord, warnings: Counter, double_sided: 
     if isinstance(mat.emissive, TextureRecord):
         warnings["textured emissiveColor in glTF (not exported)"] += 1
     elif max(mat.emissive) > 1.0 and strengths is not None and np.all(np.isfinite(mat.emissive)):
-        peak = float(max(mat.emissive))
-        kw["emissiveFactor"] = [float(c) / peak for c in mat.emissive]
-        strengths[kw["name"]] = peak
+        if min(mat.emissive) < 0.0:
+            warnings["negative emissiveColor in glTF (clipped to 0)"] += 1
+        rgb = np.maximum(np.asarray(mat.emissive, np.float64), 0.0)
+        kw["emissiveFactor"] = [float(c) for c in rgb / rgb.max()]
+        strengths[kw["name"]] = float(rgb.max())
     elif max(mat.emissive) > 0.0:
         kw["emissiveFactor"] = [*map(float, _clip01(mat.emissive, "emissiveColor", warnings))]
     if mat.is_lambertian:
@@ -196,9 +198,10 @@ def _rgb8(image):
     a 16-bit PNG of 32768 came out white)."""
     from PIL import Image
 
-    if image.mode.startswith("I;16") or image.mode == "I":
-        top = 65535.0 if image.mode.startswith("I;16") else float(max(np.asarray(image).max(initial=0), 1))
-        grey = np.clip(np.round(np.asarray(image, np.float64) / top * 255.0), 0, 255).astype(np.uint8)
+    if image.mode.startswith("I") or image.mode == "F":  # 16-bit (older Pillow: "I") or float greys
+        v = np.asarray(image, np.float64)
+        top = 1.0 if image.mode == "F" else 65535.0 if v.max(initial=0) <= 65535 else float(v.max())
+        grey = np.clip(np.round(v / top * 255.0), 0, 255).astype(np.uint8)
         return Image.fromarray(grey).convert("RGB")
     return image.convert("RGB")
 

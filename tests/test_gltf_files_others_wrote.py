@@ -18,7 +18,7 @@ BOX = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
 
 
 def gltf(path: Path, *, uv: np.ndarray | None = None, uv_type: int = 5126, normals: bool = True, mode: int = 4,
-         extensions: list | None = None, version: str = "2.0", image: bytes | None = None, sampler: dict | None = None,
+         extensions: list | None = None, required: bool = False, version: str = "2.0", image: bytes | None = None, sampler: dict | None = None,
          node_name: str = "Quad") -> Path:
     """A one-quad .gltf with its buffer as a data URI: positions (+ normals, + TEXCOORD_0 of ``uv_type``)."""
     blobs, views, accessors = [], [], []
@@ -53,6 +53,8 @@ def gltf(path: Path, *, uv: np.ndarray | None = None, uv_type: int = 5126, norma
         prim["material"] = 0
     if extensions:
         doc["extensionsUsed"] = extensions
+        if required:  # the file cannot be read without them (no uncompressed fallback)
+            doc["extensionsRequired"] = extensions
     buf = b"".join(blobs)
     doc["buffers"] = [{"byteLength": len(buf), "uri": "data:application/octet-stream;base64," +
                        base64.b64encode(buf).decode()}]
@@ -64,8 +66,8 @@ UV = np.float32([[0, 0], [1, 0], [1, 1], [0, 1]])
 
 
 @pytest.mark.parametrize("kw, says", [
-    (dict(extensions=["KHR_draco_mesh_compression"]), "KHR_draco_mesh_compression compressed geometry"),
-    (dict(extensions=["EXT_meshopt_compression"]), "EXT_meshopt_compression compressed geometry"),
+    (dict(extensions=["KHR_draco_mesh_compression"], required=True), "KHR_draco_mesh_compression compressed"),
+    (dict(extensions=["EXT_meshopt_compression"], required=True), "EXT_meshopt_compression compressed geometry"),
     (dict(uv=(UV * 65535).astype(np.uint16), uv_type=5123), "TEXCOORD_0 stored as normalized integers"),
     (dict(version="1.0"), "a glTF 1.0 file")])
 def test_geometry_the_reader_would_get_wrong_is_one_clear_error(tmp_path, cli, kw, says):
@@ -73,6 +75,13 @@ def test_geometry_the_reader_would_get_wrong_is_one_clear_error(tmp_path, cli, k
     rc, _, err = cli("convert", gltf(tmp_path / "f.gltf", **kw), tmp_path / "f.usda")
     assert rc == 2 and says in err and err.count("\n") == 1, err
     assert not (tmp_path / "f.usda").exists()
+
+
+def test_compression_only_used_reads_its_fallback(tmp_path, cli):
+    """Draco named in extensionsUsed alone: the file holds uncompressed geometry, which is read."""
+    rc, _, err = cli("convert", gltf(tmp_path / "f.gltf", extensions=["KHR_draco_mesh_compression"]),
+                     tmp_path / "f.usda")
+    assert rc == 0 and "KHR_draco_mesh_compression (not converted)" in err, err
 
 
 def test_a_file_without_normals_is_flat_and_fans_are_named(tmp_path, cli):

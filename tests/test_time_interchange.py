@@ -90,5 +90,5 @@ def Xform "Scene" {
 }
 ''')
     rc, _, err = cli("relight", stage, "--time", 2, "--max-side", 16, "-o", tmp_path / "o")
-    assert rc == 2 and "/Scene/Lights/User/Key is invisible then" in err and err.count("\n") == 1
+    assert rc == 2 and "at time code 2: /Scene/Lights/User/Key is invisible then" in err and err.count("\n") == 1
     assert cli("relight", stage, "--time", 1, "--max-side", 16, "-o", tmp_path / "o1")[0] == 0

@@ -339,9 +339,10 @@ class RelightSession:
                                       "first); or add --light, or put lights in lights_user.usda")
             hidden = invisible_lights(self._stage, frame_time(self._stage, self.time))
             if hidden:  # the user's lights are there, only invisible at this time
-                raise UsdRelightError(f"no light to relight with at time code {self.time}: {', '.join(hidden[:3])} "
-                                      f"{'is' if len(hidden) == 1 else 'are'} invisible then (add --light, or "
-                                      f"choose another --time)")
+                at = "" if self.time is None else f" at time code {self.time:g}"
+                raise UsdRelightError(f"no light to relight with{at}: {', '.join(hidden[:3])} "
+                                      f"{'is' if len(hidden) == 1 else 'are'} invisible{at and ' then'} (add "
+                                      f"--light, or make {'it' if len(hidden) == 1 else 'them'} visible)")
             raise UsdRelightError("no light to relight with: add --light, put lights in lights_user.usda, "
                                   "or pass --with-fitted")
         if area_samples is not None and self.engine.name != "fast":

@@ -144,7 +144,7 @@ def placed_meshes(rec: MeshRecord, mats: np.ndarray) -> MeshRecord:
     faces = faces + (np.arange(len(mats)) * len(rec.points))[:, None, None]
     normals = None
     if rec.normals is not None:
-        inv_t = np.transpose(np.linalg.inv(a), (0, 2, 1))
+        inv_t = np.transpose(np.linalg.pinv(a), (0, 2, 1))  # pinv: an instance scaled to 0 (hidden) too
         normals = np.einsum("nij,vj->nvi", inv_t, rec.normals)
         normals /= np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
         normals = normals.reshape(-1, 3)
