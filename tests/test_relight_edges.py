@@ -7,9 +7,11 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from conftest import build_procedural
-from usdrelight.imageio import read_map, write_image
+from usdrelight.imageio import display_exposure, linear_to_srgb, read_map, write_image
+from usdrelight.relight.session import RelightSession
 from usdrelight.stage.layout import USER_LIGHTS
 from usdrelight.stage.lights_layer import write_fitted_lights
 from usdrelight.stage.read import read_lights
@@ -211,3 +213,18 @@ def test_a_clip_without_any_light_is_still_an_error(cli, fitted, tmp_path):
     rc, _, err = cli("relight", fitted, "--frames", "1:3", "--mode", "render", "--max-side", "32", "-o", tmp_path / "o")
     assert rc == 2 and "no light to relight with at any frame" in err and err.count("\n") == 1, err
     assert not list((tmp_path / "o").glob("relit*")) if (tmp_path / "o").exists() else True
+
+
+def test_adding_a_small_bright_light_never_darkens_the_relit_png(tmp_path, cli):
+    """The PNG was divided by the relit image's own 99.5th percentile: a small bright pool pushed it to 1.7 and
+    the rest of the photo came out at 0.57x. It is shown at the photo's exposure now: brighter, clipped, never
+    darker than the photo."""
+    stage = build_procedural(tmp_path / "s")
+    res = cli.json("relight", stage, "--mode", "add", "--max-side", 128, "-o", tmp_path / "o",
+                   "--light", "rect:0,-0.9,-2.5:0,-1,0:400,400,400:0.3,0.3")
+    png = np.asarray(Image.open(res["png"]), np.float64)
+    with RelightSession(stage, max_side=128) as session:
+        photo = session.source_photo()
+    view = np.round(linear_to_srgb(photo / display_exposure(photo)) * 255.0)
+    assert np.percentile(read_map(res["exr"], 3), 99.5) > 1.5  # the pool would have set the exposure before
+    assert (png < view - 1).mean() == 0.0

@@ -249,8 +249,11 @@ def _run(session: RelightSession, stage_path, out, common, plan, numbered: bool,
         first, lit = None, False  # the first frame: the contact sheet shows it
         for i, (extra, t) in enumerate(steps):
             frame = session.render(common + extra, time_code=t, allow_dark=len(plan) > 1)  # a dark frame of a clip
-            if first is None:  # one exposure for every PNG of the clip, the first frame's, as its video has
-                first, exposure = frame, display_exposure(frame.image)
+            if first is None:  # one exposure for every PNG and the video: the photo's own view (a lamp added
+                photo = session.source_photo()  # brightens and clips, never darkens the rest), else the first frame's
+                first, exposure = frame, display_exposure(photo if photo is not None else frame.image)
+                if mp4 is not None:
+                    mp4.exposure = exposure
             lit = lit or frame.lights > 0
             pending.append(writer.submit(_write_frame, folder, f"_{i:04d}" if numbered else "", frame, mp4,
                                          exposure))

@@ -1,8 +1,8 @@
 """Relit frames -> an H.264 MP4 (PyAV, whose wheels bring their own FFmpeg: the ``video`` extra).
 
 Conventions: frames are linear RGB; each is shown as the PNGs are (sRGB), divided by one exposure for the whole
-clip, ``max(1, 99.5th percentile of the first frame)``, so brightness changes between frames stay visible and
-nothing flickers. Pixel format yuv420p (what every player decodes) when width and height are even, yuv444p
+clip, ``max(1, 99.5th percentile of the first frame)`` unless the caller sets :attr:`Mp4Writer.exposure` first
+(``relight``: the photo's), so brightness changes between frames stay visible and nothing flickers. Pixel format yuv420p (what every player decodes) when width and height are even, yuv444p
 otherwise (4:2:0 needs even sizes; the video keeps the stage's exact size either way), BT.709 matrix, limited range,
 tagged BT.709 (matrix, primaries, transfer) so that players do not guess. Quality: x264 CRF 16,
 one key frame per second. The file appears complete or not at all (:func:`usdrelight.atomic.atomic_path`).
@@ -79,7 +79,7 @@ class Mp4Writer:
 
         h, w = image.shape[:2]
         if self._container is None:
-            self.exposure = display_exposure(image)
+            self.exposure = display_exposure(image) if self.exposure is None else self.exposure
             self._container = self._av.open(str(self._tmp), "w", format="mp4")
             rate = Fraction(self.fps).limit_denominator(1001)
             self._stream = self._container.add_stream("libx264", rate=rate)
