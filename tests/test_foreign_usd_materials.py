@@ -217,3 +217,46 @@ def test_render_writes_the_beauty_of_a_stage_without_render_settings(tmp_path, c
     rc, _, err = cli("render", bare, "-o", tmp_path / "mine", "--spp", 1)
     assert rc == 2 and "is not a usdrelight render" in err
     assert read_map(tmp_path / "mine" / "color.exr", 3).shape == (2, 2, 3)
+
+
+def _usdz_asset(folder: Path, sky: np.ndarray) -> None:
+    """asset.usdz: a quad textured with a 16-bit PNG and a dome of ``sky`` (an EXR written past usdrelight's own
+    writer, which refuses Inf), referenced by shot/s.usda."""
+    import zipfile
+
+    import OpenImageIO as oiio
+
+    write_image(folder / "rgb16.png", np.full((4, 4, 3), 0.5, np.float32), "uint16")
+    out = oiio.ImageOutput.create(str(folder / "sky.exr"))
+    out.open(str(folder / "sky.exr"), oiio.ImageSpec(sky.shape[1], sky.shape[0], 3, "float"))
+    out.write_image(sky)
+    out.close()
+    mesh, material = QUAD.format(st=ST, file="rgb16.png", extra="").split('def Material "M" {', 1)
+    body = ('#usda 1.0\n(\n    defaultPrim = "Asset"\n)\ndef Xform "Asset" {\n' + mesh.replace("</M", "</Asset/M")
+            + 'def Material "M" {' + material.replace("</M", "</Asset/M")
+            + '\ndef DomeLight "Sky" {\n    asset inputs:texture:file = @sky.exr@\n}\n}\n')
+    with zipfile.ZipFile(folder / "asset.usdz", "w", zipfile.ZIP_STORED) as z:
+        z.writestr("asset.usda", body)
+        z.write(folder / "rgb16.png", "rgb16.png")
+        z.write(folder / "sky.exr", "sky.exr")
+    (folder / "shot").mkdir(exist_ok=True)
+    (folder / "shot" / "s.usda").write_text('#usda 1.0\ndef Xform "A" (prepend references = @../asset.usdz@)\n{\n}\n')
+
+
+def test_textures_inside_a_referenced_usdz_are_decided_and_checked_as_loose_files(tmp_path):
+    """A .usdz asset referenced by a shot: its 16-bit PNG was decoded as sRGB (by suffix) and its dome's Inf
+    texel accepted; loose, the same files were raw and refused."""
+    from usdrelight.errors import UsdRelightError
+    from usdrelight.safe_paths import allow_paths
+
+    sky = np.full((4, 8, 3), 0.5, np.float32)
+    _usdz_asset(tmp_path, sky)
+    with allow_paths([tmp_path]):
+        scene = read_scene(tmp_path / "shot" / "s.usda")
+    tex = scene.meshes[0].material.diffuse
+    assert tex.path.endswith("asset.usdz[rgb16.png]") and tex.color_space == "raw" and tex.linear
+    assert scene.lights[0].texture.color_space == "raw"
+    sky[1, 2] = np.inf
+    _usdz_asset(tmp_path, sky)
+    with allow_paths([tmp_path]), pytest.raises(UsdRelightError, match="NaN, Inf or above 1e30 texels"):
+        read_scene(tmp_path / "shot" / "s.usda")

@@ -19,6 +19,7 @@ from ..safe_paths import check_read, stage_folder
 from .light_syntax import MAX_RADIANCE
 from .lux import uniform_scale, world_scale
 from .records import LightRecord, TextureRecord
+from .usdz import packaged_file
 
 
 OLD_LUX_NAMES = "pre-21.02 UsdLux attribute names, without 'inputs:' (read)"
@@ -164,14 +165,14 @@ def _light_texture(prim, asset, what: str, warnings) -> TextureRecord:
     if not asset.resolvedPath:
         raise UsdRelightError(f"{what} texture not found: {asset.path} ({prim.GetPath()})")
     check_read(asset.resolvedPath, stage_folder(prim.GetStage()), f"{what} texture ({prim.GetPath()})")
-    if asset.resolvedPath.endswith("]"):  # inside a .usdz: decided by the file type when it is read
+    local = packaged_file(asset.resolvedPath) if asset.resolvedPath.endswith("]") else asset.resolvedPath
+    if local is None:  # inside a package in a package: decided by the file type when it is read
         return TextureRecord(asset.resolvedPath, "auto")
     # by what the file stores, as photos are read: float data is linear, integers sRGB (an 8-bit TIFF too); one
-    # header read, which also bounds the size before a renderer decodes it
-    tex = TextureRecord(asset.resolvedPath, "raw" if stored_format(asset.resolvedPath)[0] in LINEAR_FORMATS
-                        else "sRGB")
-    stat = os.stat(tex.path)
-    if _negative_texels(tex.path, stat.st_mtime_ns, stat.st_size):
+    # header read, which also bounds the size before a renderer decodes it (a referenced .usdz's: its copy)
+    tex = TextureRecord(asset.resolvedPath, "raw" if stored_format(local)[0] in LINEAR_FORMATS else "sRGB")
+    stat = os.stat(local)
+    if _negative_texels(str(local), stat.st_mtime_ns, stat.st_size):
         warnings[f"{what} texture with negative texels (read as 0)"] += 1
         tex = replace(tex, negative_texels=True)
     return tex

@@ -11,6 +11,7 @@ from ..errors import UsdRelightError
 from ..imageio import stored_format
 from ..safe_paths import check_read, stage_folder
 from .records import MaterialRecord, TextureRecord
+from .usdz import packaged_file
 
 __all__ = ["OPACITY_WARNING", "read_material"]
 
@@ -53,8 +54,9 @@ def _texture_from_source(shader, output_name: str, warnings, t) -> TextureRecord
     if cs not in ("raw", "sRGB", "auto"):
         warnings[f"UsdUVTexture sourceColorSpace '{cs}' (read as auto)"] += 1
         cs = "auto"
-    if not resolved.endswith("]"):  # not inside a .usdz (there: by its suffix): one header read, which also
-        by_data = _auto_color_space(resolved)  # bounds the size before a renderer decodes the file
+    local = packaged_file(resolved) if resolved.endswith("]") else resolved  # inside a referenced .usdz: its copy
+    if local is not None:  # one header read, which also bounds the size before a renderer decodes the file
+        by_data = _auto_color_space(str(local))
         cs = by_data if cs == "auto" else cs
     scale = _vec(shader, "scale", (1.0, 1.0, 1.0, 1.0), warnings, t)
     bias = _vec(shader, "bias", (0.0, 0.0, 0.0, 0.0), warnings, t)

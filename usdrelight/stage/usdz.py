@@ -104,3 +104,16 @@ def unpack_usdz(path) -> Path:
         raise UsdRelightError(f"cannot open stage {path}: not a usable .usdz package ({reason})") from None
     _UNPACKED[key] = folder / root
     return folder / root
+
+
+def packaged_file(path: str) -> Path | None:
+    """The plain file of a path inside a package, ``pkg.usdz[inner/name.png]`` (as USD resolves an asset of a
+    .usdz that a stage references), from the package unpacked (:func:`unpack_usdz`), so that its header and texels
+    can be read like any file's; None for any other path, a package inside a package, or an entry not there."""
+    if not path.endswith("]") or "[" not in path:
+        return None
+    package, inner = path[:-1].split("[", 1)
+    if "[" in inner or not is_usdz(package):
+        return None
+    local = unpack_usdz(package).parent.joinpath(*_safe_name(inner).parts)
+    return local if local.is_file() else None
