@@ -28,7 +28,7 @@ GLB_MAGIC, JSON_CHUNK = 0x46546C67, 0x4E4F534A
 #: The largest JSON document read (a .glb's JSON chunk, a .gltf file).
 MAX_JSON = 64 << 20
 #: Extensions the reader applies (emissive strength, punctual lights) or that only carry what trimesh reads itself.
-APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization", "KHR_lights_punctual"}
+APPLIED = {"KHR_materials_emissive_strength", "KHR_mesh_quantization", "KHR_lights_punctual", "KHR_texture_transform"}
 
 
 def glb_json(path: Path) -> dict | None:
@@ -148,6 +148,33 @@ def add_emissive_strengths(doc: dict, strengths: dict[str, float]) -> None:
                 used.append("KHR_materials_emissive_strength")
 
 
+def _texture_transform(mat: dict) -> tuple | None:
+    """A material's baseColorTexture KHR_texture_transform as UsdTransform2d values in st (scale x, scale y,
+    rotation in degrees, translation s, t): glTF's uv' = T R(r) S uv (v down) seen through st = (u, 1 - v) is
+    st' = R(-r) S st + (tx - sy sin r, 1 - ty - sy cos r)."""
+    pbr = mat.get("pbrMetallicRoughness") if isinstance(mat.get("pbrMetallicRoughness"), dict) else {}
+    info = pbr.get("baseColorTexture") if isinstance(pbr.get("baseColorTexture"), dict) else {}
+    ext = (info.get("extensions") or {}).get("KHR_texture_transform") if isinstance(info.get("extensions"), dict) \
+        else None
+    if not isinstance(ext, dict):
+        return None
+    try:
+        (ox, oy), r, (sx, sy) = ext.get("offset", (0, 0)), float(ext.get("rotation", 0)), ext.get("scale", (1, 1))
+        out = (float(sx), float(sy), -math.degrees(r), float(ox) - float(sy) * math.sin(r),
+               1.0 - float(oy) - float(sy) * math.cos(r))
+    except (TypeError, ValueError):
+        return None
+    return out if all(math.isfinite(x) for x in out) else None
+
+
+def texture_transforms(doc: dict) -> dict[str, dict]:
+    """Material name -> its base colour texture's KHR_texture_transform as a UsdTransform2d (``scale``,
+    ``rotation`` degrees CCW, ``translation``: :func:`usdrelight.stage.create.author_uv_texture`'s
+    ``st_transform``) (:func:`_per_material_name`)."""
+    return {k: {"scale": v[:2], "rotation": v[2], "translation": v[3:]}
+            for k, v in _per_material_name(doc, _texture_transform).items()}
+
+
 def emissive_strengths(doc: dict) -> dict[str, float]:
     """Material name -> ``KHR_materials_emissive_strength.emissiveStrength`` (:func:`_per_material_name`)."""
     return _per_material_name(doc, _emissive_strength)
@@ -225,10 +252,12 @@ def unconverted(doc: dict) -> Counter:
     for sampler in doc.get("samplers", []) or []:
         if isinstance(sampler, dict) and any(sampler.get(k, 10497) != 10497 for k in ("wrapS", "wrapT")):
             warnings["glTF texture sampler clamping or mirroring (repeat used)"] += 1
-    applied = emissive_strengths(doc)  # by material name: trimesh keeps names, not indices
+    applied, moved = emissive_strengths(doc), texture_transforms(doc)  # by name: trimesh keeps names, not indices
     for mat in doc.get("materials", []) or []:
         if isinstance(mat, dict) and _emissive_strength(mat) not in (None, 1.0) and mat.get("name") not in applied:
             warnings["KHR_materials_emissive_strength on an unnamed or same-named material (not applied)"] += 1
+        if isinstance(mat, dict) and _texture_transform(mat) is not None and mat.get("name") not in moved:
+            warnings["KHR_texture_transform on an unnamed or same-named material (not applied)"] += 1
     accessors = doc.get("accessors", []) or []
     for prim in primitives(doc):
         if prim.get("mode") in (2, 3, 6):

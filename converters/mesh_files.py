@@ -46,7 +46,7 @@ from usdrelight.stage.shapes import shape_mesh
 from usdrelight.stage.validate import check_finite
 
 from .gltf_extras import (add_emissive_strengths, base_color_factors, check_readable, emissive_strengths, glb_json,
-                          glb_with_json, gltf_files, gltf_json, primitives, unconverted)
+                          glb_with_json, gltf_files, gltf_json, primitives, texture_transforms, unconverted)
 from .gltf_lights import add_lights_and_camera, author_lights_and_cameras
 from .mesh_materials import EMISSIVE_WARNING, author_material, pbr_material, texture_uv
 from .obj_ply import obj_bytes, ply_bytes
@@ -231,6 +231,7 @@ def read_from_file(path, **options) -> ReadReport:
             warnings[line] += 1
     strengths, strengthened = (emissive_strengths(doc) if doc else {}), set()
     base_factors = base_color_factors(doc) if doc else {}
+    transforms = texture_transforms(doc) if doc else {}  # KHR_texture_transform: a UsdTransform2d
     warnings.update(unconverted(doc) if doc else {})
     flat = doc is not None and not any("NORMAL" in (prim.get("attributes") or {}) for prim in primitives(doc))
     if doc is not None and not flat and any("NORMAL" not in (prim.get("attributes") or {}) for prim in primitives(doc)):
@@ -282,7 +283,8 @@ def read_from_file(path, **options) -> ReadReport:
         if getattr(material, "doubleSided", False):  # glTF: no back-face culling for this material
             m.CreateDoubleSidedAttr(True)
         author_material(stage, mesh, m.GetPrim(), f"{ROOT}/Looks/{name}", usd_dir, suffix not in (".glb", ".gltf"),
-                        warnings, base_factors.get(getattr(material, "name", None)))
+                        warnings, base_factors.get(getattr(material, "name", None)),
+                        transforms.get(getattr(material, "name", None)))
     if not sum(used.values()):  # an empty file, or text trimesh parsed as nothing
         raise UsdRelightError(f"{path.name}: no mesh in the file (points, lines and triangle fans are not read; "
                               f"nothing was written)")

@@ -206,7 +206,8 @@ def _rgb8(image):
     return image.convert("RGB")
 
 
-def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings) -> None:
+def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings,
+                 st_transform: dict | None = None) -> None:
     """``surf.input_name`` = factor x image: an sRGB PNG ``textures/<mesh>_<label>_<sha8>.png`` beside the USD file
     whose UsdUVTexture ``scale`` is the factor (a stage in memory: the image's mean colour times the factor,
     warned); no image: the constant factor."""
@@ -221,7 +222,8 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
         rel = f"textures/{name}_{label}_{hashlib.sha256(buf.getvalue()).hexdigest()[:8]}.png"
         write_bytes_atomic(Path(usd_dir) / rel, buf.getvalue())
         tex = author_uv_texture(stage, surf, input_name, "./" + rel, "sRGB", f"{look}/{label[0].upper()}"
-                                f"{label[1:]}Texture", f"{look}/StReader", wrap="repeat")  # glTF's default wrap
+                                f"{label[1:]}Texture", f"{look}/StReader", wrap="repeat",  # glTF's default wrap
+                                st_transform=st_transform)
         if np.any(rgb != 1.0):
             tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*map(float, rgb), 1.0))
         return
@@ -232,7 +234,7 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
 
 
 def author_material(stage, mesh, mesh_prim, look: str, usd_dir, srgb_colors: bool, warnings: Counter,
-                    base_factor=None) -> None:
+                    base_factor=None, st_transform: dict | None = None) -> None:
     """A UsdPreviewSurface at ``look`` from ``mesh``'s trimesh material (and its vertex colours), bound to
     ``mesh_prim``; textures are written under ``usd_dir`` (None: a stage in memory). ``base_factor``: the glTF
     file's own RGBA baseColorFactor (trimesh's is 8-bit)."""
@@ -269,7 +271,8 @@ def author_material(stage, mesh, mesh_prim, look: str, usd_dir, srgb_colors: boo
     else:
         if colors is not None:
             warnings["vertex colours with a base colour texture (kept as primvars:displayColor, not applied)"] += 1
-        _color_input(stage, surf, "diffuseColor", look, "baseColor", t["base"], t["image"], usd_dir, warnings)
+        _color_input(stage, surf, "diffuseColor", look, "baseColor", t["base"], t["image"], usd_dir, warnings,
+                     st_transform)
     if np.max(t["emissive"]) > 0.0:
         _color_input(stage, surf, "emissiveColor", look, "emissive", t["emissive"], t["emissive_image"], usd_dir,
                      warnings)

@@ -161,3 +161,28 @@ def test_obj_textures_it_cannot_read_are_named_and_a_node_called_looks_keeps_its
     stage = Usd.Stage.Open(str(tmp_path / "l.usda"))
     assert stage.GetPrimAtPath("/World/Looks_mesh").IsA(UsdGeom.Mesh)
     assert not stage.GetPrimAtPath("/World/Looks").IsA(UsdGeom.Mesh)  # the materials' scope, not a mesh
+
+
+def test_a_texture_transform_becomes_a_usd_transform2d_that_reads_the_same_texels(tmp_path, cli):
+    """KHR_texture_transform (tiling, offset, rotation: Sketchfab and three.js files) was warned and dropped."""
+    from usdrelight.stage.read import read_scene
+
+    png = io.BytesIO()
+    Image.fromarray(np.full((2, 2, 3), 200, np.uint8)).save(png, format="PNG")
+    src = gltf(tmp_path / "t.gltf", uv=UV, image=png.getvalue())
+    doc = json.loads(src.read_text())
+    r, (sx, sy), (ox, oy) = 0.3, (2.0, 0.5), (0.1, 0.2)
+    doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["extensions"] = {
+        "KHR_texture_transform": {"offset": [ox, oy], "rotation": r, "scale": [sx, sy]}}
+    doc["extensionsUsed"] = ["KHR_texture_transform"]
+    src.write_text(json.dumps(doc))
+    rc, _, err = cli("convert", src, tmp_path / "t.usda")
+    assert rc == 0 and "KHR_texture_transform" not in err, err
+    (mesh,) = read_scene(tmp_path / "t.usda").meshes
+    m = mesh.material.diffuse.st_matrix()
+    st_looked = mesh.uv @ m[:2, :2].T + m[:2, 2]
+    # glTF: uv' = T R(r) S uv with v down; USD st = (u, 1 - v) of the same texel
+    uv = np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
+    rot = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
+    uv_looked = uv @ (rot @ np.diag([sx, sy])).T + [ox, oy]
+    np.testing.assert_allclose(st_looked, np.stack([uv_looked[:, 0], 1.0 - uv_looked[:, 1]], 1), atol=1e-6)
