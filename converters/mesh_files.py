@@ -67,21 +67,24 @@ Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 def missing_mtl(path: Path) -> list[str]:
     """The material libraries an OBJ file names (``mtllib``) that are not files in its folder (trimesh goes on
     without them, in silence; it reads none outside the folder)."""
-    names = []
-    for line in path.read_bytes().split(b"\n"):
-        parts = line.split(b"#", 1)[0].strip().split(None, 1)
-        if parts[:1] == [b"mtllib"] and len(parts) == 2:  # the rest of the line, as trimesh reads it (Blender
-            names.append(parts[1].strip().decode("utf-8", "replace"))  # writes "mtllib my scene.mtl" unquoted)
     folder = path.parent.resolve()  # trimesh reads nothing outside the OBJ's folder (its resolver's root)
-    return [n for n in names if not (path.parent / n).is_file() or folder not in (path.parent / n).resolve().parents]
+    return [n for n in _mtllibs(path)
+            if not (path.parent / n).is_file() or folder not in (path.parent / n).resolve().parents]
+
+
+def _mtllibs(path: Path) -> list[str]:
+    """The material libraries an OBJ file names: the rest of each ``mtllib`` line, as trimesh reads it (Blender
+    writes "mtllib my scene.mtl" unquoted)."""
+    return [parts[1] for parts in (line.split(None, 1) for line in _lines(path))
+            if parts[:1] == ["mtllib"] and len(parts) == 2]
 
 
 def missing_maps(path: Path) -> list[str]:
     """One warning per ``map_Kd`` of the OBJ's material libraries that its reader leaves untextured in silence: a
     file that is not there (a Windows path with backslashes, too) or one written with options (-s, -o ...)."""
     out = []
-    for lib in set(sum((line.split(None, 1)[1:] for line in _lines(path) if line.startswith("mtllib")), [])):
-        mtl = path.parent / lib.strip()
+    for lib in sorted(set(_mtllibs(path))):
+        mtl = path.parent / lib
         for line in _lines(mtl) if mtl.is_file() and path.parent.resolve() in mtl.resolve().parents else ():
             parts = line.split(None, 1)
             if parts[:1] != ["map_Kd"] or len(parts) < 2:
