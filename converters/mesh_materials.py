@@ -154,8 +154,9 @@ def _material_terms(material, warnings: Counter) -> dict:
         for slot in UNREAD_TEXTURES:
             if getattr(material, slot, None) is not None:
                 warnings[f"glTF {slot} (not converted)"] += 1
-        if material.alphaMode in ("BLEND", "MASK"):
-            warnings[f"glTF alphaMode {material.alphaMode} (rendered opaque)"] += 1
+        out["alpha_mode"] = material.alphaMode if material.alphaMode in ("BLEND", "MASK") else None
+        cutoff = getattr(material, "alphaCutoff", None)
+        out["alpha_cutoff"] = 0.5 if cutoff is None else float(cutoff)  # glTF's default cutoff
     elif hasattr(material, "kwargs"):  # OBJ/MTL (trimesh's SimpleMaterial)
         kd = _mtl_floats(material, "kd", None)
         out["base"] = np.ones(4) if kd is None else _rgb_factor(np.resize(kd, 3), np.ones(4))
@@ -206,6 +207,39 @@ def _rgb8(image):
     return image.convert("RGB")
 
 
+def _write_png(image, usd_dir, look: str, label: str) -> str:
+    """``image`` as ``textures/<mesh>_<label>_<sha8>.png`` beside the USD file; returns that relative path (the
+    digest of its bytes in the name: another file's texture of the same name never overwrites it)."""
+    buf = io.BytesIO()
+    image.save(buf, format="PNG")
+    rel = f"textures/{look.rsplit('/', 1)[1]}_{label}_{hashlib.sha256(buf.getvalue()).hexdigest()[:8]}.png"
+    write_bytes_atomic(Path(usd_dir) / rel, buf.getvalue())
+    return rel
+
+
+def _opacity(stage, surf, look: str, t: dict, usd_dir, warnings, st_transform: dict | None) -> None:
+    """glTF alphaMode MASK / BLEND as UsdPreviewSurface ``opacity`` (the base colour's alpha: baseColorFactor's
+    x the texture's alpha channel, a raw one-channel PNG) and, for MASK, ``opacityThreshold`` = alphaCutoff (a
+    cutout, as glTF draws it). BLEND keeps its partial opacity (Mitsuba blends it; the fast renderer: opaque)."""
+    from pxr import Gf, Sdf
+
+    base, image = np.asarray(t["base"], np.float64).reshape(-1), t["image"]
+    factor = float(base[3]) if len(base) > 3 else 1.0
+    has_alpha = image is not None and (image.mode in ("RGBA", "LA", "PA") or "transparency" in image.info)
+    if has_alpha and usd_dir is not None:
+        rel = _write_png(image.convert("RGBA").getchannel("A"), usd_dir, look, "alpha")
+        tex = author_uv_texture(stage, surf, "opacity", "./" + rel, "raw", f"{look}/AlphaTexture",
+                                f"{look}/StReader", wrap="repeat", output="r", st_transform=st_transform)
+        if factor != 1.0:
+            tex.CreateInput("scale", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(factor, factor, factor, 1.0))
+    else:
+        if has_alpha:
+            warnings["texture alpha in an in-memory stage (the factor's alpha used)"] += 1
+        surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(factor)
+    if t["alpha_mode"] == "MASK":
+        surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(t["alpha_cutoff"])
+
+
 def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings,
                  st_transform: dict | None = None) -> None:
     """``surf.input_name`` = factor x image: an sRGB PNG ``textures/<mesh>_<label>_<sha8>.png`` beside the USD file
@@ -215,12 +249,7 @@ def _color_input(stage, surf, input_name: str, look: str, label: str, factor, im
 
     rgb = np.asarray(factor, np.float64)[:3]
     if image is not None and usd_dir is not None:
-        name = look.rsplit("/", 1)[1]
-        buf = io.BytesIO()
-        _rgb8(image).save(buf, format="PNG")
-        # the digest of its bytes in the name: another file's texture of the same name never overwrites it
-        rel = f"textures/{name}_{label}_{hashlib.sha256(buf.getvalue()).hexdigest()[:8]}.png"
-        write_bytes_atomic(Path(usd_dir) / rel, buf.getvalue())
+        rel = _write_png(_rgb8(image), usd_dir, look, label)
         tex = author_uv_texture(stage, surf, input_name, "./" + rel, "sRGB", f"{look}/{label[0].upper()}"
                                 f"{label[1:]}Texture", f"{look}/StReader", wrap="repeat",  # glTF's default wrap
                                 st_transform=st_transform)
@@ -276,4 +305,6 @@ def author_material(stage, mesh, mesh_prim, look: str, usd_dir, srgb_colors: boo
     if np.max(t["emissive"]) > 0.0:
         _color_input(stage, surf, "emissiveColor", look, "emissive", t["emissive"], t["emissive_image"], usd_dir,
                      warnings)
+    if t.get("alpha_mode"):
+        _opacity(stage, surf, look, t, usd_dir, warnings, st_transform)
     UsdShade.MaterialBindingAPI.Apply(mesh_prim).Bind(mat)

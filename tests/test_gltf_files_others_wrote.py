@@ -186,3 +186,29 @@ def test_a_texture_transform_becomes_a_usd_transform2d_that_reads_the_same_texel
     rot = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
     uv_looked = uv @ (rot @ np.diag([sx, sy])).T + [ox, oy]
     np.testing.assert_allclose(st_looked, np.stack([uv_looked[:, 0], 1.0 - uv_looked[:, 1]], 1), atol=1e-6)
+
+
+def test_alpha_mask_and_blend_become_opacity(tmp_path, cli):
+    """glTF alphaMode MASK (foliage cards) and BLEND were warned and rendered opaque."""
+    from usdrelight.stage.read import read_scene
+
+    rgba = np.zeros((2, 2, 4), np.uint8)
+    rgba[..., :3], rgba[:, 1, 3] = 200, 255  # the left column transparent
+    png = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(png, format="PNG")
+    src = gltf(tmp_path / "m.gltf", uv=UV, image=png.getvalue())
+    doc = json.loads(src.read_text())
+    doc["materials"][0].update(alphaMode="MASK", alphaCutoff=0.3)
+    src.write_text(json.dumps(doc))
+    rc, _, err = cli("convert", src, tmp_path / "m.usda")
+    assert rc == 0 and "alphaMode" not in err, err
+    mat = read_scene(tmp_path / "m.usda").meshes[0].material
+    assert mat.opacity_threshold == pytest.approx(0.3) and mat.opacity.channel == "r" and mat.opacity.linear
+    alpha = np.asarray(Image.open(mat.opacity.path))
+    assert alpha.ndim == 2 and alpha[:, 0].max() == 0 and alpha[:, 1].min() == 255
+    doc["materials"][0].pop("alphaCutoff")
+    doc["materials"][0].update(alphaMode="BLEND", pbrMetallicRoughness={"baseColorFactor": [1, 1, 1, 0.4]})
+    src.write_text(json.dumps(doc))
+    assert cli("convert", src, tmp_path / "b.usda")[0] == 0
+    mat = read_scene(tmp_path / "b.usda").meshes[0].material
+    assert mat.opacity == pytest.approx(0.4) and mat.opacity_threshold == 0.0
