@@ -102,19 +102,22 @@ def gltf_files(doc: dict, path: Path, warnings: Counter) -> dict[str, bytes]:
 
 def _per_material_name(doc: dict, value_of) -> dict:
     """Material name -> ``value_of(material)`` (None: no value) over the file's materials; a name two materials
-    share with different values is left out (trimesh names materials, not indices)."""
+    share with different values (one with a value and one without, too) is left out (trimesh names materials,
+    not indices: a value given to the name would reach both)."""
     out: dict = {}
     clash = set()
     for mat in doc.get("materials", []) or []:
         if not isinstance(mat, dict) or not isinstance(mat.get("name"), str):
             continue
         value = value_of(mat)
-        if value is None:
-            continue
-        if mat["name"] in out and not np.array_equal(out[mat["name"]], value):
+        if mat["name"] in out and not _same(out[mat["name"]], value):
             clash.add(mat["name"])
         out[mat["name"]] = value
-    return {k: v for k, v in out.items() if k not in clash}
+    return {k: v for k, v in out.items() if k not in clash and v is not None}
+
+
+def _same(a, b) -> bool:
+    return (a is None) == (b is None) and (a is None or bool(np.array_equal(a, b)))
 
 
 def _emissive_strength(mat: dict) -> float | None:
@@ -150,8 +153,9 @@ def add_emissive_strengths(doc: dict, strengths: dict[str, float]) -> None:
 
 def _texture_transform(mat: dict) -> tuple | None:
     """A material's baseColorTexture KHR_texture_transform as UsdTransform2d values in st (scale x, scale y,
-    rotation in degrees, translation s, t): glTF's uv' = T R(r) S uv (v down) seen through st = (u, 1 - v) is
-    st' = R(-r) S st + (tx - sy sin r, 1 - ty - sy cos r)."""
+    rotation in degrees, translation s, t): glTF's uv' = T R(-r) S uv (v down; its rotation matrix is
+    [[cos r, sin r], [-sin r, cos r]]) seen through st = (u, 1 - v) is st' = R(r) S st + (tx + sy sin r,
+    1 - ty - sy cos r). None when absent or malformed."""
     pbr = mat.get("pbrMetallicRoughness") if isinstance(mat.get("pbrMetallicRoughness"), dict) else {}
     info = pbr.get("baseColorTexture") if isinstance(pbr.get("baseColorTexture"), dict) else {}
     ext = (info.get("extensions") or {}).get("KHR_texture_transform") if isinstance(info.get("extensions"), dict) \
@@ -160,11 +164,27 @@ def _texture_transform(mat: dict) -> tuple | None:
         return None
     try:
         (ox, oy), r, (sx, sy) = ext.get("offset", (0, 0)), float(ext.get("rotation", 0)), ext.get("scale", (1, 1))
-        out = (float(sx), float(sy), -math.degrees(r), float(ox) - float(sy) * math.sin(r),
+        out = (float(sx), float(sy), math.degrees(r), float(ox) + float(sy) * math.sin(r),
                1.0 - float(oy) - float(sy) * math.cos(r))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return None
-    return out if all(math.isfinite(x) for x in out) else None
+    return out if all(math.isfinite(x) and abs(x) < 3e38 for x in out) else None
+
+
+def _transforms(mat) -> list[tuple[str, dict]]:
+    """(texture slot, its KHR_texture_transform) of every texture of a material that has one."""
+    if not isinstance(mat, dict):
+        return []
+    pbr = mat.get("pbrMetallicRoughness") if isinstance(mat.get("pbrMetallicRoughness"), dict) else {}
+    infos = {**{k: mat.get(k) for k in ("normalTexture", "occlusionTexture", "emissiveTexture")},
+             **{k: pbr.get(k) for k in ("baseColorTexture", "metallicRoughnessTexture")}}
+    out = []
+    for slot, info in infos.items():
+        ext = (info.get("extensions") or {}) if isinstance(info, dict) else {}
+        t = ext.get("KHR_texture_transform") if isinstance(ext, dict) else None
+        if t is not None:
+            out.append((slot, t if isinstance(t, dict) else {}))
+    return out
 
 
 def texture_transforms(doc: dict) -> dict[str, dict]:
@@ -258,6 +278,13 @@ def unconverted(doc: dict) -> Counter:
             warnings["KHR_materials_emissive_strength on an unnamed or same-named material (not applied)"] += 1
         if isinstance(mat, dict) and _texture_transform(mat) is not None and mat.get("name") not in moved:
             warnings["KHR_texture_transform on an unnamed or same-named material (not applied)"] += 1
+        for slot, ext in _transforms(mat):
+            if slot != "baseColorTexture":
+                warnings[f"KHR_texture_transform on a {slot} (not applied: the texture is not converted)"] += 1
+            elif "texCoord" in ext:
+                warnings["KHR_texture_transform texCoord override (TEXCOORD_0 used)"] += 1
+            elif _texture_transform(mat) is None:
+                warnings["malformed KHR_texture_transform (not applied)"] += 1
     accessors = doc.get("accessors", []) or []
     for prim in primitives(doc):
         if prim.get("mode") in (2, 3, 6):

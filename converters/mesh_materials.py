@@ -220,7 +220,9 @@ def _write_png(image, usd_dir, look: str, label: str) -> str:
 def _opacity(stage, surf, look: str, t: dict, usd_dir, warnings, st_transform: dict | None) -> None:
     """glTF alphaMode MASK / BLEND as UsdPreviewSurface ``opacity`` (the base colour's alpha: baseColorFactor's
     x the texture's alpha channel, a raw one-channel PNG) and, for MASK, ``opacityThreshold`` = alphaCutoff (a
-    cutout, as glTF draws it). BLEND keeps its partial opacity (Mitsuba blends it; the fast renderer: opaque)."""
+    cutout, as glTF draws it). BLEND keeps its partial opacity, with ior 1 (alpha blending sees through without
+    refraction; UsdPreviewSurface's ior would make a glass pane). The fast renderer hands a textured opacity to
+    Mitsuba (warned)."""
     from pxr import Gf, Sdf
 
     base, image = np.asarray(t["base"], np.float64).reshape(-1), t["image"]
@@ -238,6 +240,8 @@ def _opacity(stage, surf, look: str, t: dict, usd_dir, warnings, st_transform: d
         surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(factor)
     if t["alpha_mode"] == "MASK":
         surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(t["alpha_cutoff"])
+    else:
+        surf.CreateInput("ior", Sdf.ValueTypeNames.Float).Set(1.0)
 
 
 def _color_input(stage, surf, input_name: str, look: str, label: str, factor, image, usd_dir, warnings,

@@ -183,9 +183,22 @@ def test_a_texture_transform_becomes_a_usd_transform2d_that_reads_the_same_texel
     st_looked = mesh.uv @ m[:2, :2].T + m[:2, 2]
     # glTF: uv' = T R(r) S uv with v down; USD st = (u, 1 - v) of the same texel
     uv = np.stack([mesh.uv[:, 0], 1.0 - mesh.uv[:, 1]], 1)
-    rot = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
+    rot = np.array([[np.cos(r), np.sin(r)], [-np.sin(r), np.cos(r)]])  # the extension's matrix (its spec)
     uv_looked = uv @ (rot @ np.diag([sx, sy])).T + [ox, oy]
     np.testing.assert_allclose(st_looked, np.stack([uv_looked[:, 0], 1.0 - uv_looked[:, 1]], 1), atol=1e-6)
+    # the spec's example: offset (0, 1), rotation pi/2, scale 0.5 reads the image's lower-left quadrant
+    doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["extensions"]["KHR_texture_transform"] = {
+        "offset": [0, 1], "rotation": np.pi / 2, "scale": [0.5, 0.5]}
+    src.write_text(json.dumps(doc))
+    assert cli("convert", src, tmp_path / "e.usda")[0] == 0
+    (mesh,) = read_scene(tmp_path / "e.usda").meshes
+    m = mesh.material.diffuse.st_matrix()
+    centre = m[:2, :2] @ [0.5, 0.5] + m[:2, 2]  # st; the image's lower-left quadrant is s < 0.5, t < 0.5
+    np.testing.assert_allclose(centre, [0.25, 0.25], atol=1e-6)
+    doc["materials"].append({"name": "M"})  # a second material of the same name, without a transform
+    src.write_text(json.dumps(doc))
+    rc, _, err = cli("convert", src, tmp_path / "c.usda")
+    assert rc == 0 and "KHR_texture_transform on an unnamed or same-named material (not applied)" in err, err
 
 
 def test_alpha_mask_and_blend_become_opacity(tmp_path, cli):
@@ -211,4 +224,4 @@ def test_alpha_mask_and_blend_become_opacity(tmp_path, cli):
     src.write_text(json.dumps(doc))
     assert cli("convert", src, tmp_path / "b.usda")[0] == 0
     mat = read_scene(tmp_path / "b.usda").meshes[0].material
-    assert mat.opacity == pytest.approx(0.4) and mat.opacity_threshold == 0.0
+    assert mat.opacity == pytest.approx(0.4) and mat.opacity_threshold == 0.0 and mat.ior == 1.0  # no glass pane
