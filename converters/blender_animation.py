@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from usdrelight.errors import UsdRelightError
-from usdrelight.stage.lux import emitted_radiance, split_rgb
+from usdrelight.stage.lux import emitted_radiance, is_light, split_rgb
 from usdrelight.stage.read import gf_to_np, read_lights, stage_meters_per_unit
 from usdrelight.stage.timing import (light_time_codes, spline_motion, stage_time_range, value_times,
                                     xformable_ancestors)
@@ -136,11 +136,10 @@ LINEAR_ALONE = ("inputs:intensity", "inputs:width", "inputs:height", "inputs:ang
 
 def _light_prims(stage) -> list:
     """The stage's UsdLux lights that are not meshes (instance proxies included), as read_lights finds them."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom
 
     return [p for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
-            if (p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
-            and not p.IsA(UsdGeom.Mesh) and p.GetTypeName() != "CylinderLight"]  # those two: Blender meshes
+            if is_light(p) and not p.IsA(UsdGeom.Mesh) and p.GetTypeName() != "CylinderLight"]  # those two: Blender meshes
 
 
 def _light_motion(prim) -> tuple[bool, set[float], set[float]]:

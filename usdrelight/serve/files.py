@@ -28,6 +28,7 @@ from ..errors import UsdRelightError, one_line
 from ..neural.model import write_relit
 from ..safe_paths import confined_path
 from ..stage.layout import LIGHTS, ROOT, USER_LIGHTS, USER_LIGHTS_SCOPE
+from ..stage.lux import is_light
 from ..stage.read import gf_to_np
 from ..stage.timing import layer_has_spline, spline_motion
 from .opinions import only_app_opinions, spec_texts
@@ -180,15 +181,14 @@ def read_user_states(stage, hdri_names: dict, keys: dict | None = None) -> tuple
 
     ``keys`` (a dict) gains ``{name: {time code: state}}`` for each editable light with time samples (its state
     in the list is then its first key); a light whose animation the app cannot key is one of the others."""
-    from pxr import Usd, UsdLux
+    from pxr import Usd
 
     scope = stage.GetPrimAtPath(USER_LIGHTS_SCOPE)
     states, others = [], []
     if not scope:
         return states, others
     for prim in Usd.PrimRange(scope):
-        if prim == scope or not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase)
-                                  or prim.IsA(UsdLux.NonboundableLightBase)):
+        if prim == scope or not is_light(prim):
             continue
         state, animation = None, _read_keys(prim, hdri_names) if prim.GetParent() == scope else None
         if animation:

@@ -81,6 +81,15 @@ glTF) takes without a warning: the fallback 0.53 (the sun's disk) blurs a shadow
 from its caster."""
 
 
+def is_light(prim) -> bool:
+    """Whether a USD prim is a UsdLux light: any light schema, or a prim with LightAPI applied (a MeshLightAPI
+    mesh, a light of another schema family)."""
+    from pxr import UsdLux
+
+    return prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or \
+        prim.IsA(UsdLux.NonboundableLightBase)
+
+
 def light_direction(light: LightRecord) -> np.ndarray:
     """World direction of the light's local -Z axis (where disk, rect, distant and spots point)."""
     d = light.to_world[:3, :3] @ np.array([0.0, 0.0, -1.0])

@@ -34,7 +34,7 @@ from .camera import CONFORM_POLICIES, check_clipping, depth_of_field, intrinsics
 from .read_geometry import mesh_area, read_material, read_mesh
 from .read_gprims import check_instanced_size, ellipsoid_mesh, instance_matrices, placed_meshes, \
     prototype_gprims, read_shape
-from .lux import uniform_scale
+from .lux import is_light, uniform_scale
 from .read_lux import read_light
 from .timing import frame_time, rescaled_layers
 from .validate import open_stage
@@ -210,7 +210,7 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
     """Only the lights of ``stage`` (a ``Usd.Stage``) at ``time`` (a time code: a number or ``Usd.TimeCode``;
     None: as :func:`read_scene`), in metres, as :func:`read_scene` reads them: what a frame of an animation needs
     once the scene itself is read. Invisible lights (``visibility`` at ``time``) are left out."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom
 
     t = Usd.TimeCode(time) if isinstance(time, Usd.TimeCode) else frame_time(stage, time)
     mpu = stage_meters_per_unit(stage)
@@ -222,8 +222,7 @@ def read_lights(stage, time=None) -> tuple[LightRecord, ...]:
         if prim.IsA(UsdGeom.PointInstancer):  # as read_scene: a prototype's light is not lit where it stands
             prims.PruneChildren()
             continue
-        if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
-                prim.IsA(UsdLux.NonboundableLightBase)):
+        if not is_light(prim):
             continue
         img = UsdGeom.Imageable(prim)
         if img and (img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or
@@ -265,7 +264,7 @@ def read_scene(stage, time=None) -> SceneRecord:
     metersPerUnit applied; see the module docstring). ``time``: the USD time code to read (a number or a
     ``Usd.TimeCode``; None: the frame every command reads without ``--time``, the stage's startTimeCode, else its
     earliest samples: :func:`usdrelight.stage.timing.frame_time`)."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom
 
     if not isinstance(stage, Usd.Stage):
         stage = open_stage(stage)
@@ -286,9 +285,8 @@ def read_scene(stage, time=None) -> SceneRecord:
             if img.ComputeVisibility(t) == UsdGeom.Tokens.invisible or \
                     img.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
                 continue
-        is_light = prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or \
-            prim.IsA(UsdLux.NonboundableLightBase)
-        if is_light and not prim.IsA(UsdGeom.Mesh):  # a mesh light (MeshLightAPI) is read as a mesh too, below
+        light_prim = is_light(prim)
+        if light_prim and not prim.IsA(UsdGeom.Mesh):  # a mesh light (MeshLightAPI) is read as a mesh too, below
             light = read_light(prim, _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu), warnings, t=t)
             if light is not None:
                 lights.append(light)
@@ -298,7 +296,7 @@ def read_scene(stage, time=None) -> SceneRecord:
         xf = _finite_xform(xcache.GetLocalToWorldTransform(prim), prim, mpu)
         records, shape = _gprim_records(prim, xf, t, warnings)
         meshes.extend(records)
-        if is_light and prim.IsA(UsdGeom.Mesh) and records:  # (no triangle: no emitter, read_mesh warned)
+        if light_prim and prim.IsA(UsdGeom.Mesh) and records:  # (no triangle: no emitter, read_mesh warned)
             lights.append(read_light(prim, xf, warnings, float(sum(mesh_area(m) for m in records)), t=t))
         _add_shape(shape, meshes, shapes)
     camera, products, resolution = _render_camera(stage, xcache, t, warnings, mpu)

@@ -20,6 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import UsdRelightError
+from .lux import is_light
 from .mesh_math import normal_inverse
 from .records import MeshRecord, ShapeRecord
 
@@ -109,7 +110,7 @@ def instance_matrices(prim, t, mpu: float, xcache, n_protos: int) -> tuple[np.nd
 def prototype_gprims(root, t, warnings) -> list[tuple[object, np.ndarray]]:
     """(gprim prim, its transform in the prototype root's space, in the stage's units, column vectors) of the
     drawable gprims under (and including) the prototype ``root``."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom
 
     out = []
     cache = UsdGeom.XformCache(t)
@@ -117,7 +118,7 @@ def prototype_gprims(root, t, warnings) -> list[tuple[object, np.ndarray]]:
         if p.IsA(UsdGeom.PointInstancer) and p != root:
             warnings["PointInstancer inside a PointInstancer's prototype (not expanded)"] += 1
             continue
-        if p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase):
+        if is_light(p):
             warnings["light inside a PointInstancer's prototype (not instanced)"] += 1
             continue
         if not p.IsA(UsdGeom.Gprim) or UsdGeom.Imageable(p).ComputePurpose() in (UsdGeom.Tokens.guide,

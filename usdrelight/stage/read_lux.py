@@ -17,7 +17,7 @@ from ..errors import UsdRelightError
 from ..imageio import LINEAR_FORMATS, read_raw, stored_format
 from ..safe_paths import check_read, stage_folder
 from .light_syntax import MAX_RADIANCE
-from .lux import uniform_scale, world_scale
+from .lux import is_light, uniform_scale, world_scale
 from .records import LightRecord, TextureRecord
 from .usdz import packaged_file
 
@@ -226,8 +226,7 @@ def _rot_x(deg: float) -> np.ndarray:
 def invisible_lights(stage, t) -> list[str]:
     """Paths of the stage's UsdLux lights that are invisible at time code ``t`` (a ``Usd.TimeCode``: their own
     ``visibility`` or an ancestor's), which no renderer draws then."""
-    from pxr import Usd, UsdGeom, UsdLux
+    from pxr import Usd, UsdGeom
 
     return [str(p.GetPath()) for p in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate))
-            if (p.HasAPI(UsdLux.LightAPI) or p.IsA(UsdLux.BoundableLightBase) or p.IsA(UsdLux.NonboundableLightBase))
-            and p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility(t) == UsdGeom.Tokens.invisible]
+            if is_light(p) and p.IsA(UsdGeom.Imageable) and UsdGeom.Imageable(p).ComputeVisibility(t) == UsdGeom.Tokens.invisible]

@@ -24,6 +24,7 @@ import os
 from dataclasses import dataclass
 
 from ..errors import UsdRelightError
+from .lux import is_light
 
 MAX_FRAMES = 10_000
 """Most time codes one ``--frames`` range may hold (checked before anything renders)."""
@@ -266,12 +267,11 @@ def is_time_varying(attr) -> bool:
 def light_time_codes(stage) -> list[float]:
     """Every time code at which any light attribute or transform of ``stage`` has a sample or a spline knot
     (:func:`value_times`), sorted (for tools that key what a stage authors, e.g. the Blender converter)."""
-    from pxr import UsdGeom, UsdLux
+    from pxr import UsdGeom
 
     codes: set[float] = set()
     for prim in stage.Traverse():
-        if not (prim.HasAPI(UsdLux.LightAPI) or prim.IsA(UsdLux.BoundableLightBase) or
-                prim.IsA(UsdLux.NonboundableLightBase)):
+        if not is_light(prim):
             continue
         for p in [prim] + xformable_ancestors(prim):
             for attr in p.GetAttributes():
